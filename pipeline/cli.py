@@ -1,0 +1,148 @@
+"""The ``btf`` command line: one subcommand per stage, plus ``btf run CONFIG``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from functools import partial
+
+from pipeline import __version__
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, add_arguments, from_namespace
+from pipeline.runtime import LOCAL_SCHEDULERS, RuntimeOptions, Session, check_scheduler
+from pipeline.stages import STAGES, Stage
+
+EPILOG = """\
+examples:
+  btf generate out/wood.zarr --material wood --size 512 --sampling abtf:24,8
+  btf inspect out/wood.zarr --scan
+  btf preview out/wood.zarr out/wood.png
+  btf export out/wood.zarr out/layers --light 0,8,16 --format exr
+  btf ingest out/layers out/again.zarr
+  btf run configs/demo.yaml --scheduler tcp://127.0.0.1:8786
+
+'btf COMMAND --help' explains each command's options."""
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    def __init__(self, prog):
+        super().__init__(prog, max_help_position=32)
+
+
+def _scheduler(text: str) -> str:
+    try:
+        return check_scheduler(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _runtime_parser() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    group = parent.add_argument_group("scheduling")
+    group.add_argument(
+        "--scheduler", type=_scheduler, default=None, metavar="NAME",
+        help=f"where to compute: {', '.join(LOCAL_SCHEDULERS)} (dask's local schedulers) or "
+             "tcp://HOST:PORT of a running dask scheduler (default: threads)")
+    group.add_argument("--workers", type=_positive, default=None, metavar="N",
+                       help="local worker threads or processes (default: one per core)")
+    group.add_argument("-q", "--quiet", action="store_true",
+                       help="no progress bars or progress messages")
+    return parent
+
+
+def _options(args: argparse.Namespace) -> RuntimeOptions:
+    return RuntimeOptions(scheduler=args.scheduler or "threads", workers=args.workers,
+                          quiet=args.quiet)
+
+
+def _run_stage(stage: Stage, parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    try:
+        params = from_namespace(stage.params, args)
+    except ParamError as exc:
+        flag = exc.name.upper() if exc.name in _positionals(stage) else "--" + exc.name.replace(
+            "_", "-")
+        parser.error(f"{flag}: {exc.message}")
+    with Session(_options(args)) as session:
+        stage.run(params, session)
+    return 0
+
+
+def _positionals(stage: Stage) -> set[str]:
+    return {f.name for f in dataclasses.fields(stage.params) if f.metadata.get("positional")}
+
+
+def _run_config(args: argparse.Namespace) -> int:
+    from pipeline.config import execute, load, runtime_for
+    from pipeline.provenance import command_line
+
+    plan = load(args.config, tuple(args.set))
+    given = {name for name in ("scheduler", "workers") if getattr(args, name) is not None}
+    options = runtime_for(plan, _options(args), given)
+    if args.check:
+        print(f"{plan.path}: valid; {len(plan.stages)} stage(s) on {options.scheduler}:")
+        for step in plan.stages:
+            print("  " + command_line(step.name, step.params))
+        return 0
+    with Session(options) as session:
+        execute(plan, session)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``btf`` with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="btf", formatter_class=_Formatter, epilog=EPILOG,
+        description="A dataflow pipeline for measured BTFs (bidirectional texture functions) "
+                    "kept as chunked zarr stores, computed with dask on a laptop or a cluster.")
+    parser.add_argument("--version", action="version", version=f"btf {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    runtime = _runtime_parser()
+    for stage in STAGES.values():
+        p = sub.add_parser(stage.name, parents=[runtime], help=stage.summary,
+                           description=stage.description, formatter_class=_Formatter)
+        add_arguments(p, stage.params)
+        p.set_defaults(handler=partial(_run_stage, stage, p))
+    run = sub.add_parser(
+        "run", parents=[runtime], formatter_class=_Formatter,
+        help="run the stages of a YAML config in order",
+        description="Run the stages listed in a YAML config, after validating all of it "
+                    "(unknown keys, wrong types, missing inputs are reported with their line). "
+                    "Stages whose output store is already up to date are skipped. See "
+                    "configs/demo.yaml.")
+    run.add_argument("config", help="YAML run config")
+    run.add_argument("--set", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                     help="override a parameter of every stage of that name, e.g. "
+                          "generate.size=64 (repeatable)")
+    run.add_argument("--check", action="store_true",
+                     help="validate the config and print its commands without running them")
+    run.set_defaults(handler=_run_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``btf`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except BTFError as exc:
+        print(f"btf {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"btf {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,216 @@
+"""``btf run``: YAML configs that list stages, validated completely before anything runs.
+
+A config is a mapping::
+
+    description: what the run is for           # optional
+    scheduler: threads                         # optional; --scheduler overrides it
+    workers: 2                                 # optional; --workers overrides it
+    stages:
+      - generate: {out: out/demo/wood.zarr, material: wood, size: 256, sampling: "abtf:12,6"}
+      - inspect: {store: out/demo/wood.zarr}
+
+Each stage takes the same parameters as its subcommand (underscores for dashes). Before any
+stage runs, every key is checked: unknown keys, wrong types and missing required keys, and
+inputs that neither exist nor are made by an earlier stage, are reported with their place in the
+file (``FILE:LINE: stages[2].generate.size: ...``). Only PyYAML's safe loader is used (a
+subclass that also records line numbers and rejects duplicate keys). Relative paths are relative
+to the current directory. A stage whose output store already holds exactly what the stage would
+make (same parameters and version, from its provenance) is skipped; other outputs are replaced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, from_mapping, paths
+from pipeline.provenance import up_to_date
+from pipeline.runtime import RuntimeOptions, Session, check_scheduler
+from pipeline.stages import STAGES
+
+TOP_KEYS = ("description", "scheduler", "workers", "stages")
+
+
+class _Mapping(dict):
+    line = 0
+    lines: dict
+
+
+class _Sequence(list):
+    line = 0
+    lines: list
+
+
+class _LineLoader(yaml.SafeLoader):
+    """The safe loader, recording the line of every mapping key and sequence item."""
+
+
+def _mapping(loader: _LineLoader, node: yaml.MappingNode) -> _Mapping:
+    loader.flatten_mapping(node)
+    out = _Mapping()
+    out.line, out.lines = node.start_mark.line + 1, {}
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if key in out:
+            raise BTFError(f"line {key_node.start_mark.line + 1}: duplicate key {key!r}")
+        out[key] = loader.construct_object(value_node, deep=True)
+        out.lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+def _sequence(loader: _LineLoader, node: yaml.SequenceNode) -> _Sequence:
+    out = _Sequence(loader.construct_object(child, deep=True) for child in node.value)
+    out.line = node.start_mark.line + 1
+    out.lines = [child.start_mark.line + 1 for child in node.value]
+    return out
+
+
+_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
+_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _sequence)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannedStage:
+    """A validated stage of a run: its name, parameters and where it is in the file."""
+
+    name: str
+    params: Any
+    where: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """A validated run config."""
+
+    path: str
+    stages: tuple[PlannedStage, ...]
+    scheduler: str | None = None
+    workers: int | None = None
+
+
+def _apply_overrides(stages: list, overrides: list[str], path: str) -> None:
+    for text in overrides:
+        target, eq, raw = text.partition("=")
+        name, dot, key = target.partition(".")
+        if not eq or not dot or not key:
+            raise BTFError(f"--set {text!r}: expected STAGE.KEY=VALUE, e.g. generate.size=64")
+        if name not in STAGES:
+            raise BTFError(f"--set {text!r}: unknown stage {name!r}")
+        hits = [item[name] for item in stages if isinstance(item, dict)
+                and isinstance(item.get(name), dict)]
+        if not hits:
+            raise BTFError(f"--set {text!r}: {path} has no {name!r} stage")
+        for params in hits:
+            params[key] = yaml.safe_load(raw)
+
+
+def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
+    """Read and validate a run config (see the module docstring); nothing runs.
+
+    Raises
+    ------
+    BTFError
+        Naming the file, line and key of the first problem.
+    """
+    path = str(path)
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise BTFError(f"{path}: cannot read the config ({exc.strerror})") from None
+    try:
+        data = yaml.load(text, Loader=_LineLoader)  # a SafeLoader subclass: safe
+    except BTFError as exc:
+        raise BTFError(f"{path}: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise BTFError(f"{path}: not valid YAML: {exc}") from None
+
+    def fail(line: int, where: str, message: str):
+        raise BTFError(f"{path}:{line}: {where}: {message}")
+
+    if not isinstance(data, dict):
+        fail(1, "config", "expected a mapping with a 'stages' list")
+    for key in data:
+        if key not in TOP_KEYS:
+            fail(data.lines[key], str(key), f"unknown key; known keys: {', '.join(TOP_KEYS)}")
+    stages = data.get("stages")
+    if not isinstance(stages, list) or not stages:
+        fail(data.lines.get("stages", data.line), "stages", "expected a non-empty list of stages")
+    scheduler, workers = data.get("scheduler"), data.get("workers")
+    if scheduler is not None:
+        try:
+            check_scheduler(str(scheduler))
+        except ValueError as exc:
+            fail(data.lines["scheduler"], "scheduler", str(exc))
+    if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool)
+                                or workers < 1):
+        fail(data.lines["workers"], "workers", f"expected a positive integer, got {workers!r}")
+    _apply_overrides(stages, list(overrides), path)
+
+    planned, made = [], set()
+    for i, item in enumerate(stages):
+        line = stages.lines[i]
+        if not isinstance(item, dict) or len(item) != 1:
+            fail(line, f"stages[{i}]", "each stage is a mapping with one key, the stage name")
+        (name, raw), = item.items()
+        where = f"stages[{i}].{name}"
+        if name not in STAGES:
+            fail(line, f"stages[{i}]", f"unknown stage {name!r}; stages: {', '.join(STAGES)}")
+        if raw is None:
+            raw = _Mapping()
+        if not isinstance(raw, dict):
+            fail(line, where, "expected a mapping of parameters")
+        lines = getattr(raw, "lines", {})
+        try:
+            params = from_mapping(STAGES[name].params, raw)
+        except ParamError as exc:
+            fail(lines.get(exc.name, line), f"{where}.{exc.name}", exc.message)
+        except ValueError as exc:
+            fail(line, where, str(exc))
+        for field in dataclasses.fields(params):
+            if field.metadata.get("path") != "in" or getattr(params, field.name) is None:
+                continue
+            value = getattr(params, field.name)
+            if not os.path.exists(value) and os.path.abspath(value) not in made:
+                fail(lines.get(field.name, line), f"{where}.{field.name}",
+                     f"{value!r} does not exist and no earlier stage makes it")
+        made.update(os.path.abspath(p) for p in paths(params, "out"))
+        planned.append(PlannedStage(name, params, f"{path}:{line}: {where}"))
+    return Plan(path, tuple(planned), scheduler, workers)
+
+
+def execute(plan: Plan, session: Session) -> None:
+    """Run the stages of a validated plan in order, skipping up-to-date stores."""
+    start = time.perf_counter()
+    skipped = 0
+    for k, step in enumerate(plan.stages, 1):
+        stage = STAGES[step.name]
+        outputs = paths(step.params, "out")
+        header = f"[{k}/{len(plan.stages)}] {step.name}" + (f" -> {outputs[0]}" if outputs
+                                                          else "")
+        if stage.makes_store and up_to_date(outputs[0], step.name, step.params):
+            session.log(f"{header}: up to date, skipped")
+            skipped += 1
+            continue
+        session.log(header)
+        params = step.params
+        if "overwrite" in {f.name for f in dataclasses.fields(params)}:
+            params = dataclasses.replace(params, overwrite=True)  # the run owns its outputs
+        stage.run(params, session)
+    session.log(f"done: {len(plan.stages)} stage(s), {skipped} skipped, in "
+                f"{time.perf_counter() - start:.1f} s")
+
+
+def runtime_for(plan: Plan, options: RuntimeOptions, given: set[str]) -> RuntimeOptions:
+    """Runtime options: the command line's where given, else the config's, else defaults."""
+    changes = {}
+    if "scheduler" not in given and plan.scheduler is not None:
+        changes["scheduler"] = plan.scheduler
+    if "workers" not in given and plan.workers is not None:
+        changes["workers"] = plan.workers
+    return dataclasses.replace(options, **changes)

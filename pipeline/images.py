@@ -1,0 +1,123 @@
+"""Image files in and out: OpenEXR (official bindings) and PNG (libpng through imagecodecs).
+
+Every reader returns float32 ``(height, width, channels)`` plus channel names, and every failure
+is a :class:`~pipeline.errors.BTFError` naming the file.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from tasks.tonemap import srgb_decode
+
+IMAGE_SUFFIXES = (".exr", ".png")
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: ("Y",), 2: ("R", "G", "B"), 3: ("R", "G", "B"), 4: ("Y",), 6: ("R", "G", "B")}
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """Size and channel names of an image file, read from its header only."""
+
+    height: int
+    width: int
+    channels: tuple[str, ...]
+
+
+def _exr_channels(names: list[str], path: Path) -> tuple[str, ...]:
+    if {"R", "G", "B"} <= set(names):
+        return ("R", "G", "B")
+    if len(names) == 1:
+        return (names[0],)
+    if "Y" in names:
+        return ("Y",)
+    raise BTFError(f"{path}: channels {sorted(names)} are neither R,G,B nor a single channel")
+
+
+def image_info(path: str | Path) -> ImageInfo:
+    """Read the header of an EXR or PNG file."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                header = f.header()
+        except Exception as exc:  # the bindings raise RuntimeError with a short text
+            raise BTFError(f"{path}: unreadable EXR file ({exc})") from None
+        (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
+        names = [c.name for c in header["channels"]]
+        return ImageInfo(int(y1 - y0 + 1), int(x1 - x0 + 1), _exr_channels(names, path))
+    if suffix == ".png":
+        try:
+            with path.open("rb") as f:
+                head = f.read(26)
+        except OSError as exc:
+            raise BTFError(f"{path}: cannot read ({exc.strerror})") from None
+        if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+            raise BTFError(f"{path}: not a PNG file (bad signature or header)")
+        width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
+        if colour not in _PNG_CHANNELS or depth not in (8, 16):
+            raise BTFError(f"{path}: PNG with bit depth {depth} and colour type {colour} "
+                           "is not supported (use 8 or 16-bit grey, RGB or RGBA)")
+        return ImageInfo(height, width, _PNG_CHANNELS[colour])
+    raise BTFError(f"{path}: not an image the pipeline reads (use .exr or .png)")
+
+
+def read_image(path: str | Path, *, srgb: bool = False) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Pixels of an EXR or PNG file as float32 ``(height, width, channels)`` and channel names.
+
+    EXR values are taken as they are (half or float). PNG values are scaled to ``[0, 1]`` and,
+    with ``srgb``, decoded from the sRGB transfer curve to linear values. Alpha is dropped.
+    """
+    path = Path(path)
+    info = image_info(path)
+    if path.suffix.lower() == ".exr":
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(path), separate_channels=True) as f:
+                channels = f.channels()
+                planes = [np.asarray(channels[name].pixels) for name in info.channels]
+        except Exception as exc:
+            raise BTFError(f"{path}: corrupt EXR file ({exc})") from None
+        if any(p.dtype.kind != "f" for p in planes):
+            raise BTFError(f"{path}: EXR channels must be half or float, not integer")
+        return np.stack(planes, axis=-1).astype(np.float32), info.channels
+    import imagecodecs
+
+    try:
+        pixels = imagecodecs.png_decode(path.read_bytes())
+    except Exception as exc:
+        raise BTFError(f"{path}: corrupt PNG file ({exc})") from None
+    scale = np.float32(1.0 / np.iinfo(pixels.dtype).max)
+    pixels = pixels.reshape(info.height, info.width, -1)[..., : len(info.channels)]
+    values = pixels.astype(np.float32) * scale
+    return (srgb_decode(values) if srgb else values), info.channels
+
+
+def write_exr(path: str | Path, pixels: np.ndarray, channels: tuple[str, ...], *,
+              half: bool = False) -> None:
+    """Write ``(height, width, channels)`` pixels as a ZIP-compressed scanline EXR."""
+    import OpenEXR
+
+    pixels = np.asarray(pixels)
+    dtype = np.float16 if half else np.float32
+    planes = {name: np.ascontiguousarray(pixels[..., i], dtype=dtype)
+              for i, name in enumerate(channels)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, planes) as f:
+        f.write(str(path))
+
+
+def write_png(path: str | Path, pixels: np.ndarray) -> None:
+    """Write 8 or 16-bit ``(height, width[, channels])`` pixels as PNG."""
+    import imagecodecs
+
+    Path(path).write_bytes(imagecodecs.png_encode(np.ascontiguousarray(pixels)))

@@ -1,0 +1,222 @@
+"""``btf ingest``: a folder of EXR or PNG layers into a radiance store.
+
+The directions of each image come from a manifest CSV (``file,theta_light,phi_light,
+theta_view,phi_view``; ``SRC/manifest.csv`` is used when present) or from UTIA file names
+``tl{theta}_pl{phi}_tv{theta}_pv{phi}.{exr,png}``. Every image's header is checked before
+anything is written (readable, same size and channels as the others, no duplicate directions,
+every view x light combination present). Then one task per (view, block of lights) reads that
+block's images, checks their pixels, and writes its shards: memory holds one block of layers,
+never the folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import re
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
+from pipeline.params import ParamError, option
+from pipeline.provenance import provenance
+from pipeline.runtime import Session
+from pipeline.store import RADIANCE, Directions, Layout, aligned_chunks, create_radiance_store
+
+MANIFEST_COLUMNS = ("file", "theta_light", "phi_light", "theta_view", "phi_view")
+_NUMBER = r"(-?\d+(?:\.\d+)?)"
+UTIA_NAME = re.compile(rf"tl{_NUMBER}_pl{_NUMBER}_tv{_NUMBER}_pv{_NUMBER}\.(exr|png)",
+                       re.IGNORECASE)
+
+
+@dataclasses.dataclass(frozen=True)
+class IngestParams:
+    """Parameters of ``btf ingest``."""
+
+    src: str = option(help="folder of EXR or PNG layers", positional=True, path="in")
+    out: str = option(help="output radiance store (a .zarr directory)", positional=True,
+                      path="out")
+    manifest: str | None = option(
+        None, path="in", metavar="CSV",
+        help="CSV with columns file,theta_light,phi_light,theta_view,phi_view (default: "
+             "SRC/manifest.csv if present, else UTIA file names)")
+    srgb: bool = option(False, help="decode PNG values from sRGB to linear")
+    chunk: int = option(128, help="texels per side of a stored chunk")
+    dir_chunk: int = option(16, help="light directions per stored chunk (and per task)")
+    shard: int = option(512, help="texels per side of a shard file (0: one file per chunk)")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        try:
+            self.layout()
+        except ValueError as exc:
+            raise ParamError("chunk", str(exc)) from None
+
+    def layout(self) -> Layout:
+        """The store layout these parameters ask for."""
+        return Layout(chunk=self.chunk, dir_chunk=self.dir_chunk, shard=self.shard)
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """One image and its directions ``(theta_light, phi_light, theta_view, phi_view)``."""
+
+    path: Path
+    angles: tuple[float, float, float, float]
+    origin: str  # where the directions came from, for messages
+
+
+def _angle(text: str, where: str, column: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise BTFError(f"{where}: {column} {text!r} is not a number") from None
+    if not np.isfinite(value):
+        raise BTFError(f"{where}: {column} {text!r} is not finite")
+    return value
+
+
+def _from_manifest(src: Path, manifest: Path) -> list[Entry]:
+    if not manifest.is_file():
+        raise BTFError(f"{manifest}: manifest not found")
+    with manifest.open(newline="") as f:
+        reader = csv.DictReader(f)
+        missing = set(MANIFEST_COLUMNS) - set(reader.fieldnames or ())
+        if missing:
+            raise BTFError(f"{manifest}: missing column(s) {', '.join(sorted(missing))}; "
+                           f"expected {','.join(MANIFEST_COLUMNS)}")
+        entries = []
+        for row in reader:
+            where = f"{manifest}:{reader.line_num}"
+            path = Path(row["file"]) if Path(row["file"]).is_absolute() else src / row["file"]
+            if not path.is_file():
+                raise BTFError(f"{where}: file {row['file']!r} not found in {src}")
+            angles = tuple(_angle(row[c], where, c) for c in MANIFEST_COLUMNS[1:])
+            entries.append(Entry(path, angles, where))
+    return entries
+
+
+def _from_names(src: Path) -> list[Entry]:
+    entries = []
+    for path in sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES):
+        match = UTIA_NAME.fullmatch(path.name)
+        if match is None:
+            raise BTFError(f"{path}: name does not follow tl{{theta}}_pl{{phi}}_tv{{theta}}_"
+                           "pv{phi}.exr|png; name the files so or give a --manifest")
+        entries.append(Entry(path, tuple(float(g) for g in match.groups()[:4]), str(path)))
+    return entries
+
+
+def _axis(values: list[tuple[float, float]], *, ordered: bool) -> list[tuple[float, float]]:
+    unique = list(dict.fromkeys(values))
+    return unique if ordered else sorted(unique)
+
+
+def find_layers(src: str | Path, manifest: str | Path | None = None
+                ) -> tuple[Directions, list[list[Entry]]]:
+    """Directions of a folder of layers and its images as a ``[view][light]`` grid.
+
+    Raises
+    ------
+    BTFError
+        Naming the file: no images, a manifest row naming a missing file, an unparsable name,
+        two images with the same directions, or a view x light combination without an image.
+    """
+    src = Path(src)
+    if not src.is_dir():
+        raise BTFError(f"{src}: not a folder")
+    if manifest is None and (src / "manifest.csv").is_file():
+        manifest = src / "manifest.csv"
+    entries = _from_manifest(src, Path(manifest)) if manifest else _from_names(src)
+    if not entries:
+        raise BTFError(f"{src}: no .exr or .png images found")
+    seen: dict[tuple[float, ...], Entry] = {}
+    for e in entries:
+        key = (e.angles[0], e.angles[1] % 360.0, e.angles[2], e.angles[3] % 360.0)
+        if key in seen:
+            raise BTFError(f"{e.origin}: {e.path.name} has the same directions as "
+                           f"{seen[key].path.name} (light {key[0]:g}/{key[1]:g}, "
+                           f"view {key[2]:g}/{key[3]:g} degrees)")
+        seen[key] = e
+    ordered = manifest is not None
+    lights = _axis([k[:2] for k in seen], ordered=ordered)
+    views = _axis([k[2:] for k in seen], ordered=ordered)
+    grid = []
+    for v in views:
+        row = []
+        for light in lights:
+            entry = seen.get((*light, *v))
+            if entry is None:
+                raise BTFError(f"{src}: no image for light {light[0]:g}/{light[1]:g} and view "
+                               f"{v[0]:g}/{v[1]:g} degrees (theta/phi); a BTF needs every view "
+                               f"x light combination ({len(seen)} of "
+                               f"{len(views) * len(lights)} present)")
+            row.append(entry)
+        grid.append(row)
+    directions = Directions(*(np.array(a, np.float64) for a in
+                              ([v[0] for v in views], [v[1] for v in views],
+                               [light[0] for light in lights], [light[1] for light in lights])))
+    return directions, grid
+
+
+def check_headers(grid: list[list[Entry]]) -> ImageInfo:
+    """Read every header; all images must have the first one's size and channels."""
+    first = None
+    for entry in (e for row in grid for e in row):
+        info = image_info(entry.path)
+        if first is None:
+            first, first_path = info, entry.path
+        elif info != first:
+            raise BTFError(f"{entry.path}: {info.height}x{info.width} with channels "
+                           f"{','.join(info.channels)}, but {first_path.name} is "
+                           f"{first.height}x{first.width} with {','.join(first.channels)}")
+    return first
+
+
+def _ingest_block(store: str, view: int, light0: int, paths: list[str], *, srgb: bool,
+                  info: ImageInfo) -> None:
+    import zarr
+
+    block = np.empty((1, len(paths), info.height, info.width, len(info.channels)), np.float32)
+    for i, path in enumerate(paths):
+        pixels, _ = read_image(path, srgb=srgb)
+        if pixels.shape != block.shape[2:]:
+            raise BTFError(f"{path}: pixels of shape {pixels.shape}, expected {block.shape[2:]}")
+        bad = ~np.isfinite(pixels)
+        if bad.any():
+            y, x, c = np.argwhere(bad)[0]
+            raise BTFError(f"{path}: {int(bad.sum())} non-finite pixel value(s) (NaN or Inf), "
+                           f"the first at y={y}, x={x}, channel {info.channels[c]}")
+        block[0, i] = pixels
+    array = zarr.open_array(store, path=RADIANCE, mode="r+")
+    array[view : view + 1, light0 : light0 + len(paths)] = block
+
+
+def ingest(params: IngestParams, session: Session) -> Path:
+    """Ingest the folder described by ``params`` into a radiance store; returns its path."""
+    import dask
+
+    directions, grid = find_layers(params.src, params.manifest)
+    info = check_headers(grid)
+    attrs = {"btf_kind": directions.kind, "source": "ingest",
+             "provenance": provenance("ingest", params)}
+    with atomic_output(params.out, overwrite=params.overwrite) as tmp:
+        group = create_radiance_store(tmp, directions=directions, ny=info.height, nx=info.width,
+                                      channels=info.channels, layout=params.layout(),
+                                      attrs=attrs)
+        _, lch, _, _, _ = aligned_chunks(group[RADIANCE])
+        starts = np.concatenate([[0], np.cumsum(lch)[:-1]]).astype(int)
+        writes = [
+            dask.delayed(_ingest_block, pure=True)(
+                str(tmp), v, int(l0), [str(e.path) for e in row[l0 : l0 + n]],
+                srgb=params.srgb, info=info)
+            for v, row in enumerate(grid)
+            for l0, n in zip(starts, lch, strict=True)
+        ]
+        session.log(f"ingest: {len(grid)} x {len(grid[0])} layers of {info.height} x "
+                    f"{info.width} texels ({','.join(info.channels)}) -> {params.out}")
+        session.compute(*writes)
+    return Path(params.out)

@@ -1,0 +1,229 @@
+"""``btf inspect``: what a store holds, from its metadata; its values only when asked.
+
+By default only metadata is read (array shapes, chunking, codecs, attrs, bytes on disk from the
+file listing, and the small direction coordinates). ``--scan`` reads every data variable chunk
+by chunk (:mod:`tasks.stats`), ``--plot`` draws the direction sampling on the hemisphere. Stage
+specific summaries are looked up by the store's ``btf_kind`` in :data:`SUMMARIES`, so later
+stages add theirs without touching the rest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.params import option
+from pipeline.runtime import Session
+from pipeline.store import DIRECTION_COORDS, RADIANCE, open_dataset, open_group, read_directions
+from tasks.stats import STATS, chunk_stats, combine_stats, finalize_stats
+
+
+@dataclasses.dataclass(frozen=True)
+class InspectParams:
+    """Parameters of ``btf inspect``."""
+
+    store: str = option(help="zarr store to describe", positional=True, path="in")
+    json: bool = option(False, help="print one JSON object instead of text")
+    scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
+                                    "and negative counts per variable")
+    plot: str | None = option(None, path="out", metavar="FILE",
+                              help="draw the direction sampling on the hemisphere (PNG)")
+    report: str | None = option(None, path="out", metavar="FILE",
+                                help="also write the JSON report to FILE")
+
+
+def _codecs(array) -> list[str]:
+    out = []
+    for codec in (*array.filters, array.serializer, *array.compressors):
+        if codec is None:
+            continue
+        spec = codec.to_dict()
+        config = spec.get("configuration") or {}
+        shown = ", ".join(f"{k}={v}" for k, v in config.items() if k not in ("typesize",
+                                                                             "blocksize"))
+        out.append(f"{spec['name']}({shown})" if shown else spec["name"])
+    return out
+
+
+def _variable(array) -> dict[str, Any]:
+    nbytes = int(np.prod(array.shape)) * array.dtype.itemsize
+    stored = int(array.nbytes_stored())
+    return {
+        "dims": list(array.metadata.dimension_names or ()),
+        "shape": list(array.shape),
+        "dtype": str(array.dtype),
+        "chunks": list(array.chunks),
+        "shards": list(array.shards) if array.shards else None,
+        "codecs": _codecs(array),
+        "bytes": nbytes,
+        "stored_bytes": stored,
+        "ratio": nbytes / stored if stored else None,
+    }
+
+
+def _rings(theta: np.ndarray) -> int:
+    return len(np.unique(np.round(theta, 3)))
+
+
+def sampling_summary(group) -> dict[str, Any]:
+    """Counts and ranges of a radiance store's view and light directions."""
+    d = read_directions(group)
+    out: dict[str, Any] = {"name": group.attrs.get("sampling"),
+                           "views": int(d.theta_view.size), "lights": int(d.theta_light.size),
+                           "layers": int(d.theta_view.size * d.theta_light.size)}
+    for which in ("view", "light"):
+        theta, phi = getattr(d, f"theta_{which}"), getattr(d, f"phi_{which}")
+        out[which] = {"theta_min": float(theta.min()), "theta_max": float(theta.max()),
+                      "theta_rings": _rings(theta), "phi_min": float(phi.min()),
+                      "phi_max": float(phi.max())}
+    return out
+
+
+def _radiance_summary(group) -> dict[str, Any]:
+    return {"sampling": sampling_summary(group)} if RADIANCE in group.array_keys() else {}
+
+
+# Stage-specific summaries by btf_kind; later stages register theirs here.
+SUMMARIES: dict[str, Callable[[Any], dict[str, Any]]] = {
+    "btf": _radiance_summary,
+    "abtf": _radiance_summary,
+}
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    """Metadata report of a store (no data is read beyond coordinate arrays)."""
+    group = open_group(path)
+    variables = {name: _variable(group[name]) for name in sorted(group.array_keys())}
+    nbytes = sum(v["bytes"] for v in variables.values())
+    stored = sum(v["stored_bytes"] for v in variables.values())
+    attrs = dict(group.attrs)
+    report = {
+        "path": str(path),
+        "kind": attrs.get("btf_kind", "unknown"),
+        "source": attrs.get("source"),
+        "variables": variables,
+        "total": {"bytes": nbytes, "stored_bytes": stored,
+                  "ratio": nbytes / stored if stored else None},
+        "attrs": attrs,
+    }
+    summary = SUMMARIES.get(report["kind"])
+    if summary is not None:
+        report.update(summary(group))
+    return report
+
+
+def _block_summary(block: np.ndarray) -> np.ndarray:
+    return chunk_stats(block).reshape((1,) * block.ndim + (len(STATS),))
+
+
+def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
+    """Statistics of every numeric data variable, computed chunk by chunk."""
+    ds = open_dataset(path)
+    names = [n for n in ds.data_vars if ds[n].dtype.kind in "fiu"]
+    summaries = []
+    for name in names:
+        data = ds[name].data
+        summaries.append(data.map_blocks(
+            _block_summary, new_axis=data.ndim,
+            chunks=(*((1,) * len(c) for c in data.chunks), (len(STATS),)),
+            dtype=np.float64, meta=np.empty((0,) * (data.ndim + 1), np.float64)))
+    session.log(f"scan: {len(names)} variable(s) of {path}")
+    results = session.compute(*summaries)
+    return {name: finalize_stats(combine_stats(r)) for name, r in zip(names, results,
+                                                                     strict=True)}
+
+
+def plot_sampling(path: str | Path, out: str | Path) -> None:
+    """Draw light and view directions on the hemisphere (polar: radius theta, angle phi)."""
+    from matplotlib.figure import Figure
+
+    d = read_directions(open_group(path))
+    fig = Figure(figsize=(9, 4.6), layout="constrained")
+    for k, which in enumerate(("light", "view")):
+        ax = fig.add_subplot(1, 2, k + 1, projection="polar")
+        theta, phi = getattr(d, f"theta_{which}"), getattr(d, f"phi_{which}")
+        ax.scatter(np.radians(phi), theta, s=14, c=theta, cmap="viridis", vmin=0, vmax=90)
+        ax.set_ylim(0, 90)
+        ax.set_yticks([15, 30, 45, 60, 75, 90])
+        ax.set_title(f"{len(theta)} {which} directions (radius: theta in degrees)", fontsize=9)
+    fig.suptitle(f"{Path(path).name}: direction sampling")
+    with atomic_output(out, overwrite=True) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    raise AssertionError
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """Human-readable text of a :func:`describe` (and scan) report."""
+    lines = [f"{report['path']}: {report['kind']} store"
+             + (f", made by {report['source']}" if report.get("source") else "")]
+    for name, v in report["variables"].items():
+        dims = ", ".join(f"{d} {n}" for d, n in zip(v["dims"], v["shape"], strict=False))
+        ratio = f" ({v['ratio']:.2f}x)" if v["ratio"] else ""
+        layout = f"chunks {tuple(v['chunks'])}"
+        if v["shards"]:
+            layout += f" in shards {tuple(v['shards'])}"
+        lines.append(f"  {name:<12} {v['dtype']:<8} ({dims})")
+        lines.append(f"  {'':<12} {layout}; {' + '.join(v['codecs'])}; "
+                     f"{_size(v['bytes'])} -> {_size(v['stored_bytes'])} on disk{ratio}")
+    t = report["total"]
+    ratio = f" (compression {t['ratio']:.2f}x)" if t["ratio"] else ""
+    lines.append(f"  total: {_size(t['bytes'])} in memory, {_size(t['stored_bytes'])} on "
+                 f"disk{ratio}")
+    if "sampling" in report:
+        s = report["sampling"]
+        lines.append(f"sampling: {s['name'] or 'unnamed'}: {s['views']} view(s) x "
+                     f"{s['lights']} light(s) = {s['layers']} layers")
+        for which in ("view", "light"):
+            w = s[which]
+            lines.append(f"  {which:<5} theta {w['theta_min']:.1f}-{w['theta_max']:.1f} deg on "
+                         f"{w['theta_rings']} ring(s), phi {w['phi_min']:.1f}-"
+                         f"{w['phi_max']:.1f} deg")
+    attrs = report["attrs"]
+    for key in ("material", "shading"):
+        if key in attrs:
+            lines.append(f"{key}: " + ", ".join(f"{k}={v}" for k, v in attrs[key].items()))
+    if "provenance" in attrs:
+        p = attrs["provenance"]
+        lines.append(f"made by: {p.get('command')} (version {p.get('version')})")
+    if "scan" in report:
+        lines.append("scan:")
+        lines.append(f"  {'variable':<12} {'min':>11} {'max':>11} {'mean':>11} {'NaN':>8} "
+                     f"{'Inf':>6} {'negative':>9}")
+        for name, s in report["scan"].items():
+            def num(x):
+                return f"{x:11.4g}" if x is not None else f"{'-':>11}"
+            lines.append(f"  {name:<12} {num(s['min'])} {num(s['max'])} {num(s['mean'])} "
+                         f"{s['nan']:>8} {s['inf']:>6} {s['negative']:>9}")
+    return "\n".join(lines)
+
+
+def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
+    """Describe a store; print the report (text or JSON) and write the optional files."""
+    report = describe(params.store)
+    if params.scan:
+        report["scan"] = scan(params.store, session)
+    if params.plot:
+        if not set(DIRECTION_COORDS) <= set(open_group(params.store).array_keys()):
+            raise BTFError(f"{params.store}: no direction coordinates to plot")
+        plot_sampling(params.store, params.plot)
+    text = json.dumps(report, indent=2, default=str)
+    if params.report:
+        with atomic_output(params.report, overwrite=True) as tmp:
+            tmp.write_text(text + "\n")
+    print(text if params.json else format_report(report), file=sys.stdout, flush=True)
+    return report

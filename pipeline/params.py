@@ -1,0 +1,208 @@
+"""Stage parameters declared once, used by the command line, YAML configs and provenance.
+
+A stage's parameters are a frozen dataclass whose fields are made with :func:`option`: the help
+text, the command-line form, and whether the field is an input or output path live next to the
+type and default. :func:`add_arguments` turns the dataclass into argparse options,
+:func:`from_mapping` validates a YAML mapping against it (unknown keys, wrong types, missing
+keys), and :func:`to_record` writes it into a store's provenance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import types
+import typing
+from collections.abc import Mapping
+from typing import Any
+
+MISSING = dataclasses.MISSING
+
+
+class ParamError(ValueError):
+    """A parameter value that is not allowed; ``name`` is the offending field."""
+
+    def __init__(self, name: str, message: str):
+        super().__init__(message)
+        self.name = name
+        self.message = message
+
+
+def option(
+    default: Any = MISSING,
+    *,
+    help: str,
+    positional: bool = False,
+    choices: tuple[str, ...] | None = None,
+    metavar: str | None = None,
+    path: str | None = None,
+    record: bool = True,
+) -> Any:
+    """A dataclass field of stage parameters.
+
+    Parameters
+    ----------
+    default
+        Default value; without one the parameter is required.
+    help
+        One-line explanation, shown by ``--help``.
+    positional
+        A positional command-line argument rather than an ``--option``.
+    choices
+        Allowed values.
+    metavar
+        Placeholder shown in usage lines.
+    path
+        ``"in"`` or ``"out"`` for paths a stage reads or writes (a run config checks that every
+        input exists or is made by an earlier stage).
+    record
+        Whether the value is part of the provenance written into outputs (options that do not
+        change results, such as ``overwrite``, are not).
+    """
+    meta = {"help": help, "positional": positional, "choices": choices, "metavar": metavar,
+            "path": path, "record": record}
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _base_type(tp: Any) -> tuple[Any, bool]:
+    """The type without ``None`` and whether ``None`` is allowed."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return args[0], len(args) < len(typing.get_args(tp))
+    return tp, False
+
+
+def int_list(text: str) -> tuple[int, ...]:
+    """Parse ``"0,5,10"`` into ``(0, 5, 10)``."""
+    try:
+        return tuple(int(t) for t in str(text).split(",") if t.strip() != "")
+    except ValueError:
+        raise ValueError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _describe(tp: Any) -> str:
+    if typing.get_origin(tp) is tuple:
+        return "a list of integers"
+    return {int: "an integer", float: "a number", str: "a string", bool: "true or false"}[tp]
+
+
+def coerce(value: Any, tp: Any, name: str, choices=None) -> Any:
+    """Check a YAML value against a field type; strict (no string-to-number guessing)."""
+    base, optional = _base_type(tp)
+    if value is None:
+        if optional:
+            return None
+        raise ParamError(name, f"expected {_describe(base)}, got nothing (null)")
+    ok = False
+    if base is bool:
+        ok = isinstance(value, bool)
+    elif base is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif base is float:
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif base is str:
+        ok = isinstance(value, str)
+    elif typing.get_origin(base) is tuple:
+        if isinstance(value, int) and not isinstance(value, bool):
+            value = [value]
+        if isinstance(value, str):
+            try:
+                value = list(int_list(value))
+            except ValueError:
+                value = None
+        ok = isinstance(value, list) and all(
+            isinstance(v, int) and not isinstance(v, bool) for v in value
+        )
+        value = tuple(value) if ok else value
+    if not ok:
+        raise ParamError(name, f"expected {_describe(base)}, got {value!r}")
+    if choices and value not in choices:
+        raise ParamError(name, f"{value!r} is not one of {', '.join(map(str, choices))}")
+    return value
+
+
+def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
+    """Build parameters from a mapping (a YAML stage), naming any bad key.
+
+    Raises
+    ------
+    ParamError
+        For an unknown key (with the closest valid one), a wrong type or a missing key.
+    """
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    for key in mapping:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), list(known), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ParamError(str(key), f"unknown key{hint}; known keys: {', '.join(known)}")
+    values = {}
+    for name, f in known.items():
+        if name in mapping:
+            values[name] = coerce(mapping[name], hints[name], name, f.metadata.get("choices"))
+        elif f.default is MISSING:
+            raise ParamError(name, "is required")
+    return cls(**values)
+
+
+def to_record(params: Any) -> dict[str, Any]:
+    """The parameters that determine a result, JSON-ready (tuples become lists)."""
+    out = {}
+    for f in dataclasses.fields(params):
+        if f.metadata.get("record", True):
+            value = getattr(params, f.name)
+            out[f.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def paths(params: Any, direction: str) -> list[str]:
+    """The input (``"in"``) or output (``"out"``) paths named by the parameters."""
+    return [
+        getattr(params, f.name)
+        for f in dataclasses.fields(params)
+        if f.metadata.get("path") == direction and getattr(params, f.name) is not None
+    ]
+
+
+def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
+    """Add one argparse argument per field of ``cls``."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        meta = f.metadata
+        base, _ = _base_type(hints[f.name])
+        help_text = meta["help"]
+        if f.default not in (MISSING, None, False) and not meta["positional"]:
+            shown = ",".join(map(str, f.default)) if isinstance(f.default, tuple) else f.default
+            help_text += f" (default: {shown})"
+        kwargs: dict[str, Any] = {"help": help_text}
+        if meta["choices"]:
+            kwargs["choices"] = meta["choices"]
+        if meta["metavar"]:
+            kwargs["metavar"] = meta["metavar"]
+        elif meta["positional"]:
+            kwargs["metavar"] = f.name.upper()
+        elif base in (int, float) and not meta["choices"]:
+            kwargs["metavar"] = "N" if base is int else "X"
+        elif base is str and not meta["choices"]:
+            kwargs["metavar"] = "FILE" if meta["path"] else f.name.upper()
+        if base is bool:
+            kwargs["action"] = "store_true"
+        elif typing.get_origin(base) is tuple:
+            kwargs["type"] = int_list
+        else:
+            kwargs["type"] = base
+        if meta["positional"]:
+            parser.add_argument(f.name, **kwargs)
+        else:
+            if f.default is MISSING:
+                kwargs["required"] = True
+            else:
+                kwargs["default"] = f.default
+            parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
+
+
+def from_namespace(cls: type, namespace: argparse.Namespace) -> Any:
+    """Build parameters from parsed command-line arguments."""
+    return cls(**{f.name: getattr(namespace, f.name) for f in dataclasses.fields(cls)})

@@ -1,0 +1,175 @@
+"""Rays over a height field: cast shadows towards a light and parallax towards a camera.
+
+A ray's horizontal direction is marched like a line-drawing DDA: one pixel per step along the
+dominant axis, a fraction of a pixel along the other. The height at every step is then a blend of
+two shifted slices of the height array with weights that are the same for all texels, so a whole
+tile advances one step with a few vector operations, and a texel's result depends only on the
+heights within a fixed distance: tiles rendered separately with a large enough halo agree bit for
+bit with one large render.
+
+Heights and horizontal distances are both in pixels. Coordinates: rows are ``y``, columns ``x``;
+the azimuth ``phi`` runs from +x towards +y (see :mod:`tasks.sampling`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tasks.noise import smoothstep
+
+_TOP = 1e-6  # degrees: a direction this close to the normal casts no shadow and no parallax
+
+
+@dataclass(frozen=True)
+class Step:
+    """One DDA step along azimuth ``phi``: row and column offsets and horizontal length."""
+
+    dy: float
+    dx: float
+    length: float
+
+
+def dda_step(phi_deg: float) -> Step:
+    """The step along azimuth ``phi_deg`` that moves exactly one pixel along the dominant axis."""
+    cx, cy = math.cos(math.radians(phi_deg)), math.sin(math.radians(phi_deg))
+    major = max(abs(cx), abs(cy))
+    if abs(cx) >= abs(cy):
+        return Step(cy / major, math.copysign(1.0, cx), 1.0 / major)
+    return Step(math.copysign(1.0, cy), cx / major, 1.0 / major)
+
+
+def shifted(h: np.ndarray, r0: int, c0: int, ny: int, nx: int, oy: float, ox: float) -> np.ndarray:
+    """``h`` sampled bilinearly at ``(r0 + i + oy, c0 + j + ox)`` for an ``ny x nx`` region."""
+    iy, ix = math.floor(oy), math.floor(ox)
+    fy, fx = oy - iy, ox - ix
+    r, c = r0 + iy, c0 + ix
+    out = h[r : r + ny, c : c + nx]
+    if fy > 1e-9:
+        out = out + np.float32(fy) * (h[r + 1 : r + 1 + ny, c : c + nx] - out)
+    if fx > 1e-9:
+        right = h[r : r + ny, c + 1 : c + 1 + nx]
+        if fy > 1e-9:
+            below = h[r + 1 : r + 1 + ny, c + 1 : c + 1 + nx]
+            right = right + np.float32(fy) * (below - right)
+        out = out + np.float32(fx) * (right - out)
+    return out
+
+
+def _check_reach(h: np.ndarray, r0: int, c0: int, ny: int, nx: int, reach: int) -> None:
+    if min(r0, c0, h.shape[0] - r0 - ny, h.shape[1] - c0 - nx) < reach:
+        raise ValueError(
+            f"height window {h.shape} leaves less than {reach} texels around the region "
+            f"({r0}:{r0 + ny}, {c0}:{c0 + nx}) that the rays need"
+        )
+
+
+def _rise(theta_deg: float) -> float:
+    """Height gained per unit of horizontal distance along a ray at ``theta`` from the normal."""
+    return math.cos(math.radians(theta_deg)) / math.sin(math.radians(theta_deg))
+
+
+def shadow_length(theta_deg: float, *, relief: float, penumbra: float, max_length: float) -> float:
+    """Horizontal distance (px) a shadow ray must travel to rise above every height.
+
+    Beyond it the ray is higher than the relief, so nothing farther can shadow the texel. Very
+    grazing lights are cut at ``max_length`` (a deterministic truncation, not a tiling artefact).
+    """
+    if theta_deg < _TOP:
+        return 0.0
+    return min((relief + penumbra) / _rise(theta_deg), max_length)
+
+
+def visibility(
+    h: np.ndarray, r0: int, c0: int, ny: int, nx: int, *, theta: float, phi: float,
+    relief: float, penumbra: float, max_length: float,
+) -> np.ndarray:
+    """Fraction of the light at ``(theta, phi)`` reaching each texel of a region (cast shadows).
+
+    A texel is lit when the ray towards the light stays above the height field; the margin by
+    which it clears (or misses) is smoothed over ``penumbra`` pixels of height, a stand-in for
+    the light source's finite size.
+
+    Parameters
+    ----------
+    h
+        Height window (float32), including a halo of at least :func:`shadow_length` + 1.
+    r0, c0, ny, nx
+        The region of ``h`` to shade.
+    theta, phi
+        Light direction in degrees.
+    relief, penumbra, max_length
+        Height range of ``h``, shadow softness and the longest ray traced (pixels).
+    """
+    h0 = h[r0 : r0 + ny, c0 : c0 + nx]
+    length = shadow_length(theta, relief=relief, penumbra=penumbra, max_length=max_length)
+    if length == 0.0:
+        return np.ones_like(h0)
+    step, rise = dda_step(phi), _rise(theta)
+    steps = math.ceil(length / step.length)
+    _check_reach(h, r0, c0, ny, nx, steps + 1)
+    top = np.full_like(h0, -np.inf)
+    for t in range(1, steps + 1):
+        ray = np.float32(t * step.length * rise)
+        np.maximum(top, shifted(h, r0, c0, ny, nx, t * step.dy, t * step.dx) - ray, out=top)
+    return smoothstep(-0.5 * penumbra, 0.5 * penumbra, h0 - top).astype(np.float32)
+
+
+def parallax_length(theta_deg: float, *, relief: float) -> float:
+    """Largest horizontal distance (px) between a texel and where its view ray meets the surface."""
+    return 0.0 if theta_deg < _TOP else relief / _rise(theta_deg)
+
+
+def parallax_hits(
+    h: np.ndarray, r0: int, c0: int, ny: int, nx: int, *, theta: float, phi: float, relief: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the view ray through each texel of a region first meets the height field.
+
+    The ray enters at the top of the relief above the texel and travels away from the camera
+    at ``(theta, phi)``, descending until it meets the surface (linear refinement between the
+    last step above and the first below): parallax and occlusion, as a camera sees them.
+
+    Returns
+    -------
+    oy, ox : numpy.ndarray
+        Float32 offsets (rows, columns) from each texel of the region to the visible surface
+        point. Offsets, not absolute positions, so that rounding does not depend on where the
+        region lies in its window.
+    """
+    prev = h[r0 : r0 + ny, c0 : c0 + nx] - np.float32(relief)
+    hit = np.zeros_like(prev)
+    if theta < _TOP:
+        return hit, hit.copy()
+    step, drop = dda_step(phi + 180.0), _rise(theta)
+    found = prev >= 0
+    steps = math.ceil(parallax_length(theta, relief=relief) / step.length) + 1
+    _check_reach(h, r0, c0, ny, nx, steps + 1)
+    for t in range(1, steps + 1):
+        ray = np.float32(relief - t * step.length * drop)
+        cur = shifted(h, r0, c0, ny, nx, t * step.dy, t * step.dx) - ray
+        new = ~found & (cur >= 0)
+        if new.any():
+            hit[new] = (t - 1) + prev[new] / (prev[new] - cur[new])
+            found |= new
+        prev = cur
+    return hit * np.float32(step.dy), hit * np.float32(step.dx)
+
+
+def bilinear(a: np.ndarray, r0: int, c0: int, oy: np.ndarray, ox: np.ndarray) -> np.ndarray:
+    """Sample ``a`` (2-D, or 3-D with trailing channels) at ``(r0 + i + oy, c0 + j + ox)``.
+
+    ``oy`` and ``ox`` are per-texel offsets of an ``ny x nx`` region whose first texel is
+    ``(r0, c0)``; interpolation is bilinear.
+    """
+    ny, nx = oy.shape
+    iy, ix = np.floor(oy), np.floor(ox)
+    fy, fx = oy - iy, ox - ix
+    rows = (r0 + np.arange(ny))[:, None] + iy.astype(np.intp)
+    cols = (c0 + np.arange(nx))[None, :] + ix.astype(np.intp)
+    if a.ndim == 3:
+        fy, fx = fy[..., None], fx[..., None]
+    top = a[rows, cols] + fx * (a[rows, cols + 1] - a[rows, cols])
+    bottom = a[rows + 1, cols] + fx * (a[rows + 1, cols + 1] - a[rows + 1, cols])
+    return top + fy * (bottom - top)

@@ -1,0 +1,126 @@
+"""Direction samplings of the hemisphere: where the lights and the cameras are.
+
+Angles are in degrees. ``theta`` is measured from the surface normal; ``phi`` is the azimuth
+measured from the image's +x axis (columns) towards its +y axis (rows). A BTF holds every
+(view, light) combination of its sampling; an ABTF (paper 003) has one view straight above.
+
+``dome151``
+    151 directions on 8 rings, theta = 0 to 75 degrees in equal steps, ring populations
+    proportional to the ring's circumference (1, 6, 12, 18, 23, 27, 31, 33), alternate rings
+    rotated by half a step: the near-uniform layout of the Bonn dome.
+``ubo81``
+    The 81 directions of the UBO/UTIA BTF databases: rings at 0, 15, ..., 75 degrees with
+    1, 6, 12, 18, 20, 24 directions, the first at azimuth 0 on every ring.
+``abtf:R,E``
+    One top view; R light rotations x E light elevations, elevations at the centres of E equal
+    bins of 0-90 degrees (the quarter light arc and turntable of paper 003). Lights are ordered
+    rotation-major (all elevations of the first rotation first).
+``hemi:N``
+    N directions (the top one, then a Fibonacci spiral out to 75 degrees) used as both lights
+    and views: small full BTFs for tests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+_GOLDEN_ANGLE = 180.0 * (3.0 - math.sqrt(5.0))
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """Light and view directions of a BTF (float64 degree arrays) and its name."""
+
+    name: str
+    theta_view: np.ndarray
+    phi_view: np.ndarray
+    theta_light: np.ndarray
+    phi_light: np.ndarray
+
+    @property
+    def kind(self) -> str:
+        """``"abtf"`` for a single top view, else ``"btf"``."""
+        return "abtf" if self.theta_view.size == 1 and self.theta_view[0] == 0 else "btf"
+
+
+def _rings(thetas, counts, *, stagger: bool) -> tuple[np.ndarray, np.ndarray]:
+    theta, phi = [], []
+    for k, (t, n) in enumerate(zip(thetas, counts, strict=True)):
+        offset = 0.5 if stagger and k % 2 == 0 else 0.0
+        theta += [float(t)] * n
+        phi += [(360.0 * (j + offset) / n) % 360.0 for j in range(n)]
+    return np.array(theta), np.array(phi)
+
+
+def _dome151() -> tuple[np.ndarray, np.ndarray]:
+    thetas = np.linspace(0.0, 75.0, 8)
+    weight = np.sin(np.radians(thetas[1:]))
+    ideal = 150 * weight / weight.sum()
+    counts = np.floor(ideal).astype(int)
+    counts[np.argsort(counts - ideal)[: 150 - counts.sum()]] += 1  # largest remainders
+    return _rings(thetas, [1, *counts.tolist()], stagger=True)
+
+
+def _ubo81() -> tuple[np.ndarray, np.ndarray]:
+    return _rings([0, 15, 30, 45, 60, 75], [1, 6, 12, 18, 20, 24], stagger=False)
+
+
+def _hemi(n: int) -> tuple[np.ndarray, np.ndarray]:
+    cos_max = math.cos(math.radians(75.0))
+    theta, phi = [0.0], [0.0]
+    for i in range(1, n):
+        z = 1.0 - (i - 0.5) / (n - 1) * (1.0 - cos_max)
+        theta.append(math.degrees(math.acos(z)))
+        phi.append((i * _GOLDEN_ANGLE) % 360.0)
+    return np.array(theta), np.array(phi)
+
+
+def _ints(spec: str, text: str, count: int) -> list[int]:
+    try:
+        values = [int(t) for t in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != count or min(values) < 1:
+        raise ValueError(f"sampling {spec!r}: expected {count} positive integer(s) after ':'")
+    return values
+
+
+SAMPLING_HELP = "dome151, ubo81, abtf:R,E (R rotations x E elevations, one top view) or hemi:N"
+
+
+def parse_sampling(spec: str) -> Sampling:
+    """Parse a sampling name (see the module docstring) into its directions.
+
+    Raises
+    ------
+    ValueError
+        If the name is unknown or its numbers are malformed.
+    """
+    name, _, args = spec.partition(":")
+    if name == "dome151" and not args:
+        theta, phi = _dome151()
+        return Sampling(spec, theta, phi, theta, phi)
+    if name == "ubo81" and not args:
+        theta, phi = _ubo81()
+        return Sampling(spec, theta, phi, theta, phi)
+    if name == "hemi":
+        (n,) = _ints(spec, args, 1)
+        theta, phi = _hemi(n)
+        return Sampling(spec, theta, phi, theta, phi)
+    if name == "abtf":
+        rotations, elevations = _ints(spec, args, 2)
+        elevation = 90.0 * (np.arange(elevations) + 0.5) / elevations
+        theta_l = np.tile(90.0 - elevation, rotations)
+        phi_l = np.repeat(360.0 * np.arange(rotations) / rotations, elevations)
+        return Sampling(spec, np.zeros(1), np.zeros(1), theta_l, phi_l)
+    raise ValueError(f"unknown sampling {spec!r}; use {SAMPLING_HELP}")
+
+
+def direction_vectors(theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
+    """Unit vectors ``(x, y, z)`` of directions given in degrees, shape ``(n, 3)``."""
+    t = np.radians(np.asarray(theta_deg, np.float64))
+    p = np.radians(np.asarray(phi_deg, np.float64))
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1)

@@ -1,0 +1,177 @@
+"""Rendering BTF layers of a height-field material: parallax, cast shadows, diffuse + GGX.
+
+Each layer is what a camera at the view direction records of the sample lit from the light
+direction, rectified onto the sample plane (as measured BTFs are):
+
+- the view ray through a texel meets the height field somewhere else (parallax and occlusion,
+  :func:`tasks.heightfield.parallax_hits`); that surface point is what the texel shows;
+- its normal comes from the height gradient; the light reaching it is cut by cast shadows
+  (:func:`tasks.heightfield.visibility`);
+- reflection is Lambertian diffuse plus a GGX microfacet lobe with Smith masking and Schlick's
+  Fresnel term, under a light of irradiance pi at normal incidence, so a white diffuse texel
+  facing the light has radiance 1 and glossy highlights exceed 1 (HDR);
+- a small ambient term stands in for interreflections, so shadows are dark but not black.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tasks.heightfield import bilinear, parallax_hits, parallax_length, shadow_length, visibility
+from tasks.materials import Fields
+from tasks.sampling import direction_vectors
+
+
+@dataclass(frozen=True)
+class ShadingModel:
+    """Parameters of the renderer.
+
+    Attributes
+    ----------
+    relief
+        Height range of the material in pixels (heights lie in ``[0, relief]``).
+    ambient
+        Fraction of the unshadowed diffuse irradiance that reaches every texel.
+    penumbra
+        Height (px) over which a shadow edge fades.
+    max_shadow
+        Longest horizontal shadow ray traced (px).
+    shadows
+        Cast shadows on or off (off only to study their effect).
+    """
+
+    relief: float
+    ambient: float = 0.04
+    penumbra: float = 0.3
+    max_shadow: float = 96.0
+    shadows: bool = True
+
+    def halo(self, theta_view_max: float, theta_light_max: float) -> int:
+        """Texels of context a tile needs on each side to be rendered exactly."""
+        parallax = parallax_length(theta_view_max, relief=self.relief)
+        shadow = shadow_length(theta_light_max, relief=self.relief, penumbra=self.penumbra,
+                               max_length=self.max_shadow) if self.shadows else 0.0
+        return math.ceil(parallax) + math.ceil(shadow) + 4
+
+
+def normals(height: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit normals ``(nx, ny, nz)`` of a height field by central differences (float32)."""
+    gy, gx = np.gradient(height)
+    inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)
+    return (-gx * inv).astype(np.float32), (-gy * inv).astype(np.float32), inv.astype(np.float32)
+
+
+def _smith_g1(cosine: np.ndarray, a2: np.ndarray) -> np.ndarray:
+    return 2.0 * cosine / (cosine + np.sqrt(a2 + (1.0 - a2) * cosine * cosine))
+
+
+@dataclass(frozen=True)
+class Surface:
+    """What one view sees: the surface attributes under each texel and the view's own terms."""
+
+    normal: tuple[np.ndarray, np.ndarray, np.ndarray]
+    albedo: np.ndarray
+    a2: np.ndarray  # GGX alpha squared
+    f0: np.ndarray
+    view: tuple[float, float, float]
+    masking: np.ndarray  # Smith G1 of the view over 4 cos(view): shared by every light
+
+    @staticmethod
+    def seen_from(normal, albedo, alpha, f0, view) -> Surface:
+        """Bundle the attributes seen from the unit vector ``view`` with its view terms."""
+        vx, vy, vz = (float(c) for c in view)
+        n_x, n_y, n_z = normal
+        cos_v = np.maximum(n_x * vx + n_y * vy + n_z * vz, 1e-4)
+        a2 = alpha * alpha
+        return Surface(normal, albedo, a2, f0, (vx, vy, vz), _smith_g1(cos_v, a2) / (4.0 * cos_v))
+
+
+def shade(surface: Surface, vis: np.ndarray, light: np.ndarray, *, ambient: float,
+          out: np.ndarray | None = None) -> np.ndarray:
+    """Radiance ``(..., 3)`` of a :class:`Surface` lit from the unit vector ``light``.
+
+    ``vis`` is the unshadowed fraction of the light at each texel. Returns ``out`` if given.
+    """
+    lx, ly, lz = (float(c) for c in light)
+    vx, vy, vz = surface.view
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    norm = math.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx / norm, hy / norm, hz / norm
+    n_x, n_y, n_z = surface.normal
+    cos_l = np.maximum(n_x * lx + n_y * ly + n_z * lz, 0.0)
+    cos_h = np.maximum(n_x * hx + n_y * hy + n_z * hz, 0.0)
+    a2 = surface.a2
+    denom = cos_h * cos_h * (a2 - 1.0) + 1.0
+    fresnel = surface.f0 + (1.0 - surface.f0) * (1.0 - max(vx * hx + vy * hy + vz * hz, 0.0)) ** 5
+    # pi * BRDF * cos_l with pi * D = a2 / denom**2; cos_l of the BRDF's denominator cancels.
+    specular = a2 / (denom * denom) * _smith_g1(cos_l, a2) * surface.masking * fresnel
+    if out is None:
+        out = np.empty((*cos_l.shape, 3), np.float32)
+    np.multiply(surface.albedo, (vis * cos_l + ambient * max(lz, 0.0))[..., None], out=out)
+    out += (vis * specular)[..., None]
+    return out
+
+
+def render_block(
+    fields: Fields, *, halo: int, theta_view: np.ndarray, phi_view: np.ndarray,
+    theta_light: np.ndarray, phi_light: np.ndarray, model: ShadingModel,
+) -> np.ndarray:
+    """Render every (view, light) layer of one tile.
+
+    Parameters
+    ----------
+    fields
+        Material fields of the tile plus ``halo`` texels on every side (see
+        :meth:`ShadingModel.halo`).
+    halo
+        Width of that margin.
+    theta_view, phi_view, theta_light, phi_light
+        Directions in degrees.
+    model
+        Renderer parameters.
+
+    Returns
+    -------
+    numpy.ndarray
+        Float32 radiance of shape ``(views, lights, ny, nx, 3)`` for the tile without its halo.
+    """
+    h = fields.height
+    ny, nx = h.shape[0] - 2 * halo, h.shape[1] - 2 * halo
+    # Shadows are needed wherever a view ray of this block can land.
+    margin = math.ceil(parallax_length(float(np.max(theta_view)), relief=model.relief)) + 1
+    r0, size_y, size_x = halo - margin, ny + 2 * margin, nx + 2 * margin
+    vis = np.ones((len(theta_light), size_y, size_x), np.float32)
+    if model.shadows:
+        for i, (t, p) in enumerate(zip(theta_light, phi_light, strict=True)):
+            vis[i] = visibility(h, r0, r0, size_y, size_x, theta=float(t), phi=float(p),
+                                relief=model.relief, penumbra=model.penumbra,
+                                max_length=model.max_shadow)
+    n = normals(h)
+    lights = direction_vectors(theta_light, phi_light)
+    views = direction_vectors(theta_view, phi_view)
+    out = np.empty((len(views), len(lights), ny, nx, 3), np.float32)
+    inner = (slice(halo, halo + ny), slice(halo, halo + nx))
+    for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
+        if parallax_length(float(t), relief=model.relief) == 0.0:
+            # A top view sees each texel straight below it: plain slices, no resampling.
+            normal = tuple(c[inner] for c in n)
+            albedo, alpha, f0 = (fields.albedo[inner], fields.roughness[inner],
+                                 fields.specular[inner])
+            seen_vis = vis[:, margin : margin + ny, margin : margin + nx]
+        else:
+            oy, ox = parallax_hits(h, halo, halo, ny, nx, theta=float(t), phi=float(p),
+                                   relief=model.relief)
+            gx, gy, gz = (bilinear(c, halo, halo, oy, ox) for c in n)
+            inv = 1.0 / np.sqrt(gx * gx + gy * gy + gz * gz)
+            normal = (gx * inv, gy * inv, gz * inv)
+            albedo = bilinear(fields.albedo, halo, halo, oy, ox)
+            alpha = bilinear(fields.roughness, halo, halo, oy, ox)
+            f0 = bilinear(fields.specular, halo, halo, oy, ox)
+            seen_vis = [bilinear(v, margin, margin, oy, ox) for v in vis]
+        surface = Surface.seen_from(normal, albedo, alpha, f0, views[iv])
+        for il, light in enumerate(lights):
+            shade(surface, seen_vis[il], light, ambient=model.ambient, out=out[iv, il])
+    return out
