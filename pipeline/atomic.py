@@ -46,9 +46,10 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = False) -> Iterat
     BTFError
         If ``path`` exists and ``overwrite`` is false.
     """
-    path = Path(path)
+    shown = Path(path)
+    path = shown.absolute()  # tasks may run on workers in another directory
     if (path.exists() or path.is_symlink()) and not overwrite:
-        raise BTFError(f"{path}: already exists; pass --overwrite to replace it")
+        raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _sibling(path, "partial")
     try:
@@ -57,7 +58,7 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = False) -> Iterat
         _remove(tmp)
         raise
     if not tmp.exists():
-        raise BTFError(f"{path}: the stage finished without writing its output")
+        raise BTFError(f"{shown}: the stage finished without writing its output")
     if path.exists() or path.is_symlink():
         old = _sibling(path, "old")
         path.rename(old)

@@ -20,7 +20,14 @@ from pipeline.errors import BTFError
 from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, option
 from pipeline.runtime import Session
-from pipeline.store import RADIANCE, open_group, open_radiance, read_directions, write_unit
+from pipeline.store import (
+    RADIANCE,
+    location,
+    open_group,
+    open_radiance,
+    read_directions,
+    write_unit,
+)
 from tasks.sampling import direction_vectors
 from tasks.tonemap import exposure, to_uint8, tonemap
 
@@ -141,7 +148,7 @@ def export(params: ExportParams, session: Session) -> Path:
                 rows += [(n, d.theta_light[li], d.phi_light[li], d.theta_view[v], d.phi_view[v])
                          for n, li in zip(names, members, strict=True)]
                 writes.append(dask.delayed(_export_block, pure=True)(
-                    str(Path(params.store).resolve()), str(tmp), v, members, names,
+                    location(params.store), location(tmp), v, members, names,
                     channels=channels, fmt=params.format, half=params.half, scale=scale))
         if len({r[0] for r in rows}) != len(rows):
             raise BTFError(f"{params.store}: two layers round to the same file name")

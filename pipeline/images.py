@@ -47,12 +47,13 @@ def image_info(path: str | Path) -> ImageInfo:
         import OpenEXR
 
         try:
+            # The header is only valid while the file is open: copy what is needed.
             with OpenEXR.File(str(path), header_only=True) as f:
                 header = f.header()
+                (x0, y0), (x1, y1) = (np.asarray(v).copy() for v in header["dataWindow"])
+                names = [str(c.name) for c in header["channels"]]
         except Exception as exc:  # the bindings raise RuntimeError with a short text
-            raise BTFError(f"{path}: unreadable EXR file ({exc})") from None
-        (x0, y0), (x1, y1) = (np.asarray(v) for v in header["dataWindow"])
-        names = [c.name for c in header["channels"]]
+            raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
         return ImageInfo(int(y1 - y0 + 1), int(x1 - x0 + 1), _exr_channels(names, path))
     if suffix == ".png":
         try:
@@ -86,7 +87,7 @@ def read_image(path: str | Path, *, srgb: bool = False) -> tuple[np.ndarray, tup
                 channels = f.channels()
                 planes = [np.asarray(channels[name].pixels) for name in info.channels]
         except Exception as exc:
-            raise BTFError(f"{path}: corrupt EXR file ({exc})") from None
+            raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
         if any(p.dtype.kind != "f" for p in planes):
             raise BTFError(f"{path}: EXR channels must be half or float, not integer")
         return np.stack(planes, axis=-1).astype(np.float32), info.channels

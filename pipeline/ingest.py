@@ -24,7 +24,14 @@ from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
-from pipeline.store import RADIANCE, Directions, Layout, aligned_chunks, create_radiance_store
+from pipeline.store import (
+    RADIANCE,
+    Directions,
+    Layout,
+    aligned_chunks,
+    create_radiance_store,
+    location,
+)
 
 MANIFEST_COLUMNS = ("file", "theta_light", "phi_light", "theta_view", "phi_view")
 _NUMBER = r"(-?\d+(?:\.\d+)?)"
@@ -211,7 +218,7 @@ def ingest(params: IngestParams, session: Session) -> Path:
         starts = np.concatenate([[0], np.cumsum(lch)[:-1]]).astype(int)
         writes = [
             dask.delayed(_ingest_block, pure=True)(
-                str(tmp), v, int(l0), [str(e.path) for e in row[l0 : l0 + n]],
+                location(tmp), v, int(l0), [location(e.path) for e in row[l0 : l0 + n]],
                 srgb=params.srgb, info=info)
             for v, row in enumerate(grid)
             for l0, n in zip(starts, lch, strict=True)

@@ -22,8 +22,15 @@ from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.params import option
 from pipeline.runtime import Session
-from pipeline.store import DIRECTION_COORDS, RADIANCE, open_dataset, open_group, read_directions
-from tasks.stats import STATS, chunk_stats, combine_stats, finalize_stats
+from pipeline.store import (
+    DIRECTION_COORDS,
+    RADIANCE,
+    block_regions,
+    location,
+    open_group,
+    read_directions,
+)
+from tasks.stats import chunk_stats, combine_stats, finalize_stats
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,25 +127,38 @@ def describe(path: str | Path) -> dict[str, Any]:
     return report
 
 
-def _block_summary(block: np.ndarray) -> np.ndarray:
-    return chunk_stats(block).reshape((1,) * block.ndim + (len(STATS),))
+def _shard_summary(store: str, name: str, region: tuple[slice, ...]) -> np.ndarray:
+    import zarr
+
+    try:
+        block = zarr.open_array(store, path=name, mode="r")[region]
+    except Exception as exc:  # re-raised with the chunk's key, whatever the codec raised
+        where = ", ".join(f"{r.start}:{r.stop}" for r in region)
+        raise BTFError(f"{store}: variable {name!r}, block [{where}] is unreadable: "
+                       f"{type(exc).__name__}: {exc}") from None
+    return chunk_stats(block)
 
 
 def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
-    """Statistics of every numeric data variable, computed chunk by chunk."""
-    ds = open_dataset(path)
-    names = [n for n in ds.data_vars if ds[n].dtype.kind in "fiu"]
-    summaries = []
+    """Statistics of every numeric array, one task per shard (memory: one shard per worker)."""
+    import dask
+
+    group = open_group(path)
+    names = [n for n in sorted(group.array_keys()) if group[n].dtype.kind in "fiu"
+             and n not in DIRECTION_COORDS]
+    tasks = {}
     for name in names:
-        data = ds[name].data
-        summaries.append(data.map_blocks(
-            _block_summary, new_axis=data.ndim,
-            chunks=(*((1,) * len(c) for c in data.chunks), (len(STATS),)),
-            dtype=np.float64, meta=np.empty((0,) * (data.ndim + 1), np.float64)))
+        array = group[name]
+        tasks[name] = [dask.delayed(_shard_summary, pure=True)(location(path), name, region)
+                       for region in block_regions(array)]
     session.log(f"scan: {len(names)} variable(s) of {path}")
-    results = session.compute(*summaries)
-    return {name: finalize_stats(combine_stats(r)) for name, r in zip(names, results,
-                                                                     strict=True)}
+    results = session.compute(*(t for name in names for t in tasks[name]))
+    out, k = {}, 0
+    for name in names:
+        n = len(tasks[name])
+        out[name] = finalize_stats(combine_stats(np.stack(results[k : k + n])))
+        k += n
+    return out
 
 
 def plot_sampling(path: str | Path, out: str | Path) -> None:

@@ -15,6 +15,7 @@ from typing import Any
 import dask
 
 LOCAL_SCHEDULERS = ("synchronous", "threads", "processes")
+CONNECT_TIMEOUT = "10s"  # how long to wait for a tcp:// scheduler (it may still be starting)
 
 
 def check_scheduler(text: str) -> str:
@@ -56,7 +57,7 @@ class Session:
             from distributed import Client
 
             try:
-                self.client = Client(self.options.scheduler, timeout="10s",
+                self.client = Client(self.options.scheduler, timeout=CONNECT_TIMEOUT,
                                      set_as_default=False)
             except OSError as exc:
                 from pipeline.errors import BTFError

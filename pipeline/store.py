@@ -111,6 +111,11 @@ class Layout:
         return tuple(chunks), (tuple(shards) if sharded else None)
 
 
+def location(path: str | Path) -> str:
+    """The absolute form of a path, as handed to tasks: workers may run in another directory."""
+    return str(Path(path).absolute())
+
+
 def _compressors():
     from zarr.codecs import BloscCodec
 
@@ -136,7 +141,7 @@ def create_radiance_store(
     """
     import zarr
 
-    group = zarr.open_group(str(path), mode="w-", zarr_format=3)
+    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
     group.attrs.update(attrs)
     shape = (directions.theta_view.size, directions.theta_light.size, ny, nx, len(channels))
     chunks, shards = layout.grid(shape, RADIANCE_DIMS)
@@ -179,6 +184,17 @@ def aligned_chunks(array) -> tuple[tuple[int, ...], ...]:
     return tuple(out)
 
 
+def block_regions(array) -> list[tuple[slice, ...]]:
+    """The regions of ``array`` in whole write units (one per shard), in C order."""
+    import itertools
+
+    axes = []
+    for chunks in aligned_chunks(array):
+        starts = np.concatenate([[0], np.cumsum(chunks)[:-1]]).astype(int)
+        axes.append([slice(int(a), int(a + c)) for a, c in zip(starts, chunks, strict=True)])
+    return list(itertools.product(*axes))
+
+
 def store_aligned(sources: list, targets: list):
     """A delayed write of dask arrays into zarr arrays, refused unless shard-aligned.
 
@@ -215,7 +231,7 @@ def open_group(path: str | Path):
         raise BTFError(f"{path}: unreadable zarr.json ({exc})") from None
     if node_type != "group":
         raise BTFError(f"{path}: a zarr array, not a group of variables")
-    return zarr.open_group(str(p), mode="r")
+    return zarr.open_group(location(p), mode="r")
 
 
 def read_chunks(group, name: str = RADIANCE) -> dict[str, int]:
@@ -255,7 +271,7 @@ def open_dataset(path: str | Path, group=None):
     import xarray as xr
 
     group = open_group(path) if group is None else group
-    ds = xr.open_zarr(str(path), consolidated=False, chunks=None)
+    ds = xr.open_zarr(location(path), consolidated=False, chunks=None)
     for name in ds.data_vars:
         ds[name] = ds[name].chunk(read_chunks(group, name))
     return ds

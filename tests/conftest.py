@@ -1,0 +1,59 @@
+"""Shared fixtures: an in-process CLI runner and small generated stores."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from helpers import generate_store
+from pipeline.cli import main
+
+
+@dataclass
+class Result:
+    code: int
+    out: str
+    err: str
+
+
+@pytest.fixture
+def btf(capsys):
+    """Run ``btf ARGS...`` in-process; return exit code, stdout and stderr."""
+
+    def run(*args) -> Result:
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse usage errors and --help
+            code = exc.code if isinstance(exc.code, int) else 1
+        captured = capsys.readouterr()
+        return Result(code, captured.out, captured.err)
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def small_abtf(tmp_path_factory) -> Path:
+    """A 48 x 48 wood ABTF, 6 rotations x 3 elevations, several shards and light blocks."""
+    path = tmp_path_factory.mktemp("stores") / "wood.zarr"
+    return generate_store(path, "--material", "wood", "--size", "48", "--sampling", "abtf:6,3",
+                          "--chunk", "16", "--shard", "32", "--dir-chunk", "4", "--seed", "3")
+
+
+@pytest.fixture(scope="session")
+def small_btf(tmp_path_factory) -> Path:
+    """A 32 x 32 fabric BTF with 3 views x 3 lights (oblique views: parallax)."""
+    path = tmp_path_factory.mktemp("stores") / "fabric.zarr"
+    return generate_store(path, "--material", "fabric", "--size", "32", "--sampling", "hemi:3",
+                          "--chunk", "16", "--shard", "32", "--dir-chunk", "2")
+
+
+@pytest.fixture(scope="session")
+def local_cluster():
+    """A dask.distributed LocalCluster of two single-threaded worker processes (its address)."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        yield cluster.scheduler_address

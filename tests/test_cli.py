@@ -1,0 +1,60 @@
+"""The command line: help for every option, scheduler choice, quiet mode."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.stages import STAGES
+
+
+@pytest.mark.parametrize("name", [*STAGES, "run"])
+def test_every_subcommand_explains_every_option(btf, name):
+    result = btf(name, "--help")
+    assert result.code == 0
+    for flag in ("--scheduler", "--workers", "--quiet"):
+        assert flag in result.out
+    if name in STAGES:
+        for field in dataclasses.fields(STAGES[name].params):
+            shown = (field.name.upper() if field.metadata["positional"]
+                     else "--" + field.name.replace("_", "-"))
+            assert shown in result.out, shown
+        assert STAGES[name].description[:40] in " ".join(result.out.split())
+
+
+def test_top_level_help_lists_the_commands(btf):
+    result = btf("--help")
+    assert result.code == 0
+    for name in [*STAGES, "run"]:
+        assert name in result.out
+
+
+def test_console_script_is_installed():
+    out = subprocess.run([sys.executable, "-m", "pipeline.cli", "--version"], capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.startswith("btf ")
+
+
+def test_bad_scheduler_and_workers_are_usage_errors(btf, tmp_path):
+    assert btf("inspect", tmp_path, "--scheduler", "tcp://").code == 2
+    assert btf("inspect", tmp_path, "--workers", "0").code == 2
+
+
+def test_progress_is_shown_unless_quiet(btf, tmp_path):
+    args = ("generate", tmp_path / "a.zarr", "--material", "wood", "--size", "64",
+            "--sampling", "abtf:16,4", "--chunk", "16", "--dir-chunk", "1")
+    loud = btf(*args, "--scheduler", "synchronous", "--workers", "1")
+    assert loud.code == 0 and "generate: 1 x 64 layers" in loud.err
+    quiet = btf(*args[:1], tmp_path / "b.zarr", *args[2:], "--quiet")
+    assert quiet.code == 0 and quiet.err == "" and quiet.out == ""
+
+
+def test_an_unreachable_cluster_is_a_clear_error(btf, tmp_path, monkeypatch):
+    monkeypatch.setattr("pipeline.runtime.CONNECT_TIMEOUT", "1s")
+    result = btf("generate", tmp_path / "a.zarr", "--material", "wood", "--size", "16",
+                 "--scheduler", "tcp://127.0.0.1:9", "--quiet")
+    assert result.code == 1 and "cannot reach the dask scheduler at tcp://127.0.0.1:9" in result.err
+    assert not (tmp_path / "a.zarr").exists()

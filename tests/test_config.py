@@ -1,0 +1,123 @@
+"""btf run: configs are validated before anything runs, then run in order."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+SMALL = ("--set", "generate.size=32")
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=[c.name for c in CONFIGS])
+def test_every_shipped_config_runs(btf, workdir, config):
+    result = btf("run", config, *SMALL, "--quiet")
+    assert result.code == 0, result.err
+    assert list(workdir.rglob("*.zarr")), "a config is expected to make at least one store"
+
+
+def test_demo_writes_its_outputs_and_skips_what_is_up_to_date(btf, workdir):
+    demo = next(c for c in CONFIGS if c.name == "demo.yaml")
+    first = btf("run", demo, *SMALL)
+    assert first.code == 0, first.err
+    out = workdir / "out" / "demo"
+    for name in ("wood.zarr", "contact_sheet.png", "sampling.png", "inspect.json"):
+        assert (out / name).exists(), name
+    assert len(list((out / "layers").glob("*.png"))) >= 3
+    assert "abtf store, made by generate" in first.out
+    again = btf("run", demo, *SMALL)
+    assert again.code == 0 and "up to date, skipped" in again.err
+    changed = btf("run", demo, *SMALL, "--set", "generate.seed=8")
+    assert changed.code == 0 and "up to date" not in changed.err
+
+
+def _write(workdir, text):
+    path = workdir / "run.yaml"
+    path.write_text(text)
+    return path
+
+
+GOOD_GENERATE = """\
+stages:
+  - generate:
+      out: a.zarr
+      material: tiles
+      size: 32
+      sampling: "abtf:2,2"
+"""
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    (GOOD_GENERATE.replace("size: 32", "sise: 32"),
+     "run.yaml:5: stages[0].generate.sise: unknown key (did you mean 'size'?)"),
+    (GOOD_GENERATE.replace("size: 32", "size: big"),
+     "run.yaml:5: stages[0].generate.size: expected an integer, got 'big'"),
+    (GOOD_GENERATE.replace("size: 32", "size: '32'"),
+     "run.yaml:5: stages[0].generate.size: expected an integer, got '32'"),
+    (GOOD_GENERATE.replace("material: tiles", "material: marble"),
+     "run.yaml:4: stages[0].generate.material: 'marble' is not one of"),
+    (GOOD_GENERATE.replace("      out: a.zarr\n", ""),
+     "run.yaml:2: stages[0].generate.out: is required"),
+    (GOOD_GENERATE + "  - inspect:\n      store: b.zarr\n",
+     "run.yaml:8: stages[1].inspect.store: 'b.zarr' does not exist and no earlier stage makes it"),
+    ("stages:\n  - inspect:\n      store: a.zarr\n" + GOOD_GENERATE.split("\n", 1)[1],
+     "run.yaml:3: stages[0].inspect.store: 'a.zarr' does not exist"),
+    (GOOD_GENERATE + "  - render:\n      store: a.zarr\n", "run.yaml:7: stages[1]: unknown stage"),
+    (GOOD_GENERATE + "colour: blue\n", "run.yaml:7: colour: unknown key"),
+    (GOOD_GENERATE + "scheduler: gpu\n", "run.yaml:7: scheduler: unknown scheduler 'gpu'"),
+    (GOOD_GENERATE.replace("size: 32", "size: 32\n      size: 64"), "duplicate key 'size'"),
+    ("stages: []\n", "run.yaml:1: stages: expected a non-empty list"),
+    ("just text\n", "run.yaml:1: config: expected a mapping"),
+    ("stages:\n  - generate: [1, 2]\n", "run.yaml:2: stages[0].generate: expected a mapping"),
+    ("stages: {\n", "not valid YAML"),
+])
+def test_config_errors_name_the_key_and_line_and_nothing_runs(btf, workdir, text, message):
+    result = btf("run", _write(workdir, text))
+    assert result.code == 1
+    assert message in result.err, result.err
+    assert not (workdir / "a.zarr").exists()
+
+
+def test_unsafe_yaml_tags_are_refused(btf, workdir):
+    text = "stages:\n  - inspect:\n      store: !!python/object/apply:os.system ['true']\n"
+    result = btf("run", _write(workdir, text))
+    assert result.code == 1 and "not valid YAML" in result.err
+
+
+def test_check_prints_the_commands_without_running(btf, workdir):
+    result = btf("run", _write(workdir, GOOD_GENERATE), "--check")
+    assert result.code == 0
+    assert "btf generate a.zarr --material tiles --size 32 --sampling abtf:2,2" in result.out
+    assert not (workdir / "a.zarr").exists()
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("generate.size", "expected STAGE.KEY=VALUE"), ("paint.size=3", "unknown stage 'paint'"),
+    ("export.light=1", "has no 'export' stage"),
+])
+def test_bad_overrides_are_refused(btf, workdir, override, message):
+    result = btf("run", _write(workdir, GOOD_GENERATE), "--set", override)
+    assert result.code == 1 and message in result.err
+
+
+def test_command_line_scheduler_overrides_the_config(btf, workdir):
+    path = _write(workdir, GOOD_GENERATE + "scheduler: processes\n")
+    result = btf("run", path, "--check", "--scheduler", "synchronous")
+    assert "on synchronous" in result.out
+    assert "on processes" in btf("run", path, "--check").out
+
+
+def test_relative_paths_are_relative_to_the_working_directory(btf, workdir):
+    sub = workdir / "configs"
+    sub.mkdir()
+    shutil.copy(_write(workdir, GOOD_GENERATE), sub / "run.yaml")
+    assert btf("run", sub / "run.yaml", "--quiet").code == 0
+    assert (workdir / "a.zarr").is_dir() and not (sub / "a.zarr").exists()

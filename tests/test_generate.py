@@ -1,0 +1,203 @@
+"""btf generate: contract, determinism, physical sanity, and clean failure."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from helpers import generate_store, no_partial_outputs
+from pipeline.generate import GenerateParams, generate
+from pipeline.images import write_exr, write_png
+from pipeline.runtime import RuntimeOptions, Session
+from pipeline.store import RADIANCE, open_radiance
+
+SMALL = ("--material", "stone", "--size", "40", "--sampling", "hemi:3", "--chunk", "16",
+         "--shard", "32", "--dir-chunk", "2", "--seed", "11")
+VARIABLES = (RADIANCE, "height", "albedo", "roughness", "specular")
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    group = zarr.open_group(path, mode="r")
+    return {name: group[name][:] for name in VARIABLES}
+
+
+def test_generated_store_follows_the_contract(small_abtf):
+    ds = open_radiance(small_abtf)
+    rad = ds[RADIANCE]
+    assert rad.dims == ("view", "light", "y", "x", "channel")
+    assert rad.shape == (1, 18, 48, 48, 3) and rad.dtype == np.float32
+    assert ds.attrs["btf_kind"] == "abtf" and ds.attrs["source"] == "generate"
+    prov = ds.attrs["provenance"]
+    assert prov["command"].startswith("btf generate ") and "--material wood" in prov["command"]
+    assert prov["parameters"]["seed"] == 3 and prov["version"]
+    assert "overwrite" not in prov["parameters"]
+    values = rad.values
+    assert np.isfinite(values).all() and values.min() >= 0
+    for name in ("height", "albedo", "roughness", "specular"):
+        assert ds[name].dims[:2] == ("y", "x") and np.isfinite(ds[name].values).all()
+
+
+@pytest.mark.parametrize("scheduler", ["synchronous", "processes"])
+def test_same_arguments_give_identical_stores_on_every_scheduler(tmp_path, scheduler):
+    reference = generate_store(tmp_path / "threads" / "s.zarr", *SMALL, "--scheduler", "threads")
+    other = generate_store(tmp_path / scheduler / "s.zarr", *SMALL, "--scheduler", scheduler)
+    a, b = _arrays(reference), _arrays(other)
+    for name in VARIABLES:
+        assert np.array_equal(a[name], b[name]), name
+
+
+@pytest.mark.distributed
+def test_a_local_cluster_gives_the_identical_store(tmp_path, local_cluster):
+    reference = generate_store(tmp_path / "a" / "s.zarr", *SMALL, "--scheduler", "synchronous")
+    other = generate_store(tmp_path / "b" / "s.zarr", *SMALL, "--scheduler", local_cluster)
+    a, b = _arrays(reference), _arrays(other)
+    for name in VARIABLES:
+        assert np.array_equal(a[name], b[name]), name
+
+
+def test_the_chunking_does_not_change_the_values(tmp_path):
+    a = generate_store(tmp_path / "a.zarr", *SMALL)
+    b = generate_store(tmp_path / "b.zarr", *SMALL[:-8], "--chunk", "8", "--shard", "0",
+                       "--dir-chunk", "3", "--seed", "11")
+    assert np.array_equal(_arrays(a)[RADIANCE], _arrays(b)[RADIANCE])
+
+
+def test_different_seeds_give_different_materials(tmp_path):
+    a = generate_store(tmp_path / "a.zarr", *SMALL)
+    b = generate_store(tmp_path / "b.zarr", *SMALL[:-1], "12")
+    ra, rb = _arrays(a)[RADIANCE], _arrays(b)[RADIANCE]
+    assert np.abs(ra - rb).mean() > 0.1 * ra.mean()
+
+
+def test_tiles_layers_are_periodic_with_the_period_set(tmp_path):
+    path = generate_store(tmp_path / "t.zarr", "--material", "tiles", "--size", "60",
+                          "--scale", "20", "--sampling", "abtf:4,2", "--chunk", "16")
+    rad = _arrays(path)[RADIANCE]
+    assert np.array_equal(rad[:, :, 20:], rad[:, :, :40])
+    assert np.array_equal(rad[:, :, :, 20:], rad[:, :, :, :40])
+    assert np.abs(rad[:, :, 10:] - rad[:, :, :50]).mean() > 0.05 * rad.mean()
+    assert zarr.open_group(path).attrs["material"]["period"] == 20
+
+
+def test_low_lights_cast_shadows_in_stored_layers(small_abtf):
+    # Texels far darker than the shadow-free Lambertian prediction (stored albedo x cos theta)
+    # are in cast shadow: many under grazing light, none under light from near the normal.
+    ds = open_radiance(small_abtf)
+    rad = ds[RADIANCE].values[0].mean(axis=-1)
+    albedo = ds["albedo"].values.mean(axis=-1)
+    theta = ds["theta_light"].values
+    dark = np.array([np.mean(rad[i] < 0.3 * albedo * np.cos(np.radians(t)))
+                     for i, t in enumerate(theta)])
+    assert dark[theta == theta.max()].mean() > 0.03
+    assert dark[theta == theta.min()].max() == 0.0
+    assert dark[theta == theta.max()].mean() > 5 * dark[(theta > 30) & (theta < 60)].mean()
+
+
+def test_highlights_move_with_the_light_in_stored_layers(small_abtf):
+    # Top view, light near the normal: the brightest texels are those facing the light
+    # (ground truth: the stored height), and they move when the light turns.
+    ds = open_radiance(small_abtf)
+    gy, gx = np.gradient(ds["height"].values)
+    theta, phi = ds["theta_light"].values, ds["phi_light"].values
+    tops = {}
+    for i in np.flatnonzero(theta == theta.min()):
+        layer = ds[RADIANCE].values[0, i].sum(axis=-1)
+        top = layer > np.percentile(layer, 97)
+        facing = -(gx * np.cos(np.radians(phi[i])) + gy * np.sin(np.radians(phi[i])))
+        assert np.mean(facing[top] > 0) > 0.85
+        tops[round(phi[i])] = top
+    assert np.mean(tops[0] & tops[180]) < 0.25 * np.mean(tops[0])
+
+
+def test_oblique_views_see_parallax(small_btf):
+    ds = open_radiance(small_btf)
+    rad = ds[RADIANCE].values
+    top = int(np.argmin(ds["theta_view"].values))
+    oblique = int(np.argmax(ds["theta_view"].values))
+    # the same light seen from another view is not just a rescaled image
+    a, b = rad[top, 0].sum(-1), rad[oblique, 0].sum(-1)
+    assert abs(np.corrcoef(a.ravel(), b.ravel())[0, 1]) < 0.98
+
+
+def test_existing_output_is_kept_unless_overwrite(tmp_path, btf):
+    path = generate_store(tmp_path / "s.zarr", *SMALL)
+    before = _arrays(path)[RADIANCE]
+    result = btf("generate", path, *SMALL[:-1], "99", "--quiet")
+    assert result.code == 1 and "already exists" in result.err
+    assert np.array_equal(_arrays(path)[RADIANCE], before)
+    assert btf("generate", path, *SMALL[:-1], "99", "--quiet", "--overwrite").code == 0
+    assert not np.array_equal(_arrays(path)[RADIANCE], before)
+
+
+def test_a_failure_during_rendering_leaves_no_output(tmp_path, monkeypatch):
+    import pipeline.generate as gen
+
+    calls = {"n": 0}
+    real = gen.render_block
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("disk on fire")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(gen, "render_block", flaky)
+    params = GenerateParams(out=str(tmp_path / "s.zarr"), material="wood", size=40,
+                            sampling="hemi:3", chunk=16, shard=0, dir_chunk=1)
+    with Session(RuntimeOptions(scheduler="synchronous", quiet=True)) as session:
+        with pytest.raises(RuntimeError, match="disk on fire"):
+            generate(params, session)
+    assert calls["n"] == 3
+    assert no_partial_outputs(tmp_path / "s.zarr")
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--size", "64"), "--material: is required"),
+    (("--material", "wood"), "--size: is required"),
+    (("--material", "marble", "--size", "64"), "invalid choice"),
+    (("--material", "wood", "--size", "64", "--sampling", "dome"), "unknown sampling"),
+    (("--material", "wood", "--size", "4"), "--size: must be between"),
+    (("--material", "wood", "--size", "64", "--chunk", "64", "--shard", "100"), "multiple"),
+    (("--material", "wood", "--size", "64", "--scheduler", "gpu"), "unknown scheduler"),
+])
+def test_bad_arguments_are_refused_before_anything_is_written(tmp_path, btf, args, message):
+    result = btf("generate", tmp_path / "s.zarr", *args)
+    assert result.code == 2 and message in result.err
+    assert no_partial_outputs(tmp_path / "s.zarr")
+
+
+@pytest.mark.parametrize("suffix", [".png", ".exr"])
+def test_a_photo_becomes_the_albedo_of_a_generated_store(tmp_path, btf, suffix):
+    rng = np.random.default_rng(1)
+    photo = tmp_path / f"photo{suffix}"
+    pixels = rng.integers(20, 235, (36, 44, 3), dtype=np.uint8)
+    if suffix == ".png":
+        write_png(photo, pixels)
+        expected = ((pixels / 255.0 + 0.055) / 1.055) ** 2.4  # sRGB decoded
+    else:
+        expected = pixels.astype(np.float32) / 255
+        write_exr(photo, expected, ("R", "G", "B"))
+    out = tmp_path / "photo.zarr"
+    assert btf("generate", out, "--albedo", photo, "--sampling", "abtf:3,2", "--chunk", "16",
+               "--quiet").code == 0
+    ds = open_radiance(out)
+    assert ds[RADIANCE].shape == (1, 6, 36, 44, 3)
+    assert np.allclose(ds["albedo"].values, expected, atol=1e-5)
+    assert ds.attrs["material"]["sha256"]
+    cropped = tmp_path / "crop.zarr"
+    assert btf("generate", cropped, "--albedo", photo, "--size", "30", "--sampling", "abtf:3,2",
+               "--quiet").code == 0
+    assert np.allclose(open_radiance(cropped)["albedo"].values, expected[3:33, 7:37], atol=1e-5)
+
+
+def test_a_missing_or_broken_photo_is_named(tmp_path, btf):
+    result = btf("generate", tmp_path / "s.zarr", "--albedo", tmp_path / "nope.png")
+    assert result.code == 1 and "nope.png: albedo image not found" in result.err
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not a png at all, really not")
+    result = btf("generate", tmp_path / "s.zarr", "--albedo", bad, "--quiet")
+    assert result.code == 1 and "bad.png" in result.err
+    assert no_partial_outputs(tmp_path / "s.zarr")

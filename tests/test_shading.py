@@ -1,0 +1,178 @@
+"""Physics of the renderer against analytic references."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tasks.heightfield import parallax_hits, visibility
+from tasks.materials import Fields, Material
+from tasks.sampling import direction_vectors, parse_sampling
+from tasks.shading import ShadingModel, render_block
+
+
+def _render(fields, halo, model, tv, pv, tl, pl):
+    return render_block(fields, halo=halo, theta_view=np.atleast_1d(tv).astype(float),
+                        phi_view=np.atleast_1d(pv).astype(float),
+                        theta_light=np.atleast_1d(tl).astype(float),
+                        phi_light=np.atleast_1d(pl).astype(float), model=model)
+
+
+def _reference_radiance(albedo, alpha, f0, light, view, ambient):
+    """Lambert + GGX (Walter et al. 2007) for a flat surface, written out independently."""
+    n = np.array([0.0, 0.0, 1.0])
+    h = (light + view) / np.linalg.norm(light + view)
+    nl, nv, nh, vh = n @ light, n @ view, n @ h, view @ h
+    a2 = alpha**2
+    d = a2 / (math.pi * (nh**2 * (a2 - 1) + 1) ** 2)
+
+    def g1(c):
+        return 2 * c / (c + math.sqrt(a2 + (1 - a2) * c * c))
+
+    f = f0 + (1 - f0) * (1 - vh) ** 5
+    brdf = np.asarray(albedo) / math.pi + d * g1(nl) * g1(nv) * f / (4 * nl * nv)
+    return math.pi * brdf * nl + ambient * np.asarray(albedo) * light[2]
+
+
+@pytest.mark.parametrize(("tl", "pl", "tv", "pv"), [(0, 0, 0, 0), (30, 0, 30, 180),
+                                                     (60, 45, 20, 200), (75, 300, 50, 90)])
+def test_flat_surface_matches_the_analytic_brdf(tl, pl, tv, pv):
+    albedo, alpha, f0 = np.array([0.6, 0.3, 0.1]), 0.2, 0.04
+    model = ShadingModel(relief=2.0)
+    halo = model.halo(tv, tl)
+    size = 12 + 2 * halo
+    fields = Fields.stack(np.full((size, size), 1.0), albedo, alpha, f0)
+    out = _render(fields, halo, model, tv, pv, tl, pl)[0, 0]
+    light, view = direction_vectors([tl], [pl])[0], direction_vectors([tv], [pv])[0]
+    expected = _reference_radiance(albedo, alpha, f0, light, view, model.ambient)
+    assert np.allclose(out, expected, rtol=2e-5, atol=1e-7)
+
+
+def test_white_lambertian_facing_the_light_has_radiance_one():
+    fields = Fields.stack(np.zeros((8, 8)), 1.0, 1.0, 1e-6)
+    out = _render(fields, 0, ShadingModel(relief=1.0, ambient=0.0), 0, 0, 0, 0)
+    assert np.allclose(out, 1.0, atol=1e-4)
+
+
+def test_glossy_highlights_exceed_one():
+    model = ShadingModel(relief=1.0)
+    halo = model.halo(20, 20)
+    fields = Fields.stack(np.zeros((8 + 2 * halo, 8 + 2 * halo)), 0.3, 0.05, 0.05)
+    out = _render(fields, halo, model, 20, 0, 20, 180)
+    assert out.min() > 2.0
+
+
+@pytest.mark.parametrize(("theta", "phi"), [(60, 0), (75, 0), (70, 30), (65, 90), (80, 225)])
+def test_cast_shadow_of_a_wall_has_the_analytic_length(theta, phi):
+    # A ridge of height 5 along x = 100 (one texel wide) casts a shadow of horizontal length
+    # 5 tan(theta) along the light's azimuth, away from the light.
+    h = np.zeros((240, 240), np.float32)
+    h[:, 120] = 5.0
+    v = visibility(h, 60, 60, 120, 120, theta=theta, phi=phi, relief=5.0, penumbra=0.01,
+                   max_length=200)
+    length = 5.0 * math.tan(math.radians(theta))
+    cx = math.cos(math.radians(phi))
+    if abs(cx) < 1e-9:
+        assert v.min() == 1.0  # light along the ridge: no shadow across it
+        return
+    row = v[60]
+    x = np.arange(60, 180)
+    # texels whose ray towards the light crosses the ridge below height 5
+    distance = (120 - x) / cx  # horizontal distance along the light direction to the ridge
+    shadowed = (distance > 0.5) & (distance < length - 0.5)
+    lit = (distance < -0.5) | (distance > length + 1.5)
+    assert np.all(row[shadowed] < 0.5)
+    assert np.all(row[lit] > 0.5)
+
+
+def test_parallax_of_a_flat_plane_is_the_analytic_offset():
+    relief, level = 6.0, 2.0
+    h = np.full((80, 80), level, np.float32)
+    for theta, phi in ((30, 0), (60, 120), (75, 250)):
+        oy, ox = parallax_hits(h, 30, 30, 20, 20, theta=theta, phi=phi, relief=relief)
+        shift = (relief - level) * math.tan(math.radians(theta))  # away from the camera
+        assert np.allclose(ox, -shift * math.cos(math.radians(phi)), atol=1e-4)
+        assert np.allclose(oy, -shift * math.sin(math.radians(phi)), atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["wood", "leather", "tiles"])
+def test_rendering_does_not_depend_on_the_tiling(name):
+    m = Material(name, seed=5)
+    s = parse_sampling("hemi:4")
+    model = ShadingModel(relief=m.relief)
+    halo = model.halo(s.theta_view.max(), s.theta_light.max())
+
+    def tile(y0, x0, ny, nx):
+        return _render(m.fields(y0 - halo, x0 - halo, ny + 2 * halo, nx + 2 * halo), halo,
+                       model, s.theta_view, s.phi_view, s.theta_light, s.phi_light)
+
+    whole = tile(0, 0, 40, 40)
+    parts = np.concatenate([np.concatenate([tile(0, 0, 17, 25), tile(0, 25, 17, 15)], 3),
+                            np.concatenate([tile(17, 0, 23, 25), tile(17, 25, 23, 15)], 3)], 2)
+    assert np.array_equal(whole, parts)
+
+
+def test_cast_shadows_darken_low_elevations():
+    m = Material("leather", seed=1)
+    with_shadows, without = ShadingModel(relief=m.relief), ShadingModel(relief=m.relief,
+                                                                        shadows=False)
+    halo = with_shadows.halo(0, 80)
+    f = m.fields(-halo, -halo, 64 + 2 * halo, 64 + 2 * halo)
+    thetas = np.array([10.0, 45.0, 70.0, 80.0])
+    lit = _render(f, halo, with_shadows, 0, 0, thetas, np.zeros(4)).mean(axis=(2, 3, 4))[0]
+    unlit = _render(f, halo, without, 0, 0, thetas, np.zeros(4)).mean(axis=(2, 3, 4))[0]
+    ratio = lit / unlit
+    assert ratio[0] > 0.99  # light from near the normal: no cast shadows
+    assert ratio[-1] < 0.8  # grazing light: large shadowed areas
+    assert np.all(np.diff(ratio) < 0)  # the lower the light, the darker
+
+
+def test_highlight_is_at_the_mirror_direction():
+    m = Material("tiles", seed=0, scale=32)
+    model = ShadingModel(relief=m.relief)
+    phis = np.arange(0, 360, 30.0)
+    halo = model.halo(45, 45)
+    f = m.fields(-halo, -halo, 32 + 2 * halo, 32 + 2 * halo)
+    out = _render(f, halo, model, 45, 0, np.full(12, 45.0), phis)[0]
+    assert phis[np.argmax(out.mean(axis=(1, 2, 3)))] == 180
+
+
+def test_highlights_move_with_the_light_azimuth():
+    # Top view, light 20 degrees from the normal: the brightest texels are those whose normal
+    # bisects light and view, i.e. leans about 10 degrees towards the light's azimuth.
+    m = Material("leather", seed=2)
+    model = ShadingModel(relief=m.relief, shadows=False)
+    f = m.fields(-2, -2, 68, 68)
+    gy, gx = np.gradient(f.height)
+    tops = {}
+    for phi in (0.0, 90.0, 180.0, 270.0):
+        layer = _render(f, 2, model, 0, 0, 20, phi)[0, 0].sum(axis=-1)
+        top = layer > np.percentile(layer, 98)
+        rise = -(gx[2:-2, 2:-2] * math.cos(math.radians(phi))
+                 + gy[2:-2, 2:-2] * math.sin(math.radians(phi)))  # slope facing the light
+        assert abs(rise.mean()) < 0.05
+        assert rise[top].mean() > 0.1
+        assert np.mean(rise[top] > 0) > 0.9
+        tops[phi] = top
+    assert np.mean(tops[0.0] & tops[180.0]) < 0.2 * np.mean(tops[0.0])
+    assert np.mean(tops[90.0] & tops[270.0]) < 0.2 * np.mean(tops[90.0])
+
+
+def test_the_halo_is_enough_for_the_most_grazing_light_and_view():
+    # abtf:24,8 has lights 5.6 degrees above the horizon; dome151 views reach 75 degrees.
+    m = Material("leather", seed=3)
+    model = ShadingModel(relief=m.relief)
+    halo = model.halo(75.0, 84.375)
+    kw = dict(tv=[0.0, 75.0], pv=[0.0, 200.0], tl=[84.375, 84.375], pl=[0.0, 135.0])
+    exact = _render(m.fields(-halo, -halo, 24 + 2 * halo, 24 + 2 * halo), halo, model, **kw)
+    wide = halo + 25
+    wider = _render(m.fields(-wide, -wide, 24 + 2 * wide, 24 + 2 * wide), wide, model, **kw)
+    assert np.array_equal(exact, wider)
+
+
+def test_a_window_without_enough_halo_is_refused():
+    h = np.zeros((20, 20), np.float32)
+    with pytest.raises(ValueError, match="texels around"):
+        visibility(h, 2, 2, 16, 16, theta=80, phi=0, relief=4.0, penumbra=0.3, max_length=50)

@@ -1,0 +1,147 @@
+"""The store contract (DESIGN.md): layout, validation, and shard-safe writes."""
+
+from __future__ import annotations
+
+import json
+
+import dask
+import dask.array as da
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pipeline.errors import BTFError
+from pipeline.store import (
+    RADIANCE,
+    Directions,
+    Layout,
+    aligned_chunks,
+    create_radiance_store,
+    open_radiance,
+    store_aligned,
+)
+
+DIRS = Directions(np.array([0.0, 30.0]), np.array([0.0, 90.0]), np.arange(5.0) * 10,
+                  np.arange(5.0) * 45)
+
+
+LAYOUT = Layout(chunk=8, dir_chunk=2, shard=16)
+
+
+def _create(path, ny=40, nx=24, layout=LAYOUT):
+    return create_radiance_store(path, directions=DIRS, ny=ny, nx=nx, channels=("R", "G", "B"),
+                                 layout=layout, attrs={"btf_kind": "btf", "source": "test"})
+
+
+def _values(shape):
+    return np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+
+
+@given(st.integers(1, 2000), st.sampled_from([8, 16, 64, 128]), st.integers(0, 8))
+def test_layout_chunks_divide_shards_and_cover_the_axis(n, chunk, shard_chunks):
+    layout = Layout(chunk=chunk, shard=chunk * shard_chunks)
+    c, s = layout.spatial(n)
+    assert 1 <= c <= max(n, 1) and c <= chunk
+    if s is not None:
+        assert s % c == 0 and c < s <= max(layout.shard, c) and s < n + c
+
+
+def test_layout_rejects_shards_that_are_not_chunk_multiples():
+    with pytest.raises(ValueError, match="multiple"):
+        Layout(chunk=64, shard=100)
+
+
+def test_created_store_opens_with_xarray_as_the_contract_says(tmp_path):
+    group = _create(tmp_path / "s.zarr")
+    group[RADIANCE][:] = _values(group[RADIANCE].shape)
+    ds = xr.open_zarr(tmp_path / "s.zarr", consolidated=False)  # plain xarray, no helper
+    assert ds[RADIANCE].dims == ("view", "light", "y", "x", "channel")
+    assert ds[RADIANCE].dtype == np.float32
+    assert ds["theta_light"].dims == ("light",) and ds["phi_view"].dims == ("view",)
+    assert [str(c) for c in ds["channel"].values] == ["R", "G", "B"]
+    assert np.array_equal(ds["theta_light"].values, DIRS.theta_light)
+    assert ds.attrs["btf_kind"] == "btf"
+    assert np.array_equal(ds[RADIANCE].values, _values(group[RADIANCE].shape))
+
+
+def test_open_radiance_reads_whole_shards(tmp_path):
+    _create(tmp_path / "s.zarr")
+    ds = open_radiance(tmp_path / "s.zarr")
+    assert ds[RADIANCE].data.chunksize == (1, 2, 16, 16, 3)
+
+
+def test_store_aligned_refuses_chunks_that_split_shards(tmp_path):
+    group = _create(tmp_path / "s.zarr")
+    data = da.zeros(group[RADIANCE].shape, chunks=(1, 2, 8, 8, 3), dtype=np.float32)
+    with pytest.raises(ValueError, match="split shards"):
+        store_aligned([data], [group[RADIANCE]])
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes"])
+def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler):
+    group = _create(tmp_path / "s.zarr", ny=70, nx=52)
+    shape = group[RADIANCE].shape
+    data = da.from_array(_values(shape), chunks=aligned_chunks(group[RADIANCE]))
+    with dask.config.set(scheduler=scheduler, num_workers=4):
+        dask.compute(store_aligned([data], [group[RADIANCE]]))
+    assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], _values(shape))
+
+
+@pytest.mark.distributed
+def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, local_cluster):
+    from distributed import Client
+
+    group = _create(tmp_path / "s.zarr", ny=70, nx=52)
+    shape = group[RADIANCE].shape
+    data = da.from_array(_values(shape), chunks=aligned_chunks(group[RADIANCE]))
+    with Client(local_cluster) as client:
+        client.compute(store_aligned([data], [group[RADIANCE]])).result()
+    assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], _values(shape))
+
+
+def _break(path, how):
+    group = zarr.open_group(path, mode="r+")
+    if how == "no radiance":
+        del group[RADIANCE]
+    elif how == "wrong dims":
+        del group[RADIANCE]
+        group.create_array(RADIANCE, shape=(2, 5, 4, 4), dtype="float32",
+                           dimension_names=("view", "light", "y", "x"))
+    elif how == "wrong dtype":
+        del group[RADIANCE]
+        group.create_array(RADIANCE, shape=(2, 5, 4, 4, 3), dtype="float64",
+                           dimension_names=("view", "light", "y", "x", "channel"))
+    elif how == "no coordinate":
+        del group["phi_light"]
+
+
+@pytest.mark.parametrize(("how", "message"), [
+    ("no radiance", "no variable 'radiance'"), ("wrong dims", "has dims"),
+    ("wrong dtype", "is float64, expected float32"), ("no coordinate", "'phi_light' is missing"),
+])
+def test_invalid_stores_are_refused_with_the_reason(tmp_path, how, message):
+    path = tmp_path / "s.zarr"
+    _create(path)
+    _break(path, how)
+    with pytest.raises(BTFError, match=message) as info:
+        open_radiance(path)
+    assert str(path) in str(info.value)
+
+
+def test_things_that_are_not_stores_are_refused(tmp_path):
+    with pytest.raises(BTFError, match="no such store"):
+        open_radiance(tmp_path / "missing.zarr")
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(BTFError, match="not a zarr v3 store"):
+        open_radiance(tmp_path / "folder")
+    v2 = tmp_path / "v2.zarr"
+    v2.mkdir()
+    (v2 / ".zgroup").write_text(json.dumps({"zarr_format": 2}))
+    with pytest.raises(BTFError, match="zarr v2"):
+        open_radiance(v2)
+    zarr.create_array(tmp_path / "array.zarr", shape=(3,), dtype="f4")
+    with pytest.raises(BTFError, match="not a group"):
+        open_radiance(tmp_path / "array.zarr")
