@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import sys
 from functools import partial
+from pathlib import Path
 
 from pipeline import __version__
 from pipeline.errors import BTFError
@@ -127,7 +128,35 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--check", action="store_true",
                      help="validate the config and print its commands without running them")
     run.set_defaults(handler=_run_config)
+    _add_bench(sub)
     return parser
+
+
+def _add_bench(sub) -> None:
+    from benchmarks import generate as generate_suite
+
+    suites = {generate_suite.SUITE: generate_suite}
+    bench = sub.add_parser(
+        "bench", formatter_class=_Formatter, help="run a benchmark suite",
+        description="Benchmark a stage against a reference measured in the same run, and print "
+                    "a Markdown table for BENCHMARKS.md (and JSON with --json FILE).")
+    inner = bench.add_subparsers(dest="suite", metavar="SUITE", required=True)
+    for name, suite in suites.items():
+        p = inner.add_parser(name, help=(suite.__doc__ or "").splitlines()[0],
+                             description=suite.__doc__, formatter_class=_Formatter)
+        suite.add_arguments(p)
+        p.add_argument("--json", metavar="FILE", help="also write the raw figures as JSON")
+        p.set_defaults(handler=partial(_run_bench, suite))
+
+
+def _run_bench(suite, args: argparse.Namespace) -> int:
+    from benchmarks.harness import to_json
+
+    result = suite.run(args)
+    if args.json:
+        Path(args.json).write_text(to_json(result) + "\n")
+    print(suite.report(result))
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

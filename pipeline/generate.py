@@ -62,8 +62,8 @@ class GenerateParams:
              "material (PNG is decoded from sRGB)")
     chunk: int = option(128, help="texels per side of a stored chunk")
     dir_chunk: int = option(16, help="light directions per stored chunk")
-    shard: int = option(512, help="texels per side of a shard file (a multiple of --chunk; "
-                                  "0: one file per chunk)")
+    shard: int = option(0, help="texels per side of a shard file grouping several chunks (a "
+                                "multiple of --chunk); 0: one file per chunk")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
@@ -200,7 +200,8 @@ def generate(params: GenerateParams, session: Session) -> Path:
         radiance = da.blockwise(
             _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld",
             new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
-            concatenate=True, dtype=np.float32, meta=np.empty((0,) * 5, np.float32), halo=halo,
+            concatenate=True, align_arrays=False, dtype=np.float32,
+            meta=np.empty((0,) * 5, np.float32), halo=halo,
             model=model,
         )
         truth = windows.map_blocks(_crop, chunks=(ych, xch, (6,)), dtype=np.float32, halo=halo)

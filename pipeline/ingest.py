@@ -53,7 +53,8 @@ class IngestParams:
     srgb: bool = option(False, help="decode PNG values from sRGB to linear")
     chunk: int = option(128, help="texels per side of a stored chunk")
     dir_chunk: int = option(16, help="light directions per stored chunk (and per task)")
-    shard: int = option(512, help="texels per side of a shard file (0: one file per chunk)")
+    shard: int = option(0, help="texels per side of a shard file grouping several chunks (a "
+                                "multiple of --chunk); 0: one file per chunk")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):

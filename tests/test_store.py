@@ -67,21 +67,34 @@ def test_created_store_opens_with_xarray_as_the_contract_says(tmp_path):
     assert np.array_equal(ds[RADIANCE].values, _values(group[RADIANCE].shape))
 
 
-def test_open_radiance_reads_whole_shards(tmp_path):
+@pytest.fixture
+def shard_sized_tasks(monkeypatch):
+    """Tasks of exactly one shard: the most concurrent writers a store can have."""
+    monkeypatch.setattr("pipeline.store.TASK_TEXELS", 16)
+
+
+def test_open_radiance_reads_whole_write_units(tmp_path, shard_sized_tasks):
     _create(tmp_path / "s.zarr")
     ds = open_radiance(tmp_path / "s.zarr")
     assert ds[RADIANCE].data.chunksize == (1, 2, 16, 16, 3)
 
 
+def test_task_blocks_are_whole_write_units_of_about_task_texels(tmp_path):
+    group = _create(tmp_path / "s.zarr", ny=1100, nx=700, layout=Layout(chunk=96, shard=192))
+    chunks = aligned_chunks(group[RADIANCE])
+    assert chunks[2] == (384, 384, 332) and chunks[3] == (384, 316)
+    assert chunks[1] == (5,)  # dir_chunk 16 covers all 5 lights
+
+
 def test_store_aligned_refuses_chunks_that_split_shards(tmp_path):
     group = _create(tmp_path / "s.zarr")
     data = da.zeros(group[RADIANCE].shape, chunks=(1, 2, 8, 8, 3), dtype=np.float32)
-    with pytest.raises(ValueError, match="split shards"):
+    with pytest.raises(ValueError, match="split write units"):
         store_aligned([data], [group[RADIANCE]])
 
 
 @pytest.mark.parametrize("scheduler", ["threads", "processes"])
-def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler):
+def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler, shard_sized_tasks):
     group = _create(tmp_path / "s.zarr", ny=70, nx=52)
     shape = group[RADIANCE].shape
     data = da.from_array(_values(shape), chunks=aligned_chunks(group[RADIANCE]))
@@ -91,7 +104,8 @@ def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler):
 
 
 @pytest.mark.distributed
-def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, local_cluster):
+def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, local_cluster,
+                                                                    shard_sized_tasks):
     from distributed import Client
 
     group = _create(tmp_path / "s.zarr", ny=70, nx=52)

@@ -1,0 +1,54 @@
+"""Measuring commands: wall time and peak resident memory of a fresh process."""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Wall time (s) and peak resident set (bytes) of one command."""
+
+    seconds: float
+    peak_rss: int
+
+
+def measure(argv: list[str]) -> Measurement:
+    """Run ``argv`` in a fresh wrapper process; its peak RSS is the command's alone.
+
+    ``ru_maxrss`` of waited-for children is the largest single process, so for the
+    ``processes`` scheduler this is the largest worker, not the sum of the process tree.
+    """
+    code = ("import resource, subprocess, sys, time, json\n"
+            "t = time.perf_counter()\n"
+            "subprocess.run(sys.argv[1:], check=True)\n"
+            "t = time.perf_counter() - t\n"
+            "rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024\n"
+            "print(json.dumps({'seconds': t, 'peak_rss': rss}), file=sys.stderr)\n")
+    done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"benchmark command failed: {' '.join(argv)}\n{done.stderr}")
+    return Measurement(**json.loads(done.stderr.strip().splitlines()[-1]))
+
+
+def best_of(repeat: int, argv: list[str]) -> Measurement:
+    """The fastest of ``repeat`` runs (with the peak memory of that run)."""
+    return min((measure(argv) for _ in range(max(1, repeat))), key=lambda m: m.seconds)
+
+
+def machine() -> dict:
+    """What the figures were measured on."""
+    import os
+
+    return {"python": platform.python_version(), "cpus": os.cpu_count(),
+            "platform": platform.platform(), "when": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def to_json(result: dict) -> str:
+    """JSON of a result."""
+    return json.dumps(result, indent=2, default=str)
