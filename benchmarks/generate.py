@@ -1,7 +1,7 @@
 """Generator throughput: ``btf generate`` against the same kernels run serially in-process.
 
 The reference renders exactly the blocks the pipeline renders (fields with halo once per
-spatial shard, then every light block), in one thread, without dask or zarr. The ratio of the
+spatial task block, then every light block), in one thread, without dask or zarr. The ratio of the
 two wall times is the pipeline's parallel speed-up net of its overheads (graph, compression,
 writing): on 2 cores the ideal is 2.
 """
@@ -39,7 +39,7 @@ def kernel_reference(material: str, size: int, sampling: str) -> float:
     """Seconds to render the store's blocks serially with the bare kernels (no dask, no zarr)."""
     import numpy as np
 
-    from pipeline.store import Layout
+    from pipeline.store import TASK_TEXELS, Layout
     from tasks.materials import Material
     from tasks.sampling import parse_sampling
     from tasks.shading import ShadingModel, render_block
@@ -49,8 +49,9 @@ def kernel_reference(material: str, size: int, sampling: str) -> float:
     model = ShadingModel(relief=m.relief)
     halo = model.halo(float(s.theta_view.max()), float(s.theta_light.max()))
     layout = Layout()
-    _, shard = layout.spatial(size)
-    step = shard or min(layout.chunk, size)
+    chunk, shard = layout.spatial(size)
+    unit = shard or chunk
+    step = unit * max(1, TASK_TEXELS // unit)  # the pipeline's task block (store.task_block)
     start = time.perf_counter()
     for y0 in range(0, size, step):
         for x0 in range(0, size, step):

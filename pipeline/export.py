@@ -13,22 +13,13 @@ import dataclasses
 import math
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, option
 from pipeline.runtime import Session
-from pipeline.store import (
-    RADIANCE,
-    location,
-    open_group,
-    open_radiance,
-    read_directions,
-    write_unit,
-)
-from tasks.sampling import direction_vectors
+from pipeline.store import RADIANCE, Directions, location, open_radiance
+from tasks.sampling import spread_pairs
 from tasks.tonemap import exposure, to_uint8, tonemap
 
 
@@ -53,6 +44,8 @@ class ExportParams:
     def __post_init__(self):
         if self.half and self.format != "exr":
             raise ParamError("half", "only applies to --format exr")
+        if self.exposure is not None and self.format != "png":
+            raise ParamError("exposure", "only applies to --format png (EXR keeps the values)")
         if self.exposure is not None and not self.exposure > 0:
             raise ParamError("exposure", f"must be positive, got {self.exposure}")
 
@@ -66,7 +59,7 @@ class PreviewParams:
     count: int = option(12, help="number of layers on the sheet, spread over the directions")
     size: int = option(256, help="largest side of each thumbnail in pixels")
     exposure: float | None = option(None, help="exposure scale (default: automatic)")
-    overwrite: bool = option(True, record=False, help="replace OUT if it exists")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
         if not 1 <= self.count <= 64:
@@ -94,15 +87,21 @@ def _indices(selection, size: int, what: str, store: str) -> list[int]:
     return list(dict.fromkeys(selection))
 
 
-def _sample_exposure(data, layers: list[tuple[int, int]], session: Session) -> float:
-    """One exposure for a set of layers, from a strided sample of at most 8 of them."""
+def _thumbnail(ds, view: int, light: int, size: int):
+    """A layer averaged down to at most ``size`` texels a side (lazy; no aliasing)."""
+    layer = ds[RADIANCE].isel(view=view, light=light)
+    factor = max(1, math.ceil(max(layer.sizes["y"], layer.sizes["x"]) / size))
+    if factor == 1:
+        return layer.data
+    return layer.coarsen(y=factor, x=factor, boundary="trim").mean().data
+
+
+def _sample_exposure(ds, layers: list[tuple[int, int]], session: Session) -> float:
+    """One exposure for a set of layers, from thumbnails of at most 8 of them."""
     import dask.array as da
 
     pick = layers[:: max(1, math.ceil(len(layers) / 8))]
-    ny, nx = data.shape[2:4]
-    step = max(1, max(ny, nx) // 128)
-    sample = da.stack([data[v, li, ::step, ::step] for v, li in pick])
-    (values,) = session.compute(sample)
+    (values,) = session.compute(da.stack([_thumbnail(ds, v, li, 128) for v, li in pick]))
     return exposure(values)
 
 
@@ -125,17 +124,15 @@ def export(params: ExportParams, session: Session) -> Path:
     import dask
 
     ds = open_radiance(params.store)
-    group = open_group(params.store)
-    d = read_directions(group)
+    d = Directions.of(ds)
     views = _indices(params.view, d.theta_view.size, "view", params.store)
     lights = _indices(params.light, d.theta_light.size, "light", params.store)
     channels = tuple(str(c) for c in ds["channel"].values)
     scale = params.exposure or 1.0
     if params.format == "png" and params.exposure is None:
-        scale = _sample_exposure(ds[RADIANCE].data, [(v, li) for v in views for li in lights],
-                                 session)
-    block = write_unit(group[RADIANCE])[1]
-    with atomic_output(params.out_dir, overwrite=params.overwrite) as tmp:
+        scale = _sample_exposure(ds, [(v, li) for v in views for li in lights], session)
+    block = ds[RADIANCE].encoding["chunks"][1]  # lights per stored chunk (and shard)
+    with atomic_output(params.out_dir, directory=True, overwrite=params.overwrite) as tmp:
         tmp.mkdir()
         rows, writes = [], []
         groups: dict[int, list[int]] = {}  # lights by stored block: each block is read once
@@ -162,38 +159,15 @@ def export(params: ExportParams, session: Session) -> Path:
     return Path(params.out_dir)
 
 
-def spread_layers(d, count: int) -> list[tuple[int, int]]:
-    """``count`` (view, light) pairs spread over the directions, by farthest-point sampling.
-
-    Starts from the view and light closest to the normal; each next pair is the one farthest
-    (in the joint space of view and light unit vectors) from those already chosen.
-    """
-    views = direction_vectors(d.theta_view, d.phi_view)
-    lights = direction_vectors(d.theta_light, d.phi_light)
-    pairs = np.array([(v, li) for v in range(len(views)) for li in range(len(lights))])
-    points = np.concatenate([views[pairs[:, 0]], lights[pairs[:, 1]]], axis=1)
-    first = int(np.argmin(d.theta_view[pairs[:, 0]] * 1000 + d.theta_light[pairs[:, 1]]))
-    chosen = [first]
-    dist = np.linalg.norm(points - points[first], axis=1)
-    while len(chosen) < min(count, len(pairs)):
-        nxt = int(np.argmax(dist))
-        chosen.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
-    return [tuple(map(int, pairs[i])) for i in chosen]
-
-
 def preview(params: PreviewParams, session: Session) -> Path:
     """Draw a contact sheet of a spread of layers with their directions as labels."""
     import dask.array as da
     from matplotlib.figure import Figure
 
     ds = open_radiance(params.store)
-    d = read_directions(open_group(params.store))
-    layers = spread_layers(d, params.count)
-    data = ds[RADIANCE].data
-    ny, nx = data.shape[2:4]
-    step = max(1, math.ceil(max(ny, nx) / params.size))
-    thumbs = da.stack([data[v, li, ::step, ::step] for v, li in layers])
+    d = Directions.of(ds)
+    layers = spread_pairs(d.theta_view, d.phi_view, d.theta_light, d.phi_light, params.count)
+    thumbs = da.stack([_thumbnail(ds, v, li, params.size) for v, li in layers])
     session.log(f"preview: {len(layers)} layers of {params.store} -> {params.out}")
     (images,) = session.compute(thumbs)
     scale = params.exposure or exposure(images)
@@ -216,6 +190,6 @@ def preview(params: PreviewParams, session: Session) -> Path:
         ax.set_title(f"light θ={d.theta_light[li]:.0f}° φ={d.phi_light[li]:.0f}°\n"
                      f"view θ={d.theta_view[v]:.0f}° φ={d.phi_view[v]:.0f}°", fontsize=8)
         ax.set_axis_off()
-    with atomic_output(params.out, overwrite=params.overwrite) as tmp:
+    with atomic_output(params.out, directory=False, overwrite=params.overwrite) as tmp:
         fig.savefig(tmp, format="png")
     return Path(params.out)

@@ -1,18 +1,20 @@
 """``btf generate``: a procedural BTF with ground truth, rendered tile-parallel into a store.
 
-The graph has two kinds of task. For every spatial shard, one task computes the material fields
-of the shard plus a halo wide enough for every shadow and parallax ray (procedural fields are
-defined everywhere, so the halo holds true values; a photo is mirrored at its borders). For every
-(view, block of lights, shard), one task renders the layers from those fields
-(:func:`tasks.shading.render_block`) and writes them to that shard of the store. No task holds
-more than one shard of fields and one shard of radiance, and because every texel is computed
-from the same numbers however the work is split, the store is bit-identical on every scheduler.
+The graph has two kinds of task. For every spatial task block (whole chunks, about 512 texels a
+side, :func:`pipeline.store.task_block`), one task computes the material fields of the block
+plus a halo wide enough for every shadow and parallax ray. Procedural fields are defined
+everywhere, so the halo holds true values; a photo's fields are computed once, written to the
+store's ground-truth arrays, and read back by each block with the photo mirrored at its
+borders. For every (view, block of lights, spatial block), one task renders the layers from
+those fields (:func:`tasks.shading.render_block`) and writes them. No task holds more than one
+block of fields and one block of radiance, and because every texel is computed from the same
+numbers however the work is split, the store is bit-identical on every scheduler.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,18 +26,20 @@ from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import (
     RADIANCE,
+    TRUTH_DIMS,
     Directions,
     Layout,
     aligned_chunks,
+    blocks,
     create_radiance_store,
+    location,
     store_aligned,
 )
-from tasks.materials import MATERIALS, Fields, Material, image_fields
+from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
 from tasks.sampling import SAMPLING_HELP, parse_sampling
 from tasks.shading import ShadingModel, render_block
 
 CHANNELS = ("R", "G", "B")
-IMAGE_SCALE = 20.0  # default "scale" of a photo material: its relief is 0.2 of it (4 px)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,37 +79,48 @@ class GenerateParams:
             raise ParamError("size", "is required (unless --albedo gives the size)")
         if self.size is not None and not 8 <= self.size <= 1 << 20:
             raise ParamError("size", f"must be between 8 and 1048576 texels, got {self.size}")
-        if self.seed < 0:
-            raise ParamError("seed", f"must be non-negative, got {self.seed}")
+        if not 0 <= self.seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        if self.albedo is not None and self.seed != 0:
+            raise ParamError("seed", "has no effect with --albedo (a photo has no randomness)")
         try:
             parse_sampling(self.sampling)
         except ValueError as exc:
             raise ParamError("sampling", str(exc)) from None
         if self.scale is not None and not self.scale >= 2:
             raise ParamError("scale", f"must be at least 2 texels, got {self.scale}")
-        try:
-            self.layout()
-        except ValueError as exc:
-            raise ParamError("chunk", str(exc)) from None
+        self.layout()  # raises ParamError naming the bad option
 
     def layout(self) -> Layout:
         """The store layout these parameters ask for."""
         return Layout(chunk=self.chunk, dir_chunk=self.dir_chunk, shard=self.shard)
 
 
-def _blocks(chunks: tuple[int, ...]) -> list[tuple[int, int]]:
-    starts = np.concatenate([[0], np.cumsum(chunks)[:-1]]).astype(int)
-    return [(int(s), int(c)) for s, c in zip(starts, chunks, strict=True)]
-
-
 def _material_window(block_info=None, *, material: Material, halo: int, ych, xch):
     i, j = block_info[None]["chunk-location"][:2]
-    (y0, ny), (x0, nx) = _blocks(ych)[i], _blocks(xch)[j]
+    (y0, ny), (x0, nx) = blocks(ych)[i], blocks(xch)[j]
     return material.fields(y0 - halo, x0 - halo, ny + 2 * halo, nx + 2 * halo).pack()
 
 
-def _slice_window(padded: np.ndarray, y0: int, x0: int, ny: int, nx: int) -> np.ndarray:
-    return padded[y0 : y0 + ny, x0 : x0 + nx]
+def _stored_window(block_info=None, *, store: str, halo: int, ych, xch):
+    """Packed fields of a block plus halo, read from the store's truth arrays.
+
+    The photo is mirrored at its borders: the halo of a border block has no true values.
+    """
+    import zarr
+
+    i, j = block_info[None]["chunk-location"][:2]
+    (y0, ny), (x0, nx) = blocks(ych)[i], blocks(xch)[j]
+    group = zarr.open_group(store, mode="r")
+    height, width = group["height"].shape
+    ya, yb = max(0, y0 - halo), min(height, y0 + ny + halo)
+    xa, xb = max(0, x0 - halo), min(width, x0 + nx + halo)
+    region = (slice(ya, yb), slice(xa, xb))
+    packed = Fields(group["height"][region], group["albedo"][region],
+                    group["roughness"][region], group["specular"][region]).pack()
+    pad = ((ya - (y0 - halo), y0 + ny + halo - yb), (xa - (x0 - halo), x0 + nx + halo - xb),
+           (0, 0))
+    return np.pad(packed, pad, mode="reflect")
 
 
 def _crop(window: np.ndarray, halo: int) -> np.ndarray:
@@ -118,24 +133,19 @@ def _render(window, views, lights, *, halo: int, model: ShadingModel) -> np.ndar
                         model=model)
 
 
-def field_windows(source: Material | Fields, ych, xch, halo: int):
-    """Dask array whose blocks are the packed fields of each spatial block plus its halo."""
-    import dask
+def field_windows(source: Material | str, ych, xch, halo: int):
+    """Dask array whose blocks are the packed fields of each spatial block plus its halo.
+
+    ``source`` is a procedural material, or the path of a store whose truth arrays hold a
+    photo's fields.
+    """
     import dask.array as da
 
     wy, wx = tuple(c + 2 * halo for c in ych), tuple(c + 2 * halo for c in xch)
-    if isinstance(source, Material):
-        return da.map_blocks(_material_window, chunks=(wy, wx, (6,)), dtype=np.float32,
-                             meta=np.empty((0, 0, 0), np.float32), material=source, halo=halo,
-                             ych=ych, xch=xch)
-    padded = dask.delayed(np.pad(source.pack(), ((halo, halo), (halo, halo), (0, 0)),
-                                 mode="reflect"), pure=True)
-    return da.block([
-        [da.from_delayed(dask.delayed(_slice_window)(padded, y0, x0, ny + 2 * halo, nx + 2 * halo),
-                         shape=(ny + 2 * halo, nx + 2 * halo, 6), dtype=np.float32)
-         for x0, nx in _blocks(xch)]
-        for y0, ny in _blocks(ych)
-    ])
+    window = (partial(_material_window, material=source) if isinstance(source, Material)
+              else partial(_stored_window, store=source))
+    return da.map_blocks(window, chunks=(wy, wx, (6,)), dtype=np.float32,
+                         meta=np.empty((0, 0, 0), np.float32), halo=halo, ych=ych, xch=xch)
 
 
 def _photo(params: GenerateParams) -> tuple[Fields, dict]:
@@ -153,10 +163,8 @@ def _photo(params: GenerateParams) -> tuple[Fields, dict]:
             raise BTFError(f"{path}: --size {params.size} is larger than the image ({h}x{w})")
         y0, x0 = (h - params.size) // 2, (w - params.size) // 2
         pixels = pixels[y0 : y0 + params.size, x0 : x0 + params.size]
-    relief = 0.2 * (params.scale or IMAGE_SCALE)
-    info = {"albedo_image": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-            "relief": relief}
-    return image_fields(pixels, relief=relief), info
+    relief = photo_relief(params.scale)
+    return image_fields(pixels, relief=relief), {"albedo_image": str(path), "relief": relief}
 
 
 def generate(params: GenerateParams, session: Session) -> Path:
@@ -164,18 +172,18 @@ def generate(params: GenerateParams, session: Session) -> Path:
     import dask.array as da
 
     sampling = parse_sampling(params.sampling)
+    photo = None
     if params.albedo is not None:
-        source, material_info = _photo(params)
-        ny, nx = source.height.shape
+        photo, material_info = _photo(params)
+        ny, nx = photo.height.shape
     else:
-        source = Material(params.material, seed=params.seed, scale=params.scale)
+        material = Material(params.material, seed=params.seed, scale=params.scale)
         ny = nx = params.size
-        material_info = {"name": source.name, "seed": source.seed,
-                         "scale": source.effective_scale, "relief": source.relief}
-        if source.name == "tiles":
-            material_info["period"] = round(source.effective_scale)
-    relief = material_info["relief"]
-    model = ShadingModel(relief=relief)
+        material_info = {"name": material.name, "seed": material.seed,
+                         "scale": material.effective_scale, "relief": material.relief}
+        if material.name == "tiles":
+            material_info["period"] = round(material.effective_scale)
+    model = ShadingModel(relief=material_info["relief"])
     halo = model.halo(float(sampling.theta_view.max()), float(sampling.theta_light.max()))
     directions = Directions(sampling.theta_view, sampling.phi_view, sampling.theta_light,
                             sampling.phi_light)
@@ -184,15 +192,22 @@ def generate(params: GenerateParams, session: Session) -> Path:
         "source": "generate",
         "sampling": params.sampling,
         "material": material_info,
-        "shading": {**dataclasses.asdict(model), "halo": halo},
+        "shading": {**dataclasses.asdict(model), "reference": model.reference, "halo": halo},
         "provenance": provenance("generate", params),
     }
-    with atomic_output(params.out, overwrite=params.overwrite) as tmp:
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
         group = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
                                       channels=CHANNELS, layout=params.layout(), attrs=attrs,
                                       truth=True)
+        truth = [group[name] for name in TRUTH_DIMS]
         vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
-        windows = field_windows(source, ych, xch, halo)
+        if photo is not None:  # a photo's fields fit in memory: written once, read per block
+            for array, values in zip(truth, (photo.height, photo.albedo, photo.roughness,
+                                             photo.specular), strict=True):
+                array[...] = values
+            windows = field_windows(location(tmp), ych, xch, halo)
+        else:
+            windows = field_windows(material, ych, xch, halo)
         views = da.from_array(np.stack([sampling.theta_view, sampling.phi_view], -1),
                               chunks=(vch, 2))
         lights = da.from_array(np.stack([sampling.theta_light, sampling.phi_light], -1),
@@ -201,15 +216,15 @@ def generate(params: GenerateParams, session: Session) -> Path:
             _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld",
             new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
             concatenate=True, align_arrays=False, dtype=np.float32,
-            meta=np.empty((0,) * 5, np.float32), halo=halo,
-            model=model,
+            meta=np.empty((0,) * 5, np.float32), halo=halo, model=model,
         )
-        truth = windows.map_blocks(_crop, chunks=(ych, xch, (6,)), dtype=np.float32, halo=halo)
-        write = store_aligned(
-            [radiance, truth[..., 0], truth[..., 1:4], truth[..., 4], truth[..., 5]],
-            [group[name] for name in (RADIANCE, "height", "albedo", "roughness", "specular")],
-        )
+        sources, targets = [radiance], [group[RADIANCE]]
+        if photo is None:
+            fields = windows.map_blocks(_crop, chunks=(ych, xch, (6,)), dtype=np.float32,
+                                        halo=halo)
+            sources += [fields[..., 0], fields[..., 1:4], fields[..., 4], fields[..., 5]]
+            targets += truth
         session.log(f"generate: {len(sampling.theta_view)} x {len(sampling.theta_light)} "
                     f"layers of {ny} x {nx} texels -> {params.out}")
-        session.compute(write)
+        session.compute(store_aligned(sources, targets))
     return Path(params.out)

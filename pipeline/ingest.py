@@ -3,10 +3,13 @@
 The directions of each image come from a manifest CSV (``file,theta_light,phi_light,
 theta_view,phi_view``; ``SRC/manifest.csv`` is used when present) or from UTIA file names
 ``tl{theta}_pl{phi}_tv{theta}_pv{phi}.{exr,png}``. Every image's header is checked before
-anything is written (readable, same size and channels as the others, no duplicate directions,
-every view x light combination present). Then one task per (view, block of lights) reads that
-block's images, checks their pixels, and writes its shards: memory holds one block of layers,
-never the folder.
+anything is written (readable, same size and channels as the others, angles on the hemisphere,
+no duplicate directions, every view x light combination present).
+
+Then the images are written in two passes, so that memory never depends on the folder or on
+the chunking: one task per image reads it, checks its pixels and stages it in a scratch array
+of one layer per chunk; then one task per block of the final layout copies that block from the
+scratch array. A task holds one image (image decoders read whole files) or one task block.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numpy as np
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
-from pipeline.params import ParamError, option
+from pipeline.params import option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import (
@@ -31,9 +34,11 @@ from pipeline.store import (
     aligned_chunks,
     create_radiance_store,
     location,
+    store_aligned,
 )
 
 MANIFEST_COLUMNS = ("file", "theta_light", "phi_light", "theta_view", "phi_view")
+STAGING = "_staging"  # scratch array inside the partial store, removed before it is published
 _NUMBER = r"(-?\d+(?:\.\d+)?)"
 UTIA_NAME = re.compile(rf"tl{_NUMBER}_pl{_NUMBER}_tv{_NUMBER}_pv{_NUMBER}\.(exr|png)",
                        re.IGNORECASE)
@@ -52,16 +57,13 @@ class IngestParams:
              "SRC/manifest.csv if present, else UTIA file names)")
     srgb: bool = option(False, help="decode PNG values from sRGB to linear")
     chunk: int = option(128, help="texels per side of a stored chunk")
-    dir_chunk: int = option(16, help="light directions per stored chunk (and per task)")
+    dir_chunk: int = option(16, help="light directions per stored chunk")
     shard: int = option(0, help="texels per side of a shard file grouping several chunks (a "
                                 "multiple of --chunk); 0: one file per chunk")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
-        try:
-            self.layout()
-        except ValueError as exc:
-            raise ParamError("chunk", str(exc)) from None
+        self.layout()  # raises ParamError naming the bad option
 
     def layout(self) -> Layout:
         """The store layout these parameters ask for."""
@@ -84,7 +86,14 @@ def _angle(text: str, where: str, column: str) -> float:
         raise BTFError(f"{where}: {column} {text!r} is not a number") from None
     if not np.isfinite(value):
         raise BTFError(f"{where}: {column} {text!r} is not finite")
+    if column.startswith("theta") and not 0 <= value <= 90:
+        raise BTFError(f"{where}: {column} {value:g} is outside 0-90 degrees (the hemisphere)")
     return value
+
+
+def _direction(theta: float, phi: float) -> tuple[float, float]:
+    """A direction in canonical form: phi in [0, 360), and 0 straight above (theta 0)."""
+    return theta, (phi % 360.0 if theta > 0 else 0.0)
 
 
 def _from_manifest(src: Path, manifest: Path) -> list[Entry]:
@@ -114,7 +123,9 @@ def _from_names(src: Path) -> list[Entry]:
         if match is None:
             raise BTFError(f"{path}: name does not follow tl{{theta}}_pl{{phi}}_tv{{theta}}_"
                            "pv{phi}.exr|png; name the files so or give a --manifest")
-        entries.append(Entry(path, tuple(float(g) for g in match.groups()[:4]), str(path)))
+        angles = tuple(_angle(g, str(path), c)
+                       for g, c in zip(match.groups()[:4], MANIFEST_COLUMNS[1:], strict=True))
+        entries.append(Entry(path, angles, str(path)))
     return entries
 
 
@@ -143,7 +154,7 @@ def find_layers(src: str | Path, manifest: str | Path | None = None
         raise BTFError(f"{src}: no .exr or .png images found")
     seen: dict[tuple[float, ...], Entry] = {}
     for e in entries:
-        key = (e.angles[0], e.angles[1] % 360.0, e.angles[2], e.angles[3] % 360.0)
+        key = (*_direction(*e.angles[:2]), *_direction(*e.angles[2:]))
         if key in seen:
             raise BTFError(f"{e.origin}: {e.path.name} has the same directions as "
                            f"{seen[key].path.name} (light {key[0]:g}/{key[1]:g}, "
@@ -184,47 +195,46 @@ def check_headers(grid: list[list[Entry]]) -> ImageInfo:
     return first
 
 
-def _ingest_block(store: str, view: int, light0: int, paths: list[str], *, srgb: bool,
-                  info: ImageInfo) -> None:
+def _stage_image(store: str, view: int, light: int, path: str, *, srgb: bool,
+                 info: ImageInfo) -> None:
     import zarr
 
-    block = np.empty((1, len(paths), info.height, info.width, len(info.channels)), np.float32)
-    for i, path in enumerate(paths):
-        pixels, _ = read_image(path, srgb=srgb)
-        if pixels.shape != block.shape[2:]:
-            raise BTFError(f"{path}: pixels of shape {pixels.shape}, expected {block.shape[2:]}")
-        bad = ~np.isfinite(pixels)
-        if bad.any():
-            y, x, c = np.argwhere(bad)[0]
-            raise BTFError(f"{path}: {int(bad.sum())} non-finite pixel value(s) (NaN or Inf), "
-                           f"the first at y={y}, x={x}, channel {info.channels[c]}")
-        block[0, i] = pixels
-    array = zarr.open_array(store, path=RADIANCE, mode="r+")
-    array[view : view + 1, light0 : light0 + len(paths)] = block
+    pixels, _ = read_image(path, srgb=srgb)
+    shape = (info.height, info.width, len(info.channels))
+    if pixels.shape != shape:
+        raise BTFError(f"{path}: pixels of shape {pixels.shape}, expected {shape}")
+    bad = ~np.isfinite(pixels)
+    if bad.any():
+        y, x, c = np.argwhere(bad)[0]
+        raise BTFError(f"{path}: {int(bad.sum())} non-finite pixel value(s) (NaN or Inf), "
+                       f"the first at y={y}, x={x}, channel {info.channels[c]}")
+    zarr.open_array(store, path=STAGING, mode="r+")[view, light] = pixels
 
 
 def ingest(params: IngestParams, session: Session) -> Path:
     """Ingest the folder described by ``params`` into a radiance store; returns its path."""
     import dask
+    import dask.array as da
 
     directions, grid = find_layers(params.src, params.manifest)
     info = check_headers(grid)
     attrs = {"btf_kind": directions.kind, "source": "ingest",
              "provenance": provenance("ingest", params)}
-    with atomic_output(params.out, overwrite=params.overwrite) as tmp:
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
         group = create_radiance_store(tmp, directions=directions, ny=info.height, nx=info.width,
                                       channels=info.channels, layout=params.layout(),
                                       attrs=attrs)
-        _, lch, _, _, _ = aligned_chunks(group[RADIANCE])
-        starts = np.concatenate([[0], np.cumsum(lch)[:-1]]).astype(int)
-        writes = [
-            dask.delayed(_ingest_block, pure=True)(
-                location(tmp), v, int(l0), [location(e.path) for e in row[l0 : l0 + n]],
-                srgb=params.srgb, info=info)
-            for v, row in enumerate(grid)
-            for l0, n in zip(starts, lch, strict=True)
-        ]
+        radiance = group[RADIANCE]
+        staging = group.create_array(
+            STAGING, shape=radiance.shape, dtype="float32", fill_value=np.nan,
+            chunks=(1, 1, *radiance.chunks[2:]), compressors=radiance.compressors)
+        stage = [dask.delayed(_stage_image, pure=True)(
+                     location(tmp), v, li, location(e.path), srgb=params.srgb, info=info)
+                 for v, row in enumerate(grid) for li, e in enumerate(row)]
         session.log(f"ingest: {len(grid)} x {len(grid[0])} layers of {info.height} x "
                     f"{info.width} texels ({','.join(info.channels)}) -> {params.out}")
-        session.compute(*writes)
+        session.compute(*stage)
+        staged = da.from_zarr(staging, chunks=aligned_chunks(radiance))
+        session.compute(store_aligned([staged], [radiance]))
+        del group[STAGING]
     return Path(params.out)

@@ -42,9 +42,11 @@ class InspectParams:
     scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
                                     "and negative counts per variable")
     plot: str | None = option(None, path="out", metavar="FILE",
-                              help="draw the direction sampling on the hemisphere (PNG)")
+                              help="draw the direction sampling on the hemisphere (a PNG file; "
+                                   "an existing file is replaced)")
     report: str | None = option(None, path="out", metavar="FILE",
-                                help="also write the JSON report to FILE")
+                                help="also write the JSON report to FILE (an existing file is "
+                                     "replaced)")
 
 
 def _codecs(array) -> list[str]:
@@ -175,7 +177,7 @@ def plot_sampling(path: str | Path, out: str | Path) -> None:
         ax.set_yticks([15, 30, 45, 60, 75, 90])
         ax.set_title(f"{len(theta)} {which} directions (radius: theta in degrees)", fontsize=9)
     fig.suptitle(f"{Path(path).name}: direction sampling")
-    with atomic_output(out, overwrite=True) as tmp:
+    with atomic_output(out, directory=False, overwrite=True) as tmp:
         fig.savefig(tmp, format="png")
 
 
@@ -243,7 +245,7 @@ def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
         plot_sampling(params.store, params.plot)
     text = json.dumps(report, indent=2, default=str)
     if params.report:
-        with atomic_output(params.report, overwrite=True) as tmp:
+        with atomic_output(params.report, directory=False, overwrite=True) as tmp:
             tmp.write_text(text + "\n")
     print(text if params.json else format_report(report), file=sys.stdout, flush=True)
     return report

@@ -123,6 +123,19 @@ def coerce(value: Any, tp: Any, name: str, choices=None) -> Any:
     return value
 
 
+def check_paths(params: Any) -> Any:
+    """Refuse parameters whose output path is also one of their inputs; returns ``params``."""
+    import os
+
+    inputs = {os.path.abspath(p) for p in paths(params, "in")}
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if f.metadata.get("path") == "out" and value is not None:
+            if os.path.abspath(value) in inputs:
+                raise ParamError(f.name, f"{value!r} is also an input of this stage")
+    return params
+
+
 def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
     """Build parameters from a mapping (a YAML stage), naming any bad key.
 
@@ -144,7 +157,7 @@ def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
             values[name] = coerce(mapping[name], hints[name], name, f.metadata.get("choices"))
         elif f.default is MISSING:
             raise ParamError(name, "is required")
-    return cls(**values)
+    return check_paths(cls(**values))
 
 
 def to_record(params: Any) -> dict[str, Any]:
@@ -205,4 +218,5 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
 
 def from_namespace(cls: type, namespace: argparse.Namespace) -> Any:
     """Build parameters from parsed command-line arguments."""
-    return cls(**{f.name: getattr(namespace, f.name) for f in dataclasses.fields(cls)})
+    return check_paths(cls(**{f.name: getattr(namespace, f.name)
+                              for f in dataclasses.fields(cls)}))

@@ -8,12 +8,13 @@ an existing output is already what was asked for.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import shlex
 from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.params import to_record
+from pipeline.params import paths, to_record
 
 
 def command_line(stage: str, params: Any) -> str:
@@ -34,14 +35,38 @@ def command_line(stage: str, params: Any) -> str:
     return shlex.join(words)
 
 
+def digest(path: str | Path) -> str:
+    """Fingerprint of an input: a file's SHA-256, or a folder's listing (names, sizes, mtimes)."""
+    path = Path(path)
+    h = hashlib.sha256()
+    if path.is_file():
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        return "sha256:" + h.hexdigest()
+    for entry in sorted(path.iterdir()):
+        if entry.is_file():
+            stat = entry.stat()
+            h.update(f"{entry.name}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return "listing:" + h.hexdigest()
+
+
 def provenance(stage: str, params: Any) -> dict[str, Any]:
-    """The provenance record written into an output's attrs."""
-    return {
+    """The provenance record written into an output's attrs.
+
+    Besides the parameters it fingerprints the input files and folders (:func:`digest`), so an
+    output made from inputs that have changed since is not taken as up to date.
+    """
+    record = {
         "stage": stage,
         "command": command_line(stage, params),
         "parameters": to_record(params),
+        "inputs": {p: digest(p) for p in paths(params, "in") if Path(p).exists()},
         "version": __version__,
     }
+    if hasattr(params, "seed"):
+        record["seed"] = params.seed
+    return record
 
 
 def up_to_date(path: str | Path, stage: str, params: Any) -> bool:

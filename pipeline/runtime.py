@@ -8,14 +8,18 @@ random number comes from a seed and chunk coordinates, never from scheduling ord
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
+import time
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import dask
 
 LOCAL_SCHEDULERS = ("synchronous", "threads", "processes")
 CONNECT_TIMEOUT = "10s"  # how long to wait for a tcp:// scheduler (it may still be starting)
+PROGRESS_AFTER = 0.5  # seconds of work before a local progress bar appears
 
 
 def check_scheduler(text: str) -> str:
@@ -42,6 +46,11 @@ class RuntimeOptions:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
 
 
+def _executing(dask_worker) -> int:
+    """Tasks a dask worker is running now (sent to every worker by ``Client.run``)."""
+    return len(dask_worker.state.executing) + len(dask_worker.state.long_running)
+
+
 class Session:
     """A scheduler to compute graphs on, with progress reporting and messages on stderr.
 
@@ -65,6 +74,9 @@ class Session:
                 raise BTFError(
                     f"cannot reach the dask scheduler at {self.options.scheduler}: {exc}"
                 ) from exc
+            if self.options.workers is not None:
+                self.log("note: --workers is ignored on a cluster; its workers are set where "
+                         "they are started (dask worker --nworkers)")
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -83,9 +95,47 @@ class Session:
             print(message, file=sys.stderr, flush=True)
 
     def compute(self, *collections: Any) -> tuple:
-        """Compute dask collections on this session's scheduler, with a progress bar."""
+        """Compute dask collections on this session's scheduler, with a progress bar.
+
+        If a task fails (or the user interrupts), the tasks still running are waited for
+        before the error propagates, so that no late write lands in an output that the caller
+        is about to remove.
+        """
         if self.client is not None:
-            futures = self.client.compute(list(collections))
+            return self._compute_distributed(collections)
+        settings: dict[str, Any] = {"scheduler": self.options.scheduler}
+        pool = self._local_pool()
+        if pool is not None:
+            settings["pool"] = pool
+        if self.options.workers is not None:
+            settings["num_workers"] = self.options.workers
+        try:
+            with dask.config.set(settings), self._local_progress():
+                return dask.compute(*collections)
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+
+    def _local_pool(self):
+        """A pool of our own for the local schedulers, so that we can wait for it to drain."""
+        workers = self.options.workers or os.cpu_count() or 1
+        if self.options.scheduler == "threads":
+            from dask.threaded import ContextAwareThreadPoolExecutor
+
+            return ContextAwareThreadPoolExecutor(workers)
+        if self.options.scheduler == "processes":
+            from concurrent.futures import ProcessPoolExecutor
+
+            from dask.multiprocessing import get_context, initialize_worker_process
+
+            return ProcessPoolExecutor(workers, mp_context=get_context(),
+                                       initializer=partial(initialize_worker_process,
+                                                           user_initializer=None))
+        return None
+
+    def _compute_distributed(self, collections) -> tuple:
+        futures = self.client.compute(list(collections))
+        try:
             if not self.options.quiet:
                 from distributed import progress
 
@@ -93,15 +143,25 @@ class Session:
                     progress(futures, notebook=False)
                     print(file=sys.stderr)
             return tuple(self.client.gather(futures))
-        settings: dict[str, Any] = {"scheduler": self.options.scheduler}
-        if self.options.workers is not None:
-            settings["num_workers"] = self.options.workers
-        with dask.config.set(settings), self._local_progress():
-            return dask.compute(*collections)
+        except BaseException:
+            self.client.cancel(futures, force=True)
+            self._wait_until_idle()
+            raise
+
+    def _wait_until_idle(self, timeout: float = 120.0) -> None:
+        """Wait (bounded) until no worker is executing a task any more."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            busy = self.client.run(_executing)
+            if not any(busy.values()):
+                return
+            time.sleep(0.2)
+        self.log(f"warning: workers still busy {timeout:.0f} s after the failure; a late task "
+                 "may leave files behind")
 
     def _local_progress(self):
         if self.options.quiet:
             return contextlib.nullcontext()
         from dask.diagnostics import ProgressBar
 
-        return ProgressBar(minimum=0.5, out=sys.stderr)
+        return ProgressBar(minimum=PROGRESS_AFTER, out=sys.stderr)

@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BTFError
+from pipeline.params import ParamError
+from tasks.sampling import btf_kind
 
 RADIANCE = "radiance"
 RADIANCE_DIMS = ("view", "light", "y", "x", "channel")
@@ -53,8 +55,13 @@ class Directions:
 
     @property
     def kind(self) -> str:
-        """``"abtf"`` for a single top view (paper 003), else ``"btf"``."""
-        return "abtf" if self.theta_view.size == 1 and self.theta_view[0] == 0 else "btf"
+        """``"abtf"`` or ``"btf"`` (:func:`tasks.sampling.btf_kind`)."""
+        return btf_kind(self.theta_view)
+
+    @staticmethod
+    def of(ds) -> Directions:
+        """The directions of an opened radiance Dataset."""
+        return Directions(*(np.asarray(ds[name].values, np.float64) for name in DIRECTION_COORDS))
 
 
 @dataclass(frozen=True)
@@ -78,13 +85,12 @@ class Layout:
 
     def __post_init__(self):
         if self.chunk < 8:
-            raise ValueError(f"chunk must be at least 8 texels, got {self.chunk}")
+            raise ParamError("chunk", f"must be at least 8 texels, got {self.chunk}")
         if self.dir_chunk < 1:
-            raise ValueError(f"dir_chunk must be at least 1, got {self.dir_chunk}")
+            raise ParamError("dir_chunk", f"must be at least 1, got {self.dir_chunk}")
         if self.shard < 0 or (self.shard and self.shard % self.chunk):
-            raise ValueError(
-                f"shard ({self.shard}) must be 0 or a multiple of chunk ({self.chunk})"
-            )
+            raise ParamError("shard", f"must be 0 or a multiple of --chunk ({self.chunk}), "
+                                      f"got {self.shard}")
 
     def spatial(self, n: int) -> tuple[int, int | None]:
         """Chunk and shard sizes along a spatial axis of length ``n``."""
@@ -200,14 +206,17 @@ def aligned_chunks(array) -> tuple[tuple[int, ...], ...]:
     return tuple(out)
 
 
+def blocks(chunks: tuple[int, ...]) -> list[tuple[int, int]]:
+    """``(start, size)`` of each block of one axis of dask chunks."""
+    starts = np.concatenate([[0], np.cumsum(chunks)[:-1]]).astype(int)
+    return [(int(a), int(c)) for a, c in zip(starts, chunks, strict=True)]
+
+
 def block_regions(array) -> list[tuple[slice, ...]]:
     """The regions of ``array`` in task blocks (see :func:`task_block`), in C order."""
     import itertools
 
-    axes = []
-    for chunks in aligned_chunks(array):
-        starts = np.concatenate([[0], np.cumsum(chunks)[:-1]]).astype(int)
-        axes.append([slice(int(a), int(a + c)) for a, c in zip(starts, chunks, strict=True)])
+    axes = [[slice(a, a + c) for a, c in blocks(chunks)] for chunks in aligned_chunks(array)]
     return list(itertools.product(*axes))
 
 

@@ -117,19 +117,29 @@ def visibility(
     return smoothstep(-0.5 * penumbra, 0.5 * penumbra, h0 - top).astype(np.float32)
 
 
-def parallax_length(theta_deg: float, *, relief: float) -> float:
-    """Largest horizontal distance (px) between a texel and where its view ray meets the surface."""
-    return 0.0 if theta_deg < _TOP else relief / _rise(theta_deg)
+def parallax_length(theta_deg: float, *, relief: float, reference: float) -> float:
+    """Largest horizontal distance (px) between a texel and the point its view ray meets.
+
+    Heights lie in ``[0, relief]`` and views are registered on the plane ``z = reference``.
+    """
+    if theta_deg < _TOP:
+        return 0.0
+    return max(relief - reference, reference) / _rise(theta_deg)
 
 
 def parallax_hits(
-    h: np.ndarray, r0: int, c0: int, ny: int, nx: int, *, theta: float, phi: float, relief: float
+    h: np.ndarray, r0: int, c0: int, ny: int, nx: int, *, theta: float, phi: float,
+    relief: float, reference: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where the view ray through each texel of a region first meets the height field.
 
-    The ray enters at the top of the relief above the texel and travels away from the camera
-    at ``(theta, phi)``, descending until it meets the surface (linear refinement between the
-    last step above and the first below): parallax and occlusion, as a camera sees them.
+    Layers are registered on the reference plane ``z = reference`` (rectified, as measured BTFs
+    are): the camera ray of a texel crosses that plane straight above the texel. Followed from
+    the camera, the ray enters the relief at ``z = relief`` on the camera's side and descends
+    until it meets the surface (linear refinement between the last step above and the first
+    below). A texel therefore shows a point displaced towards the camera if the surface there
+    is above the plane (so raised structure appears displaced away from the camera), and away
+    from the camera if it is below: parallax and occlusion, as a camera sees them.
 
     Returns
     -------
@@ -138,20 +148,25 @@ def parallax_hits(
         point. Offsets, not absolute positions, so that rounding does not depend on where the
         region lies in its window.
     """
-    prev = h[r0 : r0 + ny, c0 : c0 + nx] - np.float32(relief)
-    hit = np.zeros_like(prev)
+    hit = np.zeros((ny, nx), np.float32)
     if theta < _TOP:
         return hit, hit.copy()
-    step, drop = dda_step(phi + 180.0), _rise(theta)
-    found = prev >= 0
-    steps = math.ceil(parallax_length(theta, relief=relief) / step.length) + 1
-    _check_reach(h, r0, c0, ny, nx, steps + 1)
-    for t in range(1, steps + 1):
-        ray = np.float32(relief - t * step.length * drop)
-        cur = shifted(h, r0, c0, ny, nx, t * step.dy, t * step.dx) - ray
+    step = dda_step(phi)  # towards the camera
+    climb = step.length * _rise(theta)  # height of the ray gained per step towards the camera
+    first = math.ceil((relief - reference) / climb)  # here the ray is above the whole relief
+    last = math.floor(-reference / climb) - 1  # here it is below the floor: it has hit
+    _check_reach(h, r0, c0, ny, nx, max(first, -last) + 1)
+    found = np.zeros((ny, nx), bool)
+    prev = None
+    for u in range(first, last - 1, -1):
+        ray = np.float32(reference + u * climb)
+        cur = shifted(h, r0, c0, ny, nx, u * step.dy, u * step.dx) - ray
         new = ~found & (cur >= 0)
         if new.any():
-            hit[new] = (t - 1) + prev[new] / (prev[new] - cur[new])
+            if prev is None:
+                hit[new] = u
+            else:
+                hit[new] = (u + 1) - prev[new] / (prev[new] - cur[new])
             found |= new
         prev = cur
     return hit * np.float32(step.dy), hit * np.float32(step.dx)

@@ -253,6 +253,15 @@ class Material:
         )
 
 
+PHOTO_SCALE = 20.0  # default characteristic length of a photo material (pixels)
+PHOTO_RELIEF_PER_SCALE = 0.2
+
+
+def photo_relief(scale: float | None) -> float:
+    """Relief (px) given to a photo material of characteristic length ``scale``."""
+    return PHOTO_RELIEF_PER_SCALE * (PHOTO_SCALE if scale is None else scale)
+
+
 def image_fields(image: np.ndarray, *, relief: float) -> Fields:
     """Fields from a photograph: its colour as albedo, its band-passed lightness as height.
 

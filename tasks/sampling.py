@@ -30,6 +30,12 @@ import numpy as np
 _GOLDEN_ANGLE = 180.0 * (3.0 - math.sqrt(5.0))
 
 
+def btf_kind(theta_view: np.ndarray) -> str:
+    """``"abtf"`` for a single view straight above the sample (paper 003), else ``"btf"``."""
+    theta_view = np.asarray(theta_view)
+    return "abtf" if theta_view.size == 1 and float(theta_view.ravel()[0]) == 0.0 else "btf"
+
+
 @dataclass(frozen=True)
 class Sampling:
     """Light and view directions of a BTF (float64 degree arrays) and its name."""
@@ -42,8 +48,8 @@ class Sampling:
 
     @property
     def kind(self) -> str:
-        """``"abtf"`` for a single top view, else ``"btf"``."""
-        return "abtf" if self.theta_view.size == 1 and self.theta_view[0] == 0 else "btf"
+        """``"abtf"`` or ``"btf"`` (see :func:`btf_kind`)."""
+        return btf_kind(self.theta_view)
 
 
 def _rings(thetas, counts, *, stagger: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -124,3 +130,25 @@ def direction_vectors(theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
     t = np.radians(np.asarray(theta_deg, np.float64))
     p = np.radians(np.asarray(phi_deg, np.float64))
     return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1)
+
+
+def spread_pairs(theta_view, phi_view, theta_light, phi_light, count: int
+                 ) -> list[tuple[int, int]]:
+    """``count`` (view, light) index pairs spread over the directions (farthest-point sampling).
+
+    Starts from the view and light closest to the normal; each next pair is the one farthest,
+    in the joint space of the view and light unit vectors, from those already chosen.
+    """
+    views = direction_vectors(theta_view, phi_view)
+    lights = direction_vectors(theta_light, phi_light)
+    pairs = np.array([(v, li) for v in range(len(views)) for li in range(len(lights))])
+    points = np.concatenate([views[pairs[:, 0]], lights[pairs[:, 1]]], axis=1)
+    first = int(np.lexsort((np.asarray(theta_light)[pairs[:, 1]],
+                            np.asarray(theta_view)[pairs[:, 0]]))[0])
+    chosen = [first]
+    dist = np.linalg.norm(points - points[first], axis=1)
+    while len(chosen) < min(count, len(pairs)):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
+    return [(int(pairs[i, 0]), int(pairs[i, 1])) for i in chosen]

@@ -4,7 +4,9 @@ Each layer is what a camera at the view direction records of the sample lit from
 direction, rectified onto the sample plane (as measured BTFs are):
 
 - the view ray through a texel meets the height field somewhere else (parallax and occlusion,
-  :func:`tasks.heightfield.parallax_hits`); that surface point is what the texel shows;
+  :func:`tasks.heightfield.parallax_hits`); that surface point is what the texel shows. Views
+  are registered on the plane at half the relief, so structure at that height stays put from
+  view to view and higher or lower structure moves with the view, as in rectified BTF data;
 - its normal comes from the height gradient; the light reaching it is cut by cast shadows
   (:func:`tasks.heightfield.visibility`);
 - reflection is Lambertian diffuse plus a GGX microfacet lobe with Smith masking and Schlick's
@@ -49,9 +51,25 @@ class ShadingModel:
     max_shadow: float = 96.0
     shadows: bool = True
 
+    def __post_init__(self):
+        if not self.relief > 0:
+            raise ValueError(f"relief must be positive, got {self.relief}")
+        if not self.penumbra > 0:
+            raise ValueError(f"penumbra must be positive, got {self.penumbra}")
+        if not self.ambient >= 0:
+            raise ValueError(f"ambient must be non-negative, got {self.ambient}")
+        if not self.max_shadow > 0:
+            raise ValueError(f"max_shadow must be positive, got {self.max_shadow}")
+
+    @property
+    def reference(self) -> float:
+        """Height of the plane the views are registered on: half the relief."""
+        return 0.5 * self.relief
+
     def halo(self, theta_view_max: float, theta_light_max: float) -> int:
         """Texels of context a tile needs on each side to be rendered exactly."""
-        parallax = parallax_length(theta_view_max, relief=self.relief)
+        parallax = parallax_length(theta_view_max, relief=self.relief,
+                                   reference=self.reference)
         shadow = shadow_length(theta_light_max, relief=self.relief, penumbra=self.penumbra,
                                max_length=self.max_shadow) if self.shadows else 0.0
         return math.ceil(parallax) + math.ceil(shadow) + 4
@@ -163,7 +181,8 @@ def _render_strip(
     h = fields.height
     ny, nx = h.shape[0] - 2 * halo, h.shape[1] - 2 * halo
     # Shadows are needed wherever a view ray of this block can land.
-    margin = math.ceil(parallax_length(float(np.max(theta_view)), relief=model.relief)) + 1
+    margin = math.ceil(parallax_length(float(np.max(theta_view)), relief=model.relief,
+                                       reference=model.reference)) + 1
     r0, size_y, size_x = halo - margin, ny + 2 * margin, nx + 2 * margin
     vis = np.ones((len(theta_light), size_y, size_x), np.float32)
     if model.shadows:
@@ -177,7 +196,7 @@ def _render_strip(
     out = np.empty((len(views), len(lights), ny, nx, 3), np.float32)
     inner = (slice(halo, halo + ny), slice(halo, halo + nx))
     for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
-        if parallax_length(float(t), relief=model.relief) == 0.0:
+        if parallax_length(float(t), relief=model.relief, reference=model.reference) == 0.0:
             # A top view sees each texel straight below it: plain slices, no resampling.
             normal = tuple(c[inner] for c in n)
             albedo, alpha, f0 = (fields.albedo[inner], fields.roughness[inner],
@@ -185,7 +204,7 @@ def _render_strip(
             seen_vis = vis[:, margin : margin + ny, margin : margin + nx]
         else:
             oy, ox = parallax_hits(h, halo, halo, ny, nx, theta=float(t), phi=float(p),
-                                   relief=model.relief)
+                                   relief=model.relief, reference=model.reference)
             gx, gy, gz = (bilinear(c, halo, halo, oy, ox) for c in n)
             inv = 1.0 / np.sqrt(gx * gx + gy * gy + gz * gz)
             normal = (gx * inv, gy * inv, gz * inv)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -33,9 +34,11 @@ def test_top_level_help_lists_the_commands(btf):
 
 
 def test_console_script_is_installed():
-    out = subprocess.run([sys.executable, "-m", "pipeline.cli", "--version"], capture_output=True,
-                         text=True, check=True)
+    btf = Path(sys.executable).parent / "btf"
+    out = subprocess.run([btf, "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.startswith("btf ")
+    usage = subprocess.run([btf, "generate", "x.zarr"], capture_output=True, text=True)
+    assert usage.returncode == 2 and "--material: is required" in usage.stderr
 
 
 def test_bad_scheduler_and_workers_are_usage_errors(btf, tmp_path):
@@ -43,11 +46,13 @@ def test_bad_scheduler_and_workers_are_usage_errors(btf, tmp_path):
     assert btf("inspect", tmp_path, "--workers", "0").code == 2
 
 
-def test_progress_is_shown_unless_quiet(btf, tmp_path):
+def test_progress_is_shown_unless_quiet(btf, tmp_path, monkeypatch):
+    monkeypatch.setattr("pipeline.runtime.PROGRESS_AFTER", 0.0)
     args = ("generate", tmp_path / "a.zarr", "--material", "wood", "--size", "64",
             "--sampling", "abtf:16,4", "--chunk", "16", "--dir-chunk", "1")
     loud = btf(*args, "--scheduler", "synchronous", "--workers", "1")
     assert loud.code == 0 and "generate: 1 x 64 layers" in loud.err
+    assert "100% Completed" in loud.err
     quiet = btf(*args[:1], tmp_path / "b.zarr", *args[2:], "--quiet")
     assert quiet.code == 0 and quiet.err == "" and quiet.out == ""
 

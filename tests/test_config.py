@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
@@ -78,6 +79,8 @@ stages:
     ("just text\n", "run.yaml:1: config: expected a mapping"),
     ("stages:\n  - generate: [1, 2]\n", "run.yaml:2: stages[0].generate: expected a mapping"),
     ("stages: {\n", "not valid YAML"),
+    (GOOD_GENERATE + "  - preview:\n      store: a.zarr\n      out: a.zarr\n",
+     "run.yaml:9: stages[1].preview.out: 'a.zarr' is also an input of this stage"),
 ])
 def test_config_errors_name_the_key_and_line_and_nothing_runs(btf, workdir, text, message):
     result = btf("run", _write(workdir, text))
@@ -121,3 +124,26 @@ def test_relative_paths_are_relative_to_the_working_directory(btf, workdir):
     shutil.copy(_write(workdir, GOOD_GENERATE), sub / "run.yaml")
     assert btf("run", sub / "run.yaml", "--quiet").code == 0
     assert (workdir / "a.zarr").is_dir() and not (sub / "a.zarr").exists()
+
+
+def test_a_run_never_replaces_a_folder_btf_did_not_write(btf, workdir):
+    (workdir / "notes").mkdir()
+    (workdir / "notes" / "todo.txt").write_text("keep me")
+    text = GOOD_GENERATE + "  - export:\n      store: a.zarr\n      out_dir: notes\n"
+    result = btf("run", _write(workdir, text), "--quiet")
+    assert result.code == 1 and "refusing to replace a folder that btf did not write" in result.err
+    assert (workdir / "notes" / "todo.txt").read_text() == "keep me"
+
+
+def test_a_changed_input_photo_is_not_up_to_date(btf, workdir):
+    from pipeline.images import write_png
+
+    rng = np.random.default_rng(0)
+    write_png(workdir / "photo.png", rng.integers(0, 255, (24, 24, 3), dtype=np.uint8))
+    text = "stages:\n  - generate:\n      out: p.zarr\n      albedo: photo.png\n"
+    path = _write(workdir, text + "      sampling: hemi:2\n")
+    assert btf("run", path).code == 0
+    assert "up to date" in btf("run", path).err
+    write_png(workdir / "photo.png", rng.integers(0, 255, (24, 24, 3), dtype=np.uint8))
+    again = btf("run", path)
+    assert again.code == 0 and "up to date" not in again.err

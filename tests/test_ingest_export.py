@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import csv
 import shutil
+import time
 
 import numpy as np
 import pytest
+import zarr
 
 from helpers import no_partial_outputs
 from pipeline.images import read_image, write_exr, write_png
@@ -19,7 +21,8 @@ def _store_values(path):
     return ds[RADIANCE].values, coords, [str(c) for c in ds["channel"].values]
 
 
-def test_exr_export_then_ingest_gives_back_the_same_float32_values(tmp_path, btf, small_btf):
+def test_exr_export_then_ingest_gives_back_the_same_float32_values(tmp_path, btf, small_btf,
+                                                                   small_tasks):
     assert btf("export", small_btf, tmp_path / "layers", "--quiet").code == 0
     files = sorted((tmp_path / "layers").glob("*.exr"))
     assert len(files) == 9 and (tmp_path / "layers" / "manifest.csv").is_file()
@@ -30,6 +33,8 @@ def test_exr_export_then_ingest_gives_back_the_same_float32_values(tmp_path, btf
     assert back_channels == channels == ["R", "G", "B"]
     for key, values in coords.items():
         assert np.array_equal(back_coords[key], values), key
+    assert sorted(zarr.open_group(tmp_path / "back.zarr").array_keys()) == [
+        "channel", "phi_light", "phi_view", "radiance", "theta_light", "theta_view"]
 
 
 def test_utia_names_alone_are_enough_to_ingest(tmp_path, btf, small_abtf):
@@ -183,9 +188,26 @@ def _bad_angle(src):
     return "manifest.csv:2", "theta_light 'north' is not a number"
 
 
+def _below_the_horizon(src):
+    _manifest(src, [("tl0_pl0_tv0_pv0.exr", 0, 0, 0, 0), ("tl10_pl0_tv0_pv0.exr", 120, 0, 0, 0)])
+    return "manifest.csv:3", "theta_light 120 is outside 0-90 degrees"
+
+
+def _two_top_views(src):
+    # theta 0 is one direction whatever phi says
+    _manifest(src, [("tl0_pl0_tv0_pv0.exr", 0, 0, 0, 0), ("tl10_pl0_tv0_pv0.exr", 0, 0, 0, 90)])
+    return "tl10_pl0_tv0_pv0.exr", "same directions as tl0_pl0_tv0_pv0.exr"
+
+
+def _negative_theta_name(src):
+    write_exr(src / "tl-5_pl0_tv0_pv0.exr", np.zeros((6, 7, 3), np.float32), ("R", "G", "B"))
+    return "tl-5_pl0_tv0_pv0.exr", "theta_light -5 is outside"
+
+
 @pytest.mark.parametrize("damage", [_corrupt, _truncated, _other_size, _missing_file, _duplicate,
                                     _non_finite, _incomplete, _bad_name, _bad_angle,
-                                    _corrupt_png, _not_png])
+                                    _corrupt_png, _not_png, _below_the_horizon, _two_top_views,
+                                    _negative_theta_name])
 def test_bad_input_names_the_file_and_leaves_no_store(tmp_path, btf, damage):
     src = _folder(tmp_path)
     where, what = damage(src)
@@ -194,6 +216,29 @@ def test_bad_input_names_the_file_and_leaves_no_store(tmp_path, btf, damage):
     assert result.code == 1, result.err
     assert where in result.err and what in result.err, result.err
     assert no_partial_outputs(out)
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes",
+                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+def test_tasks_still_running_after_a_failure_leave_nothing_behind(tmp_path, btf, scheduler,
+                                                                  request):
+    # Many images, one bad: when the bad one fails, other tasks are mid-write. Cleanup must wait
+    # for them, or they recreate the partial store after it was removed.
+    src = tmp_path / "src"
+    src.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(40):
+        pixels = rng.uniform(0, 1, (192, 192, 3)).astype(np.float32)
+        if k == 6:
+            pixels[5, 5, 0] = np.nan
+        write_exr(src / f"tl{k}_pl0_tv0_pv0.exr", pixels, ("R", "G", "B"))
+    if scheduler == "cluster":
+        scheduler = request.getfixturevalue("local_cluster")
+    result = btf("ingest", src, tmp_path / "out.zarr", "--quiet", "--scheduler", scheduler)
+    assert result.code == 1 and "tl6_pl0_tv0_pv0.exr" in result.err
+    time.sleep(0.5)  # anything still writing would show up now
+    assert no_partial_outputs(tmp_path / "out.zarr")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
 
 
 def test_a_failed_ingest_keeps_the_previous_good_store(tmp_path, btf):
@@ -234,17 +279,3 @@ def test_preview_draws_a_labelled_contact_sheet(tmp_path, btf, small_btf):
     pixels, _ = read_image(out)
     assert pixels.shape[0] > 200 and pixels.shape[1] > 400
     assert pixels.std() > 0.05  # not a blank image
-
-
-def test_preview_spreads_layers_over_the_directions():
-    from pipeline.export import spread_layers
-    from pipeline.store import Directions
-    from tasks.sampling import parse_sampling
-
-    s = parse_sampling("abtf:12,4")
-    d = Directions(s.theta_view, s.phi_view, s.theta_light, s.phi_light)
-    picked = spread_layers(d, 8)
-    assert len(set(picked)) == 8
-    assert picked[0] == (0, int(np.argmin(s.theta_light)))
-    azimuths = {round(s.phi_light[li]) for _, li in picked}
-    assert len(azimuths) >= 5

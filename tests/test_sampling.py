@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.sampling import direction_vectors, parse_sampling
+from tasks.sampling import direction_vectors, parse_sampling, spread_pairs
 
 
 def _unique_dirs(theta, phi):
@@ -56,3 +56,14 @@ def test_bad_sampling_names_are_rejected(spec):
 def test_direction_vectors_follow_the_documented_convention():
     v = direction_vectors([0, 90, 90], [0, 0, 90])
     assert np.allclose(v, [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=1e-12)
+
+
+def test_spread_pairs_cover_the_directions():
+    s = parse_sampling("abtf:12,4")
+    picked = spread_pairs(s.theta_view, s.phi_view, s.theta_light, s.phi_light, 8)
+    assert len(set(picked)) == 8
+    assert picked[0] == (0, int(np.argmin(s.theta_light)))
+    assert len({round(s.phi_light[li]) for _, li in picked}) >= 5
+    b = parse_sampling("hemi:4")
+    pairs = spread_pairs(b.theta_view, b.phi_view, b.theta_light, b.phi_light, 16)
+    assert sorted(pairs) == [(v, li) for v in range(4) for li in range(4)]  # all, no repeats

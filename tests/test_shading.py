@@ -87,14 +87,43 @@ def test_cast_shadow_of_a_wall_has_the_analytic_length(theta, phi):
     assert np.all(row[lit] > 0.5)
 
 
-def test_parallax_of_a_flat_plane_is_the_analytic_offset():
-    relief, level = 6.0, 2.0
+@pytest.mark.parametrize("level", [0.5, 3.0, 5.5])
+def test_parallax_of_a_flat_plane_is_the_analytic_offset(level):
+    # Views are registered at half the relief: a plane at height `level` appears shifted by
+    # (level - reference) tan(theta) towards the camera.
+    relief, reference = 6.0, 3.0
     h = np.full((80, 80), level, np.float32)
     for theta, phi in ((30, 0), (60, 120), (75, 250)):
-        oy, ox = parallax_hits(h, 30, 30, 20, 20, theta=theta, phi=phi, relief=relief)
-        shift = (relief - level) * math.tan(math.radians(theta))  # away from the camera
-        assert np.allclose(ox, -shift * math.cos(math.radians(phi)), atol=1e-4)
-        assert np.allclose(oy, -shift * math.sin(math.radians(phi)), atol=1e-4)
+        oy, ox = parallax_hits(h, 30, 30, 20, 20, theta=theta, phi=phi, relief=relief,
+                               reference=reference)
+        shift = (level - reference) * math.tan(math.radians(theta))
+        assert np.allclose(ox, shift * math.cos(math.radians(phi)), atol=1e-4)
+        assert np.allclose(oy, shift * math.sin(math.radians(phi)), atol=1e-4)
+
+
+def test_a_raised_square_appears_displaced_away_from_an_oblique_camera():
+    # End to end through the renderer: a bright square raised to the top of the relief on a dark
+    # floor, seen from 60 degrees. Its top is (relief - reference) above the registration plane,
+    # so its image moves by (relief - reference) tan(theta) away from the camera; its far edge
+    # shows that shift (the near edge is blurred by the visible wall).
+    size, relief, theta = 48, 4.0, 60.0
+    height = np.zeros((size, size), np.float32)
+    height[16:32, 16:32] = relief
+    albedo = np.full((size, size, 3), 0.05, np.float32)
+    albedo[16:32, 16:32] = 0.9
+    model = ShadingModel(relief=relief, ambient=0.0)
+    halo = model.halo(theta, 0)
+    pad = ((halo, halo), (halo, halo))
+    fields = Fields.stack(np.pad(height, pad), np.pad(albedo, (*pad, (0, 0)), mode="edge"),
+                          0.9, 0.02)
+    shift = (relief - model.reference) * math.tan(math.radians(theta))
+    for phi, axis in ((0.0, 1), (90.0, 0)):
+        out = _render(fields, halo, model, theta, phi, 0, 0)[0, 0, ..., 0]
+        bright = np.nonzero(out > 0.3)
+        far_edge = bright[axis].min()  # the camera is on the + side of this axis
+        assert abs(far_edge - (16 - shift)) <= 1.0, (far_edge, 16 - shift)
+        across = bright[1 - axis]
+        assert across.min() == 16 and across.max() == 31  # no shift across the view plane
 
 
 @pytest.mark.parametrize("name", ["wood", "leather", "tiles"])

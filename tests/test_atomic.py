@@ -1,0 +1,95 @@
+"""Outputs appear complete or not at all, and never replace what btf did not write."""
+
+from __future__ import annotations
+
+import pytest
+
+from helpers import generate_store
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+
+SMALL = ("--material", "tiles", "--size", "16", "--sampling", "hemi:2", "--chunk", "8")
+
+
+def test_a_completed_output_replaces_the_old_one_only_with_overwrite(tmp_path):
+    target = tmp_path / "out.txt"
+    with atomic_output(target, directory=False) as tmp:
+        tmp.write_text("first")
+    with pytest.raises(BTFError, match="already exists; pass --overwrite"):
+        with atomic_output(target, directory=False) as tmp:
+            tmp.write_text("second")
+    assert target.read_text() == "first"
+    with atomic_output(target, directory=False, overwrite=True) as tmp:
+        tmp.write_text("second")
+    assert target.read_text() == "second"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
+def test_an_error_inside_removes_the_partial_output_and_keeps_the_old(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("good")
+    with pytest.raises(ZeroDivisionError):
+        with atomic_output(target, directory=False, overwrite=True) as tmp:
+            tmp.write_text("half")
+            1 / 0  # noqa: B018
+    assert target.read_text() == "good"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
+def test_a_failed_swap_puts_the_good_output_back(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    target = tmp_path / "out.txt"
+    target.write_text("good")
+    real = Path.rename
+
+    def rename(self, new):
+        if self.name.startswith(".out.partial"):
+            raise OSError("device full")
+        return real(self, new)
+
+    monkeypatch.setattr(Path, "rename", rename)
+    with pytest.raises(OSError, match="device full"):
+        with atomic_output(target, directory=False, overwrite=True) as tmp:
+            tmp.write_text("new")
+    assert target.read_text() == "good"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
+def test_folders_btf_did_not_write_are_never_replaced(tmp_path):
+    mine = tmp_path / "photos"
+    mine.mkdir()
+    (mine / "holiday.jpg").write_bytes(b"precious")
+    with pytest.raises(BTFError, match="refusing to replace a folder that btf did not write"):
+        with atomic_output(mine, directory=True, overwrite=True) as tmp:
+            tmp.mkdir()
+    with pytest.raises(BTFError, match="is a folder; refusing to replace it with a file"):
+        with atomic_output(mine, directory=False, overwrite=True) as tmp:
+            tmp.write_text("x")
+    assert (mine / "holiday.jpg").read_bytes() == b"precious"
+
+
+def test_commands_refuse_to_clobber_their_own_input(tmp_path, btf):
+    store = generate_store(tmp_path / "s.zarr", *SMALL)
+    for args in (("preview", store, store), ("inspect", store, "--plot", store),
+                 ("export", store, store, "--overwrite")):
+        result = btf(*args, "--quiet")
+        assert result.code == 2 and "is also an input of this stage" in result.err, args
+    assert (store / "zarr.json").is_file()
+
+
+def test_preview_replaces_an_existing_sheet_only_with_overwrite(tmp_path, btf):
+    store = generate_store(tmp_path / "s.zarr", *SMALL)
+    sheet = tmp_path / "sheet.png"
+    assert btf("preview", store, sheet, "--quiet").code == 0
+    again = btf("preview", store, sheet, "--quiet")
+    assert again.code == 1 and "already exists" in again.err
+    assert btf("preview", store, sheet, "--quiet", "--overwrite").code == 0
+
+
+def test_a_plot_may_not_replace_a_store(tmp_path, btf):
+    store = generate_store(tmp_path / "s.zarr", *SMALL)
+    other = generate_store(tmp_path / "t.zarr", *SMALL)
+    result = btf("inspect", store, "--plot", other)
+    assert result.code == 1 and "is a folder; refusing to replace it with a file" in result.err
+    assert (other / "zarr.json").is_file()
