@@ -22,6 +22,10 @@ from pipeline.store import RADIANCE, Directions, location, open_radiance
 from tasks.sampling import spread_pairs
 from tasks.tonemap import exposure, to_uint8, tonemap
 
+# Layers one export task holds at most: a whole stored light block if it fits (each chunk is
+# decoded once), else fewer (big layers: chunks are decoded once per task that needs them).
+TASK_BUDGET = 256 << 20
+
 
 @dataclasses.dataclass(frozen=True)
 class ExportParams:
@@ -132,14 +136,17 @@ def export(params: ExportParams, session: Session) -> Path:
     if params.format == "png" and params.exposure is None:
         scale = _sample_exposure(ds, [(v, li) for v in views for li in lights], session)
     block = ds[RADIANCE].encoding["chunks"][1]  # lights per stored chunk (and shard)
+    layer_bytes = ds[RADIANCE][0, 0].nbytes
+    per_task = max(1, min(block, TASK_BUDGET // max(layer_bytes, 1)))
     with atomic_output(params.out_dir, directory=True, overwrite=params.overwrite) as tmp:
         tmp.mkdir()
         rows, writes = [], []
         groups: dict[int, list[int]] = {}  # lights by stored block: each block is read once
         for li in lights:
             groups.setdefault(li // block, []).append(li)
+        tasks = [g[k : k + per_task] for g in groups.values() for k in range(0, len(g), per_task)]
         for v in views:
-            for members in groups.values():
+            for members in tasks:
                 names = [layer_name(d.theta_light[li], d.phi_light[li], d.theta_view[v],
                                     d.phi_view[v], params.format) for li in members]
                 rows += [(n, d.theta_light[li], d.phi_light[li], d.theta_view[v], d.phi_view[v])

@@ -251,6 +251,24 @@ def test_a_failed_ingest_keeps_the_previous_good_store(tmp_path, btf):
     assert np.array_equal(_store_values(out)[0], before)
 
 
+def test_export_splits_blocks_that_exceed_the_memory_budget(tmp_path, btf, small_abtf,
+                                                            monkeypatch):
+    layer = 48 * 48 * 3 * 4
+    monkeypatch.setattr("pipeline.export.TASK_BUDGET", 3 * layer)  # 3 layers per task
+    import pipeline.export as export
+
+    calls = []
+    real = export._export_block
+    monkeypatch.setattr(export, "_export_block",
+                        lambda *a, **k: calls.append(len(a[3])) or real(*a, **k))
+    assert btf("export", small_abtf, tmp_path / "all", "--quiet", "--scheduler",
+               "synchronous").code == 0
+    assert max(calls) == 3 and sum(calls) == 18
+    back = tmp_path / "back.zarr"
+    assert btf("ingest", tmp_path / "all", back, "--quiet").code == 0
+    assert np.array_equal(_store_values(back)[0], _store_values(small_abtf)[0])
+
+
 def test_export_selection_and_bad_indices(tmp_path, btf, small_btf):
     result = btf("export", small_btf, tmp_path / "sel", "--view", "1", "--light", "0,2",
                  "--quiet")
