@@ -81,7 +81,8 @@ def layer_name(theta_light, phi_light, theta_view, phi_view, suffix: str) -> str
             f"pv{fmt(phi_view)}.{suffix}")
 
 
-def _indices(selection, size: int, what: str, store: str) -> list[int]:
+def layer_indices(selection, size: int, what: str, store: str) -> list[int]:
+    """Validated, de-duplicated view or light indices (all of them when ``selection`` is None)."""
     if selection is None:
         return list(range(size))
     bad = [i for i in selection if not 0 <= i < size]
@@ -129,8 +130,8 @@ def export(params: ExportParams, session: Session) -> Path:
 
     ds = open_radiance(params.store)
     d = Directions.of(ds)
-    views = _indices(params.view, d.theta_view.size, "view", params.store)
-    lights = _indices(params.light, d.theta_light.size, "light", params.store)
+    views = layer_indices(params.view, d.theta_view.size, "view", params.store)
+    lights = layer_indices(params.light, d.theta_light.size, "light", params.store)
     channels = tuple(str(c) for c in ds["channel"].values)
     scale = params.exposure or 1.0
     if params.format == "png" and params.exposure is None:

@@ -85,7 +85,8 @@ def _rings(theta: np.ndarray) -> int:
 def sampling_summary(group) -> dict[str, Any]:
     """Counts and ranges of a radiance store's view and light directions."""
     d = read_directions(group)
-    out: dict[str, Any] = {"name": group.attrs.get("sampling"),
+    name = group.attrs.get("sampling") or group.attrs.get("source_sampling")
+    out: dict[str, Any] = {"name": name,
                            "views": int(d.theta_view.size), "lights": int(d.theta_light.size),
                            "layers": int(d.theta_view.size * d.theta_light.size)}
     for which in ("view", "light"):
@@ -100,10 +101,43 @@ def _radiance_summary(group) -> dict[str, Any]:
     return {"sampling": sampling_summary(group)} if RADIANCE in group.array_keys() else {}
 
 
+def _total_energy(group, s: np.ndarray) -> float:
+    """``||A||_F^2`` of the compressed matrix (from the stored error), else ``sum S^2``."""
+    norm = (group.attrs.get("error") or {}).get("frobenius_norm")
+    return float(norm) ** 2 if norm else max(float(np.sum(s**2)), 1e-300)
+
+
+def _compressed_summary(group) -> dict[str, Any]:
+    s = np.asarray(group["S"][:], np.float64)
+    energy = np.cumsum(s**2) / _total_energy(group, s)
+    nv, nl, ny, nx, nc = group.attrs.get("source_shape", [0] * 5)
+    rank = int(s.size)
+    original = nv * nl * ny * nx * nc * 4
+    factors = (nv * nl * nc + ny * nx + 1) * rank * 4
+    stored = sum(int(group[n].nbytes_stored()) for n in ("U", "S", "V"))
+    return {
+        "sampling": sampling_summary(group),
+        "compression": {
+            "rank": rank,
+            "singular_values": s.tolist(),
+            "energy_captured": {str(k): float(energy[k - 1]) for k in
+                                sorted({1, 2, 4, 8, 16, 32, 64, 128, 256, rank}) if k <= rank},
+            "error": group.attrs.get("error"),
+            "svd": group.attrs.get("svd"),
+            "transform": group.attrs.get("transform"),
+            "original_bytes": original,
+            "factor_bytes": factors,
+            "ratio": original / factors if factors else None,
+            "ratio_on_disk": original / stored if stored else None,
+        },
+    }
+
+
 # Stage-specific summaries by btf_kind; later stages register theirs here.
 SUMMARIES: dict[str, Callable[[Any], dict[str, Any]]] = {
     "btf": _radiance_summary,
     "abtf": _radiance_summary,
+    "compressed": _compressed_summary,
 }
 
 
@@ -164,13 +198,31 @@ def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
 
 
 def plot_sampling(path: str | Path, out: str | Path) -> None:
-    """Draw light and view directions on the hemisphere (polar: radius theta, angle phi)."""
+    """Draw light and view directions on the hemisphere (polar: radius theta, angle phi).
+
+    For a compressed store, a third panel draws the singular values and the energy captured.
+    """
     from matplotlib.figure import Figure
 
-    d = read_directions(open_group(path))
-    fig = Figure(figsize=(9, 4.6), layout="constrained")
+    group = open_group(path)
+    d = read_directions(group)
+    compressed = group.attrs.get("btf_kind") == "compressed"
+    panels = 3 if compressed else 2
+    fig = Figure(figsize=(4.6 * panels, 4.6), layout="constrained")
+    if compressed:
+        s = np.asarray(group["S"][:], np.float64)
+        ax = fig.add_subplot(1, 3, 3)
+        ax.semilogy(np.arange(1, s.size + 1), s, "o-", ms=3, label="singular value")
+        ax.set_xlabel("component")
+        ax.set_ylabel("singular value")
+        twin = ax.twinx()
+        twin.plot(np.arange(1, s.size + 1), np.cumsum(s**2) / _total_energy(group, s), "C1-",
+                  label="cumulative energy")
+        twin.set_ylim(0, 1.02)
+        twin.set_ylabel("cumulative energy (fraction of ||A||_F^2)")
+        ax.set_title(f"spectrum (rank {s.size})", fontsize=9)
     for k, which in enumerate(("light", "view")):
-        ax = fig.add_subplot(1, 2, k + 1, projection="polar")
+        ax = fig.add_subplot(1, panels, k + 1, projection="polar")
         theta, phi = getattr(d, f"theta_{which}"), getattr(d, f"phi_{which}")
         ax.scatter(np.radians(phi), theta, s=14, c=theta, cmap="viridis", vmin=0, vmax=90)
         ax.set_ylim(0, 90)
@@ -215,6 +267,20 @@ def format_report(report: dict[str, Any]) -> str:
             lines.append(f"  {which:<5} theta {w['theta_min']:.1f}-{w['theta_max']:.1f} deg on "
                          f"{w['theta_rings']} ring(s), phi {w['phi_min']:.1f}-"
                          f"{w['phi_max']:.1f} deg")
+    if "compression" in report:
+        c = report["compression"]
+        s = c["singular_values"]
+        err = c["error"] or {}
+        lines.append(f"compression: rank {c['rank']}, {c['ratio']:.1f}x smaller than the "
+                     f"float32 radiance ({c['ratio_on_disk']:.1f}x on disk)")
+        lines.append(f"  singular values {s[0]:.4g} ... {s[-1]:.4g}; share of ||A||^2 captured: "
+                     + ", ".join(f"{k}: {v:.6f}" for k, v in c["energy_captured"].items()))
+        if "log_relative_frobenius" in err:
+            lines.append(f"  relative error (log domain): {err['log_relative_frobenius']:.4g}"
+                         + (f"; average ABRDF RMSE (linear): {err['abrdf_rmse']:.4g}"
+                            if "abrdf_rmse" in err else ""))
+        if c["svd"]:
+            lines.append("  " + ", ".join(f"{k}={v}" for k, v in c["svd"].items()))
     attrs = report["attrs"]
     for key in ("material", "shading"):
         if key in attrs:
@@ -241,7 +307,7 @@ def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
         report["scan"] = scan(params.store, session)
     if params.plot:
         if not set(DIRECTION_COORDS) <= set(open_group(params.store).array_keys()):
-            raise BTFError(f"{params.store}: no direction coordinates to plot")
+            raise BTFError(f"{params.store}: no direction coordinates to plot")  # not a BTF
         plot_sampling(params.store, params.plot)
     text = json.dumps(report, indent=2, default=str)
     if params.report:

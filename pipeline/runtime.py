@@ -46,6 +46,13 @@ class RuntimeOptions:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
 
 
+def limit_blas() -> None:
+    """Use one BLAS thread in this process (dask workers: parallelism comes from tasks)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+
+
 def _executing(dask_worker) -> int:
     """Tasks a dask worker is running now (sent to every worker by ``Client.run``)."""
     return len(dask_worker.state.executing) + len(dask_worker.state.long_running)
@@ -130,8 +137,35 @@ class Session:
 
             return ProcessPoolExecutor(workers, mp_context=get_context(),
                                        initializer=partial(initialize_worker_process,
-                                                           user_initializer=None))
+                                                           user_initializer=limit_blas))
         return None
+
+    @contextlib.contextmanager
+    def single_threaded_blas(self):
+        """One BLAS thread in this process and on every worker while the block runs.
+
+        Stages whose results come out of BLAS (the SVD) use this so that they are identical on
+        every scheduler: some OpenBLAS routines round differently with different thread counts.
+        Local process workers always run with one BLAS thread (see ``_local_pool``).
+        """
+        from threadpoolctl import threadpool_limits
+
+        if self.client is not None:
+            self.client.run(limit_blas)
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+
+    def share(self, value: Any) -> Any:
+        """A task argument for a large value that every task of a graph reads.
+
+        On a cluster it is sent to every worker once; locally it is a graph literal (threads
+        share it; the ``processes`` scheduler pickles it for each task).
+        """
+        if self.client is not None:
+            return self.client.scatter(value, broadcast=True, hash=False)
+        import dask
+
+        return dask.delayed(value, pure=False)
 
     def _compute_distributed(self, collections) -> tuple:
         futures = self.client.compute(list(collections))

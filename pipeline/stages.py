@@ -6,10 +6,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pipeline.compress import CompressParams, compress
 from pipeline.export import ExportParams, PreviewParams, export, preview
 from pipeline.generate import GenerateParams, generate
 from pipeline.ingest import IngestParams, ingest
 from pipeline.inspect import InspectParams, inspect
+from pipeline.reconstruct import ReconstructParams, reconstruct
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,20 @@ STAGES: dict[str, Stage] = {
               "draw a contact sheet of a spread of directions",
               "Draw a contact sheet of layers spread over the directions (farthest-point "
               "sampling), labelled with their angles, all with one exposure."),
+        Stage("compress", CompressParams, compress,
+              "out-of-core randomized SVD of a store into U, S, V",
+              "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
+              "channel textures, columns: texels) as U S V^T with a randomized SVD that streams "
+              "the store in row blocks: power iterations + 1 passes (each A^T A fused into one "
+              "pass), or one pass with --passes 1. The relative error comes from an exact "
+              "identity (or, for one pass, an error sketch); --verify adds a pass for the "
+              "average ABRDF RMSE in linear radiance. Memory: a few row blocks and sketches.",
+              makes_store=True),
+        Stage("reconstruct", ReconstructParams, reconstruct,
+              "rebuild chosen layers, region and rank from a compressed store",
+              "Rebuild exactly the requested layers (--light, --view), texel region (--region) "
+              "and rank (--rank) as exp(U S V^T) - eps, reading only the U chunks and V tiles "
+              "they need, into a radiance store or EXR files (--format exr)."),
         Stage("inspect", InspectParams, inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "

@@ -20,8 +20,8 @@ def test_every_subcommand_explains_every_option(btf, name):
         assert flag in result.out
     if name in STAGES:
         for field in dataclasses.fields(STAGES[name].params):
-            shown = (field.name.upper() if field.metadata["positional"]
-                     else "--" + field.name.replace("_", "-"))
+            shown = ((field.metadata["metavar"] or field.name.upper())
+                     if field.metadata["positional"] else "--" + field.name.replace("_", "-"))
             assert shown in result.out, shown
         assert STAGES[name].description[:40] in " ".join(result.out.split())
 

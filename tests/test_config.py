@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
-SMALL = ("--set", "generate.size=32")
+SMALL = ("--set", "generate.size=64")  # every shipped config must work at this size
 
 
 @pytest.fixture

@@ -1,0 +1,352 @@
+"""``btf compress``: out-of-core randomized SVD of a radiance store (paper 000, section 2.1).
+
+The store is streamed in row blocks of the BTF matrix: a few (view, block of lights) units,
+all texels, sized so that a block stays within :data:`ROW_BLOCK_BYTES` (and there are enough
+blocks to keep the workers busy). One task per row block reads its radiance, checks it,
+range-reduces it and returns its share of the pass (:class:`tasks.svd.PassPart`); the shares
+are summed by a fixed tree, so the result does not depend on scheduling. Between passes only the
+sketch (texels x (rank + oversampling)) lives on the client, where it is re-orthonormalised.
+Memory is therefore a few row blocks plus a few sketches, whatever the size of the store.
+
+Passes over the data: ``power_iters + 1`` (fused ``A^T A`` passes, then the projection), or 1
+with ``--passes 1`` (a one-view sketch), plus one with ``--verify``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.compressed import create_compressed_store
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, option
+from pipeline.provenance import provenance
+from pipeline.runtime import Session
+from pipeline.store import RADIANCE, Directions, location, open_group, open_radiance
+from tasks.svd import (
+    BlockCheck,
+    PassPart,
+    Sketch,
+    abrdf_squared_errors,
+    average_abrdf_rmse,
+    check_block,
+    combine_parts,
+    error_from_identity,
+    estimated_error,
+    factors_from_projection,
+    factors_from_sketch,
+    gaussian,
+    log_transform,
+    matrix_rows,
+    orthonormalize,
+    power_step,
+    project,
+    reconstruct,
+    sketch_rows,
+    stacked_rows,
+)
+
+ROW_BLOCK_BYTES = 256 << 20  # float32 radiance one task reads at most (a single unit may exceed)
+MIN_ROW_BLOCKS = 8  # split smaller matrices further, so that workers share the work
+FAN_IN = 4  # row-block shares added per reduction task
+
+
+@dataclasses.dataclass(frozen=True)
+class CompressParams:
+    """Parameters of ``btf compress``."""
+
+    store: str = option(help="radiance store to compress", positional=True, path="in",
+                        metavar="IN")
+    out: str = option(help="output compressed store (a .zarr directory)", positional=True,
+                      path="out")
+    rank: int = option(help="components to keep (K)", metavar="K")
+    oversample: int | None = option(
+        None, metavar="P", help="extra sketch columns (default: 10; with --passes 1: K + 1, "
+                                "so that the one-view sketch holds 2K + 1 columns)")
+    power_iters: int | None = option(
+        None, metavar="Q", help="power iterations, each one fused pass over the data "
+                                "(default: 2, i.e. 3 passes)")
+    passes: str = option("auto", metavar="auto|N",
+                         help="passes over the data: auto (power iterations + 1), 1 (a one-view "
+                              "sketch, for stores too large to read twice) or N >= 2")
+    eps: float = option(1e-3, help="range reduction log(radiance + eps)")
+    seed: int = option(0, metavar="S", help="seed of the random test matrices")
+    clamp: bool = option(False, help="clamp negative radiance to 0 instead of refusing it")
+    verify: bool = option(False, help="one more pass: average ABRDF RMSE (paper 000, eq. 11) "
+                                      "in linear radiance")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        if self.rank < 1:
+            raise ParamError("rank", f"must be at least 1, got {self.rank}")
+        if self.oversample is not None and self.oversample < 0:
+            raise ParamError("oversample", f"must be non-negative, got {self.oversample}")
+        if self.power_iters is not None and self.power_iters < 0:
+            raise ParamError("power_iters", f"must be non-negative, got {self.power_iters}")
+        if not self.eps > 0:
+            raise ParamError("eps", f"must be positive (it keeps log finite), got {self.eps}")
+        if not 0 <= self.seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        if self.passes != "auto":
+            if not self.passes.isdigit() or int(self.passes) < 1:
+                raise ParamError("passes", f"must be auto or a positive integer, got "
+                                           f"{self.passes!r}")
+            if int(self.passes) == 1 and self.power_iters:
+                raise ParamError("power_iters", "cannot be combined with --passes 1")
+            if (int(self.passes) > 1 and self.power_iters is not None
+                    and self.power_iters != int(self.passes) - 1):
+                raise ParamError("power_iters", f"{self.power_iters} power iterations take "
+                                                f"{self.power_iters + 1} passes, not "
+                                                f"{self.passes}")
+
+    @property
+    def one_pass(self) -> bool:
+        """Whether to use the one-view sketch."""
+        return self.passes == "1"
+
+    @property
+    def iterations(self) -> int:
+        """Power iterations (fused passes before the projection pass)."""
+        if self.passes != "auto":
+            return max(int(self.passes) - 1, 0)
+        return 2 if self.power_iters is None else self.power_iters
+
+    @property
+    def extra(self) -> int:
+        """Oversampling actually used."""
+        if self.oversample is not None:
+            return self.oversample
+        return self.rank + 1 if self.one_pass else 10
+
+
+@dataclasses.dataclass(frozen=True)
+class RowBlock:
+    """Consecutive (view, first light, end light) units and their first matrix row."""
+
+    units: tuple[tuple[int, int, int], ...]
+    row0: int
+    rows: int
+
+
+def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *,
+                    budget: int = ROW_BLOCK_BYTES, minimum: int = MIN_ROW_BLOCKS
+                    ) -> list[RowBlock]:
+    """Row blocks of whole stored light chunks, within ``budget`` bytes where possible."""
+    nv, nl, ny, nx, nc = shape
+    units = [(v, l0, min(l0 + dir_chunk, nl)) for v in range(nv) for l0 in range(0, nl, dir_chunk)]
+    unit_bytes = dir_chunk * nc * ny * nx * 4
+    per_block = max(1, min(budget // max(unit_bytes, 1), math.ceil(len(units) / minimum)))
+    blocks, row = [], 0
+    for k in range(0, len(units), per_block):
+        group = tuple(units[k : k + per_block])
+        rows = sum((l1 - l0) * nc for _, l0, l1 in group)
+        blocks.append(RowBlock(group, row, rows))
+        row += rows
+    return blocks
+
+
+def _read_rows(store: str, block: RowBlock) -> tuple[np.ndarray, BlockCheck]:
+    import zarr
+
+    array = zarr.open_array(store, path=RADIANCE, mode="r")
+    pieces, check = [], BlockCheck()
+    for v, l0, l1 in block.units:
+        layers = array[v : v + 1, l0:l1]
+        check = check.merge(check_block(layers, (v, l0, 0, 0, 0)))
+        pieces.append(matrix_rows(layers))
+    return np.concatenate(pieces, axis=0), check
+
+
+def _transformed(store: str, block: RowBlock, eps: float, clamp: bool):
+    raw, check = _read_rows(store, block)
+    if check.nonfinite or (check.negative and not clamp):
+        return None, check, 0.0  # reported by the caller after the pass
+    a = log_transform(raw, eps=eps, clamp=clamp)
+    return a, check, float(np.sum(a.astype(np.float64) ** 2))
+
+
+def _power_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float,
+                clamp: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps, clamp)
+    w = power_step(a, x) if a is not None else np.zeros_like(x)
+    return PassPart({"w": w}, {}, check, f2)
+
+
+def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float,
+                  clamp: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps, clamp)
+    z = project(a, x) if a is not None else np.zeros((block.rows, x.shape[1]))
+    return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
+
+
+def _sketch_task(store: str, block: RowBlock, omega, phi, psi, *, eps: float,
+                 clamp: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps, clamp)
+    psi_rows = psi[:, block.row0 : block.row0 + block.rows]
+    if a is None:
+        y = np.zeros((block.rows, omega.shape[1]))
+        z = np.zeros((block.rows, phi.shape[1]))
+        w = np.zeros((psi.shape[0], omega.shape[0]))
+    else:
+        y, z, w = sketch_rows(a, omega, phi, psi_rows)
+    return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
+
+
+def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float) -> PassPart:
+    raw, check = _read_rows(store, block)
+    approx = reconstruct(u[block.row0 : block.row0 + block.rows], s, v, eps=eps)
+    return PassPart({"sse": abrdf_squared_errors(raw, approx)}, {}, check, 0.0)
+
+
+def tree_sum(parts: list) -> Any:
+    """Delayed sum of pass parts by a fixed tree of :data:`FAN_IN` (reproducible order)."""
+    import dask
+
+    level = list(parts)
+    while len(level) > 1:
+        level = [dask.delayed(combine_parts, pure=True)(*level[i : i + FAN_IN])
+                 for i in range(0, len(level), FAN_IN)]
+    return level[0]
+
+
+def _raise_on_bad_data(check: BlockCheck, store: str, clamp: bool) -> None:
+    dims = ("view", "light", "y", "x", "channel")
+
+    def where(index):
+        return ", ".join(f"{d}={i}" for d, i in zip(dims, index, strict=True))
+
+    if check.nonfinite:
+        raise BTFError(f"{store}: variable 'radiance' has {check.nonfinite} NaN or Inf "
+                       f"value(s), the first at {where(check.first_nonfinite)}")
+    if check.negative and not clamp:
+        raise BTFError(f"{store}: variable 'radiance' has {check.negative} negative value(s), "
+                       f"the first at {where(check.first_negative)}; log(radiance + eps) needs "
+                       "radiance >= 0 (pass --clamp to clamp them to 0)")
+
+
+class _Passes:
+    """Runs passes over the row blocks and counts them."""
+
+    def __init__(self, store: str, blocks: list[RowBlock], params: CompressParams,
+                 session: Session):
+        self.store, self.blocks, self.params, self.session = store, blocks, params, session
+        self.count = 0
+        self.planned = 1 if params.one_pass else params.iterations + 1
+
+    def run(self, task, what: str, *shared, **kwargs) -> PassPart:
+        import dask
+
+        self.count += 1
+        total = self.planned + self.params.verify
+        self.session.log(f"compress: pass {self.count}/{total} ({what}, "
+                         f"{len(self.blocks)} row blocks)")
+        handles = [self.session.share(a) for a in shared]
+        parts = [dask.delayed(task, pure=True)(self.store, b, *handles, **kwargs)
+                 for b in self.blocks]
+        (result,) = self.session.compute(tree_sum(parts))
+        if self.count == 1:
+            _raise_on_bad_data(result.check, self.params.store, self.params.clamp)
+        return result
+
+
+def _multi_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: int):
+    p = params
+    rank, width = p.rank, p.rank + extra
+    x = gaussian(n, width, seed=p.seed, stream=0)
+    for q in range(p.iterations):
+        w = passes.run(_power_task, f"power iteration {q + 1}", x, eps=p.eps,
+                       clamp=p.clamp).sums["w"]
+        x = orthonormalize(w)
+    if p.iterations == 0:
+        x = orthonormalize(x)
+    last = passes.run(_project_task, "projection", x, eps=p.eps, clamp=p.clamp)
+    u, s, v = factors_from_projection(stacked_rows(last.rows["z"]), x, rank)
+    error = {"log_relative_frobenius": error_from_identity(last.frobenius2, s),
+             "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact for the "
+                       "projection A X X^T computed in the last pass",
+             "frobenius_norm": math.sqrt(last.frobenius2)}
+    return u, s, v, error
+
+
+def _one_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: int):
+    p = params
+    sketch = Sketch.for_rank(p.rank, extra)
+    omega = gaussian(n, sketch.k, seed=p.seed, stream=1)
+    phi = gaussian(n, sketch.t, seed=p.seed, stream=2)
+    psi = gaussian(sketch.s, m, seed=p.seed, stream=3)
+    part = passes.run(_sketch_task, "one-view sketch", omega, phi, psi, eps=p.eps,
+                      clamp=p.clamp)
+    u, s, v = factors_from_sketch(stacked_rows(part.rows["y"]), part.sums["w"], psi, p.rank)
+    estimate = estimated_error(stacked_rows(part.rows["z"]), phi, u, s, v, part.frobenius2)
+    error = {"log_relative_frobenius": estimate,
+             "method": f"estimate from a Gaussian error sketch of {sketch.t} columns (Tropp "
+                       "et al. 2017): E ||(A - U S V^T) Phi||_F^2 / t = ||A - U S V^T||_F^2",
+             "frobenius_norm": math.sqrt(part.frobenius2),
+             "sketch": dataclasses.asdict(sketch)}
+    return u, s, v, error
+
+
+def compress(params: CompressParams, session: Session) -> Path:
+    """Compress the store of ``params`` into U, S, V; returns the output path."""
+    ds = open_radiance(params.store)
+    group = open_group(params.store)
+    shape = tuple(group[RADIANCE].shape)
+    nv, nl, ny, nx, nc = shape
+    m, n = nv * nl * nc, ny * nx
+    if params.rank > min(m, n):
+        raise BTFError(f"{params.store}: --rank {params.rank} is larger than the BTF matrix "
+                       f"allows: min(rows, columns) = min({m}, {n}) = {min(m, n)}")
+    extra = min(params.extra, min(m, n) - params.rank)  # the sketch cannot outgrow the matrix
+    dir_chunk = group[RADIANCE].chunks[1]
+    blocks = plan_row_blocks(shape, dir_chunk)
+    passes = _Passes(location(params.store), blocks, params, session)
+    attrs = {
+        "source": "compress",
+        "source_btf_kind": ds.attrs.get("btf_kind"),
+        "source_shape": list(shape),
+        "transform": {"name": "log", "formula": "log(radiance + eps)", "eps": params.eps,
+                      "clamp": params.clamp},
+        "provenance": provenance("compress", params),
+    }
+    for key in ("sampling", "material"):
+        if key in ds.attrs:
+            attrs[f"source_{key}"] = ds.attrs[key]
+    session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
+                f"rank {params.rank} -> {params.out}")
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
+            session.single_threaded_blas():
+        run = _one_pass if params.one_pass else _multi_pass
+        u, s, v, error = run(passes, n, m, params, extra)
+        attrs["svd"] = {"rank": params.rank, "oversample": extra,
+                        "power_iterations": 0 if params.one_pass else params.iterations,
+                        "passes": passes.count, "seed": params.seed,
+                        "method": "one-view sketch" if params.one_pass else
+                                  "randomized SVD with fused power iterations"}
+        attrs["error"] = error
+        if params.verify:
+            part = passes.run(_verify_task, "verification", u.astype(np.float32),
+                              s.astype(np.float32), v.astype(np.float32), eps=params.eps)
+            attrs["error"]["abrdf_rmse"] = average_abrdf_rmse(part.sums["sse"], m)
+            attrs["error"]["abrdf_rmse_definition"] = (
+                "paper 000 eq. 11: mean over texels of the RMS difference of the texel's "
+                "ABRDF (all view x light x channel values), linear radiance")
+            attrs["svd"]["passes"] = passes.count
+        attrs["singular_values_energy"] = float(np.sum(s**2))
+        out = create_compressed_store(
+            tmp, directions=Directions.of(ds), channels=tuple(str(c) for c in
+                                                               ds["channel"].values),
+            ny=ny, nx=nx, rank=params.rank, chunk=group[RADIANCE].chunks[2],
+            dir_chunk=dir_chunk, attrs=attrs)
+        out["U"][...] = u.reshape(nv, nl, nc, params.rank).astype(np.float32)
+        out["S"][...] = s.astype(np.float32)
+        out["V"][...] = v.reshape(ny, nx, params.rank).astype(np.float32)
+        session.log(f"compress: relative error in the log domain "
+                    f"{error['log_relative_frobenius']:.4g}"
+                    + (f", average ABRDF RMSE {attrs['error']['abrdf_rmse']:.4g}"
+                       if params.verify else ""))
+    return Path(params.out)

@@ -1,0 +1,260 @@
+"""Randomized SVD of a BTF matrix streamed in row blocks (paper 000, section 2.1, Fig. 2).
+
+The BTF matrix ``A`` has one row per (view, light, channel) texture and one column per (y, x)
+texel; its entries are range-reduced radiance ``log(radiance + eps)``. ``A = U S V^T`` gives the
+eigen-ABRDFs ``U``, singular values ``S`` and eigentextures ``V``.
+
+Multi-pass (Halko, Martinsson and Tropp 2011, with fused power steps): starting from a Gaussian
+test matrix ``X`` (texels x ``l``, ``l = rank + oversampling``), every power pass computes
+``sum_i A_i^T (A_i X)`` over row blocks ``A_i`` (one read of the data per ``A^T A``) and
+re-orthonormalises the result by QR; the last pass computes ``Z = A X`` and ``||A||_F^2``. With
+``Z = P diag(s) R^T`` (a small SVD), ``A ~ A X X^T = P diag(s) (X R)^T``, truncated to the rank.
+Because ``X`` is orthonormal, the rows of ``A - A X X^T`` are orthogonal to those of
+``(Z - Z_K) X^T``, so the error needs no extra pass::
+
+    ||A - U S V^T||_F^2 = ||A||_F^2 - ||Z||_F^2 + sum_{i>K} s_i^2 = ||A||_F^2 - sum_{i<=K} s_i^2
+
+Single pass (Tropp, Yurtsever, Udell and Cevher 2017, one-view sketch): one read gives the
+range sketch ``Y = A Omega``, the co-range sketch ``W = Psi A`` and an error sketch
+``A Phi``; ``A ~ Q (Psi Q)^+ W`` with ``Q = orth(Y)``. Its error is estimated from the error
+sketch: ``E ||(A - A_hat) Phi||_F^2 / t = ||A - A_hat||_F^2`` for Gaussian ``Phi`` with ``t``
+columns.
+
+Block products run in float32 (the data's precision; single-precision GEMM is also the one that
+gives the same bits whatever BLAS threading does); sums over column tiles and over row blocks
+are accumulated in float64, and every orthonormalisation and small factorisation is float64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+TILE = 16384  # columns per float32 product; longer sums are accumulated in float64
+
+
+@dataclass(frozen=True)
+class BlockCheck:
+    """What a row block holds besides good radiance: counts and first offending positions.
+
+    Positions are index tuples in the caller's coordinates (see :func:`check_block`).
+    """
+
+    nonfinite: int = 0
+    negative: int = 0
+    first_nonfinite: tuple[int, ...] | None = None
+    first_negative: tuple[int, ...] | None = None
+
+    def merge(self, other: BlockCheck) -> BlockCheck:
+        """Combine two checks; "first" means smallest index."""
+        def first(a, b):
+            return b if a is None else a if b is None else min(a, b)
+
+        return BlockCheck(self.nonfinite + other.nonfinite, self.negative + other.negative,
+                          first(self.first_nonfinite, other.first_nonfinite),
+                          first(self.first_negative, other.first_negative))
+
+
+def check_block(radiance: np.ndarray, origin: tuple[int, ...]) -> BlockCheck:
+    """Count non-finite and negative values of a block whose first element is at ``origin``."""
+    radiance = np.asarray(radiance)
+    nonfinite = ~np.isfinite(radiance)
+    negative = radiance < 0
+    n_bad, n_neg = int(nonfinite.sum()), int(negative.sum())
+
+    def first(mask):
+        return tuple(int(o + i) for o, i in zip(origin, np.argwhere(mask)[0], strict=True))
+
+    return BlockCheck(n_bad, n_neg, first(nonfinite) if n_bad else None,
+                      first(negative) if n_neg else None)
+
+
+def log_transform(radiance: np.ndarray, *, eps: float, clamp: bool = False) -> np.ndarray:
+    """Range reduction ``log(radiance + eps)`` (float32); negatives set to 0 first if ``clamp``."""
+    x = np.array(radiance, dtype=np.float32)  # a copy: the caller's block is left alone
+    if clamp:
+        np.maximum(x, 0.0, out=x)
+    x += np.float32(eps)
+    return np.log(x, out=x)
+
+
+def matrix_rows(layers: np.ndarray) -> np.ndarray:
+    """BTF matrix rows of a block of layers ``(..., y, x, channel)``.
+
+    Rows are ordered by the leading axes then channel, columns by ``y`` then ``x``: the row of
+    (view, light, channel) holds one texture (paper 000, Fig. 2).
+    """
+    layers = np.asarray(layers)
+    lead = int(np.prod(layers.shape[:-3]))
+    ny, nx, nc = layers.shape[-3:]
+    moved = np.moveaxis(layers.reshape(lead, ny, nx, nc), -1, 1)
+    return np.ascontiguousarray(moved).reshape(lead * nc, ny * nx)
+
+
+def project(a: np.ndarray, x: np.ndarray, *, tile: int = TILE) -> np.ndarray:
+    """``a @ x`` for float32 rows ``a`` (r x n) and a float64 sketch ``x`` (n x l).
+
+    Each tile of columns is a float32 product; the tiles are summed in float64.
+    """
+    out = np.zeros((a.shape[0], x.shape[1]), np.float64)
+    for t in range(0, a.shape[1], tile):
+        out += a[:, t : t + tile] @ x[t : t + tile].astype(np.float32)
+    return out
+
+
+def power_step(a: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A row block's share ``a^T (a x)`` of one fused power pass (float64, n x l)."""
+    inner = project(a, x).astype(np.float32)
+    return (a.T @ inner).astype(np.float64)
+
+
+def orthonormalize(w: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the columns of ``w`` (reduced Householder QR, float64).
+
+    Householder QR stays orthonormal when ``w`` is rank-deficient or very ill-conditioned,
+    which is what power iterations produce.
+    """
+    q, _ = np.linalg.qr(np.asarray(w, np.float64), mode="reduced")
+    return q
+
+
+def gaussian(rows: int, cols: int, *, seed: int, stream: int) -> np.ndarray:
+    """A Gaussian test matrix (float64) from an explicit seed and stream number."""
+    return np.random.default_rng([seed, stream]).standard_normal((rows, cols))
+
+
+def factors_from_projection(z: np.ndarray, x: np.ndarray, rank: int
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``U, S, V`` of rank ``rank`` from ``z = A x`` and the orthonormal ``x`` (see module)."""
+    p, s, rt = np.linalg.svd(np.asarray(z, np.float64), full_matrices=False)
+    return p[:, :rank], s[:rank], x @ rt[:rank].T
+
+
+def error_from_identity(frobenius2: float, s: np.ndarray) -> float:
+    """Relative Frobenius error ``sqrt(max(||A||^2 - sum s_i^2, 0)) / ||A||`` (float64)."""
+    if frobenius2 <= 0:
+        return 0.0
+    residual = max(float(frobenius2) - float(np.sum(np.asarray(s, np.float64) ** 2)), 0.0)
+    return float(np.sqrt(residual / frobenius2))
+
+
+@dataclass(frozen=True)
+class Sketch:
+    """One-view sketch sizes: ``k`` range columns, ``s`` co-range rows, ``t`` error columns."""
+
+    k: int
+    s: int
+    t: int = 10
+
+    @staticmethod
+    def for_rank(rank: int, oversample: int) -> Sketch:
+        """Tropp et al.'s recommendation: ``s = 2k + 1``."""
+        k = rank + oversample
+        return Sketch(k, 2 * k + 1)
+
+
+def sketch_rows(a: np.ndarray, omega: np.ndarray, phi: np.ndarray, psi: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A row block's share of a one-view sketch.
+
+    Returns ``a omega`` and ``a phi`` (the block's rows of the range and error sketches) and
+    ``psi a`` (summed over row blocks); ``psi`` holds the block's columns of ``Psi``.
+    """
+    return project(a, omega), project(a, phi), (psi.astype(np.float32) @ a).astype(np.float64)
+
+
+def factors_from_sketch(y: np.ndarray, w: np.ndarray, psi: np.ndarray, rank: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``U, S, V`` of rank ``rank`` from a one-view sketch (Tropp et al. 2017, Alg. 7).
+
+    ``y = A Omega`` (m x k), ``w = Psi A`` (s x n), ``psi`` (s x m).
+    """
+    q = orthonormalize(y)
+    qc, rc = np.linalg.qr(psi @ q)
+    core = np.linalg.solve(rc, qc.T @ w)  # k x n: A ~ q core
+    q2, r2 = np.linalg.qr(core.T)  # n x k, k x k
+    p, s, ht = np.linalg.svd(r2.T)
+    return q @ p[:, :rank], s[:rank], q2 @ ht[:rank].T
+
+
+def estimated_error(z_phi: np.ndarray, phi: np.ndarray, u, s, v, frobenius2: float) -> float:
+    """Relative Frobenius error estimated from an error sketch ``z_phi = A phi`` (t columns)."""
+    if frobenius2 <= 0:
+        return 0.0
+    residual = z_phi - u @ (s[:, None] * (v.T @ phi))
+    return float(np.sqrt(np.sum(residual**2) / phi.shape[1] / frobenius2))
+
+
+_LOG_MAX = 88.0  # exp of more overflows float32
+
+
+def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float) -> np.ndarray:
+    """Radiance ``exp(u diag(s) v^T) - eps`` (float32) of ``u`` rows and ``v`` texels."""
+    log_radiance = (np.asarray(u, np.float32) * np.asarray(s, np.float32)) @ np.asarray(
+        v, np.float32).T
+    np.minimum(log_radiance, np.float32(_LOG_MAX), out=log_radiance)
+    out = np.exp(log_radiance, out=log_radiance)
+    out -= np.float32(eps)
+    return out
+
+
+def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float
+                       ) -> np.ndarray:
+    """Radiance layers ``(..., y, x, channel)`` rebuilt from factors.
+
+    ``u`` holds eigen-ABRDF rows ``(..., channel, k)``, ``v`` an eigentexture tile
+    ``(y, x, k)``: the result is what the corresponding radiance block held.
+    """
+    u = np.asarray(u)
+    lead, nc, k = u.shape[:-2], u.shape[-2], u.shape[-1]
+    ny, nx = v.shape[:2]
+    flat = reconstruct(u.reshape(-1, k), s, np.asarray(v).reshape(ny * nx, k), eps=eps)
+    return np.moveaxis(flat.reshape(*lead, nc, ny, nx), -3, -1)
+
+
+def abrdf_squared_errors(original: np.ndarray, approx: np.ndarray) -> np.ndarray:
+    """Per-texel sums of squared differences over a row block (float64, one per column)."""
+    d = np.asarray(original, np.float64) - np.asarray(approx, np.float64)
+    return np.einsum("ij,ij->j", d, d)
+
+
+def average_abrdf_rmse(squared_errors: np.ndarray, rows: int) -> float:
+    """Paper 000, eq. (11): ``(1/n) sum_i sqrt(||M_i - M_hat_i||^2 / m)`` over n texels."""
+    return float(np.mean(np.sqrt(np.asarray(squared_errors, np.float64) / rows)))
+
+
+@dataclass
+class PassPart:
+    """What one row block contributes to a pass, in the chunk / combine / aggregate shape.
+
+    ``sums`` are added over row blocks (float64 sketches such as ``sum_i A_i^T A_i X``),
+    ``rows`` are row-block pieces kept with their first matrix row (such as ``A_i X``),
+    ``check`` and ``frobenius2`` describe the data read.
+    """
+
+    sums: dict[str, np.ndarray]
+    rows: dict[str, list[tuple[int, np.ndarray]]]
+    check: BlockCheck
+    frobenius2: float
+
+
+def combine_parts(*parts: PassPart) -> PassPart:
+    """Merge pass parts (in the given order, so the float sums are reproducible)."""
+    first = parts[0]
+    sums = {name: first.sums[name].copy() for name in first.sums}
+    rows = {name: list(first.rows[name]) for name in first.rows}
+    check, frobenius2 = first.check, first.frobenius2
+    for part in parts[1:]:
+        for name in sums:
+            sums[name] += part.sums[name]
+        for name in rows:
+            rows[name] += part.rows[name]
+        check = check.merge(part.check)
+        frobenius2 += part.frobenius2
+    return PassPart(sums, rows, check, frobenius2)
+
+
+def stacked_rows(pieces: list[tuple[int, np.ndarray]]) -> np.ndarray:
+    """Row-block pieces stacked in row order into one matrix."""
+    return np.concatenate([p for _, p in sorted(pieces, key=lambda rp: rp[0])], axis=0)

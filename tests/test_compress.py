@@ -1,0 +1,314 @@
+"""btf compress / reconstruct: accuracy against numpy's exact SVD, stability, on-demand reads."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import zarr
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pipeline.compress import ROW_BLOCK_BYTES, plan_row_blocks
+from pipeline.compressed import open_compressed
+from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store, open_radiance
+from tasks.svd import log_transform, matrix_rows
+
+EPS = 1e-3
+
+
+def store_from_log_matrix(path, a, shape, *, chunk=8, dir_chunk=4, eps=EPS):
+    """A radiance store whose range-reduced BTF matrix is ``a`` (rows: view, light, channel)."""
+    nv, nl, ny, nx, nc = shape
+    d = Directions(np.linspace(0, 40, nv), np.zeros(nv), np.linspace(0, 70, nl),
+                   np.linspace(0, 300, nl))
+    group = create_radiance_store(path, directions=d, ny=ny, nx=nx,
+                                  channels=tuple("RGB"[:nc]) if nc <= 3 else tuple(
+                                      f"c{i}" for i in range(nc)),
+                                  layout=Layout(chunk=chunk, dir_chunk=dir_chunk),
+                                  attrs={"btf_kind": d.kind})
+    layers = np.moveaxis(np.asarray(a, np.float64).reshape(nv, nl, nc, ny, nx), 2, -1)
+    group[RADIANCE][...] = (np.exp(layers) - eps).astype(np.float32)
+    return path
+
+
+def store_matrix(path, eps=EPS):
+    """The range-reduced float32 BTF matrix of a store, as compress sees it."""
+    rad = zarr.open_array(path, path=RADIANCE)[:]
+    return matrix_rows(log_transform(rad, eps=eps)).astype(np.float64)
+
+
+def spectrum_matrix(m, n, s, seed=0):
+    rng = np.random.default_rng(seed)
+    u, _ = np.linalg.qr(rng.standard_normal((m, len(s))))
+    v, _ = np.linalg.qr(rng.standard_normal((n, len(s))))
+    return (u * s) @ v.T
+
+
+def factors(path):
+    g = zarr.open_group(path, mode="r")
+    return g["U"][:], g["S"][:], g["V"][:], dict(g.attrs)
+
+
+def _compress(btf, src, out, *args):
+    result = btf("compress", src, out, "--quiet", *args)
+    assert result.code == 0, result.err
+    return factors(out)
+
+
+SHAPE = (3, 16, 24, 32, 3)  # 144 rows x 768 texels
+
+
+def test_error_is_within_two_percent_of_the_optimum_for_fast_decaying_spectra(tmp_path, btf):
+    m, n = 3 * 16 * 3, 24 * 32
+    s = 40 * np.exp(-np.arange(min(m, n)) / 6.0) + 1e-3
+    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
+    a = store_matrix(store)
+    exact = np.linalg.svd(a, compute_uv=False)
+    for k in (5, 12, 20):
+        u, sv, v, attrs = _compress(btf, store, tmp_path / f"c{k}.zarr", "--rank", str(k),
+                                    "--power-iters", "2")
+        approx = (u.reshape(m, k) * sv) @ v.reshape(n, k).T
+        err = np.linalg.norm(a - approx)
+        optimal = np.sqrt(np.sum(exact[k:] ** 2))
+        assert err <= 1.02 * optimal, (k, err / optimal)
+        assert attrs["svd"]["passes"] == 3
+        # the error stored from the identity is the true error
+        rel = err / np.linalg.norm(a)
+        assert attrs["error"]["log_relative_frobenius"] == pytest.approx(rel, rel=1e-3)
+        assert np.allclose(sv, exact[:k], rtol=1e-3)
+
+
+def test_a_wrong_algorithm_would_fail_the_accuracy_test(tmp_path, btf):
+    # Without power iterations (Q=0) on a slowly decaying spectrum the error is clearly worse
+    # than optimal: the tolerance above is not loose enough to pass a plain sketch.
+    m, n = 144, 768
+    s = 1.0 / (1 + np.arange(min(m, n))) ** 0.5
+    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
+    a = store_matrix(store)
+    exact = np.linalg.svd(a, compute_uv=False)
+    u, sv, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--rank", "10", "--power-iters",
+                            "0", "--oversample", "2")
+    err = np.linalg.norm(a - (u.reshape(m, 10) * sv) @ v.reshape(n, 10).T)
+    assert err > 1.02 * np.sqrt(np.sum(exact[10:] ** 2))
+
+
+def _orthonormal(q, tol=1e-5):
+    q = q.reshape(-1, q.shape[-1]).astype(np.float64)
+    return np.abs(q.T @ q - np.eye(q.shape[1])).max() < tol
+
+
+@pytest.mark.parametrize("case", ["ill-conditioned", "rank-deficient", "constant layers",
+                                  "zero texels", "hdr"])
+def test_factors_stay_finite_orthonormal_and_float32(tmp_path, btf, case):
+    m, n = 144, 768
+    rng = np.random.default_rng(1)
+    if case == "ill-conditioned":
+        a = spectrum_matrix(m, n, np.logspace(0, -12, 144))
+    elif case == "rank-deficient":
+        a = spectrum_matrix(m, n, np.array([5.0, 2.0, 1.0]))  # true rank 3 < K
+    elif case == "constant layers":
+        a = spectrum_matrix(m, n, np.exp(-np.arange(20) / 3.0))
+        a[::3] = 0.7  # every third texture is constant
+    elif case == "zero texels":
+        a = spectrum_matrix(m, n, np.exp(-np.arange(20) / 3.0))
+        a[:, rng.choice(n, 100, replace=False)] = np.log(EPS)  # radiance exactly 0
+    else:  # radiance from 1e-6 to 1e6
+        a = rng.uniform(np.log(1e-6 + EPS), np.log(1e6), (m, n)) * np.linspace(0, 1, n)
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    u, s, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--rank", "8")
+    for f in (u, s, v):
+        assert f.dtype == np.float32 and np.isfinite(f).all()
+    assert _orthonormal(u) and _orthonormal(v)
+    assert np.all(np.diff(s) <= 0) and s.min() >= 0
+    rebuilt = open_compressed(tmp_path / "c.zarr")[RADIANCE]
+    assert rebuilt.dtype == np.float32 and np.isfinite(rebuilt.values).all()
+
+
+def test_rank_larger_than_the_matrix_is_refused(tmp_path, btf):
+    store = store_from_log_matrix(tmp_path / "s.zarr", np.zeros((144, 768)), SHAPE)
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "145", "--quiet")
+    assert result.code == 1 and "--rank 145 is larger than" in result.err
+    assert "min(144, 768) = 144" in result.err and not (tmp_path / "c.zarr").exists()
+
+
+def test_nan_and_negative_radiance_are_refused_with_count_and_place(tmp_path, btf):
+    a = spectrum_matrix(144, 768, np.exp(-np.arange(10.0)))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    rad = zarr.open_array(store, path=RADIANCE, mode="r+")
+    block = rad[1, 4:8]
+    block[1, 5, 6, 2] = np.nan
+    block[3, 0, 0, 0] = np.inf
+    rad[1, 4:8] = block
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet")
+    assert result.code == 1 and "2 NaN or Inf value(s)" in result.err
+    assert "the first at view=1, light=5, y=5, x=6, channel=2" in result.err
+    block[1, 5, 6, 2], block[3, 0, 0, 0] = -0.5, -0.25
+    rad[1, 4:8] = block
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet")
+    assert result.code == 1 and "2 negative value(s)" in result.err and "--clamp" in result.err
+    assert not (tmp_path / "c.zarr").exists()
+    _, s, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "4", "--clamp")
+    assert np.isfinite(s).all() and attrs["transform"]["clamp"] is True
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes",
+                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, scheduler,
+                                                                 request, monkeypatch):
+    monkeypatch.setattr("pipeline.compress.MIN_ROW_BLOCKS", 5)
+    a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    reference = _compress(btf, store, tmp_path / "ref.zarr", "--rank", "6", "--scheduler",
+                          "synchronous")
+    if scheduler == "cluster":
+        scheduler = request.getfixturevalue("local_cluster")
+    other = _compress(btf, store, tmp_path / "other.zarr", "--rank", "6", "--scheduler",
+                      scheduler)
+    for x, y in zip(reference[:3], other[:3], strict=True):
+        assert np.array_equal(x, y)
+    seeded = _compress(btf, store, tmp_path / "seeded.zarr", "--rank", "6", "--seed", "5")
+    assert not np.array_equal(seeded[2], reference[2])
+    assert np.allclose(seeded[1], reference[1], rtol=1e-3)  # same spectrum, other test matrix
+
+
+def test_one_pass_reports_an_honest_error_estimate(tmp_path, btf):
+    m, n = 144, 768
+    s = 30 * np.exp(-np.arange(min(m, n)) / 8.0)
+    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
+    a = store_matrix(store)
+    optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[10:] ** 2))
+    u, sv, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "10", "--passes", "1")
+    assert attrs["svd"]["passes"] == 1 and attrs["svd"]["method"] == "one-view sketch"
+    err = np.linalg.norm(a - (u.reshape(m, 10) * sv) @ v.reshape(n, 10).T)
+    assert err < 3 * optimal  # one view costs accuracy, but not arbitrarily much
+    estimate = attrs["error"]["log_relative_frobenius"] * np.linalg.norm(a)
+    assert estimate == pytest.approx(err, rel=0.35)
+    assert _orthonormal(u) and _orthonormal(v)
+
+
+def test_verify_reports_the_average_abrdf_rmse_of_paper_000(tmp_path, btf):
+    a = spectrum_matrix(144, 768, 3 * np.exp(-np.arange(40) / 4.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "5", "--verify")
+    assert attrs["svd"]["passes"] == 4
+    original = matrix_rows(zarr.open_array(store, path=RADIANCE)[:]).astype(np.float64)
+    approx = np.exp((u.reshape(144, 5).astype(np.float64) * s) @ v.reshape(768, 5).T) - EPS
+    expected = np.mean(np.sqrt(np.sum((original - approx) ** 2, axis=0) / 144))  # eq. (11)
+    assert attrs["error"]["abrdf_rmse"] == pytest.approx(expected, rel=1e-3)
+
+
+@given(st.integers(1, 4), st.integers(1, 40), st.sampled_from([1, 4, 16]),
+       st.sampled_from([1 << 12, 1 << 20, ROW_BLOCK_BYTES]))
+def test_row_blocks_cover_every_texture_once_within_budget(nv, nl, dir_chunk, budget):
+    shape = (nv, nl, 8, 8, 3)
+    blocks = plan_row_blocks(shape, dir_chunk, budget=budget)
+    rows = [(v, li) for b in blocks for v, l0, l1 in b.units for li in range(l0, l1)]
+    assert rows == [(v, li) for v in range(nv) for li in range(nl)]
+    assert [b.row0 for b in blocks] == list(np.cumsum([0] + [b.rows for b in blocks])[:-1])
+    unit = dir_chunk * 3 * 64 * 4
+    for b in blocks:
+        assert b.rows * 64 * 4 <= max(budget, unit)
+
+
+def test_lazy_radiance_has_the_original_dims_and_coordinates(tmp_path, btf, small_abtf):
+    _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
+    original = open_radiance(small_abtf)
+    ds = open_compressed(tmp_path / "c.zarr")
+    assert ds[RADIANCE].dims == original[RADIANCE].dims
+    assert ds[RADIANCE].shape == original[RADIANCE].shape
+    for name in ("theta_light", "phi_light", "theta_view", "phi_view"):
+        assert np.array_equal(ds[name].values, original[name].values)
+    layer = ds[RADIANCE].isel(light=3)
+    assert layer.dtype == np.float32 and layer.shape == (1, 48, 48, 3)
+
+
+class ReadCounter:
+    """Counts the chunk keys read from zarr stores (all arrays, while installed)."""
+
+    def __init__(self, monkeypatch):
+        from zarr.storage import LocalStore
+
+        self.keys = []
+        real = LocalStore.get
+
+        async def get(store, key, *args, **kwargs):
+            self.keys.append((store.root / key).as_posix())
+            return await real(store, key, *args, **kwargs)
+
+        monkeypatch.setattr(LocalStore, "get", get)
+
+    def chunks(self, name):
+        return [k for k in self.keys if f"/{name}/c/" in k]
+
+
+@pytest.mark.parametrize("size", [32, 64])
+def test_one_layer_of_one_tile_reads_one_u_chunk_and_one_v_tile(tmp_path, btf, monkeypatch,
+                                                                 size):
+    from helpers import generate_store
+
+    src = generate_store(tmp_path / "s.zarr", "--material", "stone", "--size", str(size),
+                         "--sampling", "abtf:8,2", "--chunk", "8", "--dir-chunk", "4")
+    _compress(btf, src, tmp_path / "c.zarr", "--rank", "4")
+    ds = open_compressed(tmp_path / "c.zarr")
+    counter = ReadCounter(monkeypatch)
+    tile = ds[RADIANCE].isel(view=0, light=9, y=slice(8, 16), x=slice(16, 24))
+    values = tile.compute(scheduler="synchronous").values
+    assert len(counter.chunks("U")) == 1 and len(counter.chunks("V")) == 1
+    assert len(counter.chunks("S")) == 1
+    u, s, v, _ = factors(tmp_path / "c.zarr")
+    expected = np.exp(np.einsum("ck,k,yxk->yxc", u[0, 9], s, v[8:16, 16:24])) - EPS
+    assert np.allclose(values, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_reconstruct_writes_exactly_the_selection(tmp_path, btf, small_abtf):
+    _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
+    lazy = open_compressed(tmp_path / "c.zarr", rank=4)[RADIANCE]
+    result = btf("reconstruct", tmp_path / "c.zarr", tmp_path / "r.zarr", "--light", "2,7",
+                 "--region", "4:20,10:40", "--rank", "4", "--quiet")
+    assert result.code == 0, result.err
+    out = open_radiance(tmp_path / "r.zarr")
+    assert out[RADIANCE].shape == (1, 2, 16, 30, 3)
+    assert np.array_equal(out["theta_light"].values, lazy["theta_light"].values[[2, 7]])
+    expected = lazy.isel(light=[2, 7], y=slice(4, 20), x=slice(10, 40)).values
+    assert np.array_equal(out[RADIANCE].values, expected)
+    assert out.attrs["reconstructed_from"]["rank"] == 4
+    exr = btf("reconstruct", tmp_path / "c.zarr", tmp_path / "layers", "--light", "1",
+              "--format", "exr", "--quiet")
+    assert exr.code == 0 and len(list((tmp_path / "layers").glob("*.exr"))) == 1
+    back = btf("ingest", tmp_path / "layers", tmp_path / "back.zarr", "--quiet")
+    assert back.code == 0
+    full = open_compressed(tmp_path / "c.zarr")[RADIANCE].isel(light=[1]).values
+    assert np.array_equal(open_radiance(tmp_path / "back.zarr")[RADIANCE].values, full)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--light", "99"), "--light 99 is out of range"),
+    (("--region", "0:10,0:999"), "reaches beyond"),
+    (("--rank", "50"), "--rank 50 is not between 1 and the stored rank 6"),
+])
+def test_reconstruct_refuses_impossible_selections(tmp_path, btf, small_abtf, args, message):
+    _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
+    result = btf("reconstruct", tmp_path / "c.zarr", tmp_path / "r.zarr", *args, "--quiet")
+    assert result.code == 1 and message in result.err
+    assert not (tmp_path / "r.zarr").exists()
+
+
+def test_reconstruct_refuses_a_radiance_store(tmp_path, btf, small_abtf):
+    result = btf("reconstruct", small_abtf, tmp_path / "r.zarr", "--quiet")
+    assert result.code == 1 and "not a compressed store" in result.err
+
+
+def test_inspect_describes_a_compressed_store(tmp_path, btf, small_abtf):
+    _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6", "--verify")
+    result = btf("inspect", tmp_path / "c.zarr", "--json", "--plot", tmp_path / "spectrum.png")
+    assert result.code == 0
+    report = json.loads(result.out)
+    c = report["compression"]
+    assert report["kind"] == "compressed" and c["rank"] == 6 and len(c["singular_values"]) == 6
+    assert c["ratio"] > 1 and 0 < c["energy_captured"]["6"] <= 1
+    assert c["error"]["log_relative_frobenius"] > 0 and c["error"]["abrdf_rmse"] > 0
+    assert (tmp_path / "spectrum.png").stat().st_size > 1000
+    text = btf("inspect", tmp_path / "c.zarr").out
+    assert "compression: rank 6" in text and "relative error (log domain)" in text
