@@ -27,7 +27,7 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
-from pipeline.store import RADIANCE, Directions, location, open_group, open_radiance
+from pipeline.store import RADIANCE, check_radiance, location, open_group, read_directions
 from tasks.svd import (
     BlockCheck,
     PassPart,
@@ -40,8 +40,9 @@ from tasks.svd import (
     estimated_error,
     factors_from_projection,
     factors_from_sketch,
+    frobenius2,
     gaussian,
-    log_transform,
+    log_rows,
     matrix_rows,
     orthonormalize,
     power_step,
@@ -51,7 +52,7 @@ from tasks.svd import (
     stacked_rows,
 )
 
-ROW_BLOCK_BYTES = 256 << 20  # float32 radiance one task reads at most (a single unit may exceed)
+ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
 MIN_ROW_BLOCKS = 8  # split smaller matrices further, so that workers share the work
 FAN_IN = 4  # row-block shares added per reduction task
 
@@ -133,10 +134,14 @@ class RowBlock:
     rows: int
 
 
-def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *,
-                    budget: int = ROW_BLOCK_BYTES, minimum: int = MIN_ROW_BLOCKS
-                    ) -> list[RowBlock]:
-    """Row blocks of whole stored light chunks, within ``budget`` bytes where possible."""
+def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *, budget: int | None = None,
+                    minimum: int | None = None) -> list[RowBlock]:
+    """Row blocks of whole stored light chunks, within ``budget`` bytes where possible.
+
+    Defaults: :data:`ROW_BLOCK_BYTES` and at least :data:`MIN_ROW_BLOCKS` blocks.
+    """
+    budget = ROW_BLOCK_BYTES if budget is None else budget
+    minimum = MIN_ROW_BLOCKS if minimum is None else minimum
     nv, nl, ny, nx, nc = shape
     units = [(v, l0, min(l0 + dir_chunk, nl)) for v in range(nv) for l0 in range(0, nl, dir_chunk)]
     unit_bytes = dir_chunk * nc * ny * nx * 4
@@ -150,43 +155,60 @@ def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *,
     return blocks
 
 
-def _read_rows(store: str, block: RowBlock) -> tuple[np.ndarray, BlockCheck]:
+def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,
+               clamp: bool = False) -> tuple[np.ndarray, BlockCheck]:
+    """The block's BTF matrix rows (float32), range-reduced if ``eps`` is given.
+
+    With ``check``, also what the radiance holds besides good values (first pass only).
+    """
     import zarr
 
     array = zarr.open_array(store, path=RADIANCE, mode="r")
-    pieces, check = [], BlockCheck()
+    nc = array.shape[-1]
+    rows = np.empty((block.rows, array.shape[2] * array.shape[3]), np.float32)
+    found, r = BlockCheck(), 0
     for v, l0, l1 in block.units:
         layers = array[v : v + 1, l0:l1]
-        check = check.merge(check_block(layers, (v, l0, 0, 0, 0)))
-        pieces.append(matrix_rows(layers))
-    return np.concatenate(pieces, axis=0), check
+        if check:
+            found = found.merge(check_block(layers, (v, l0, 0, 0, 0)))
+        n = (l1 - l0) * nc
+        if eps is None:
+            rows[r : r + n] = matrix_rows(layers)
+        elif not (found.nonfinite or (found.negative and not clamp)):
+            log_rows(layers, rows[r : r + n], eps=eps, clamp=clamp)
+        r += n
+    return rows, found
 
 
-def _transformed(store: str, block: RowBlock, eps: float, clamp: bool):
-    raw, check = _read_rows(store, block)
+def _transformed(store: str, block: RowBlock, *, eps: float, clamp: bool, first: bool,
+                 norm: bool) -> tuple[np.ndarray | None, BlockCheck, float]:
+    """Range-reduced rows of a block; None if the first pass finds data that must be refused.
+
+    Data is checked in the first pass only (the caller stops after it if anything is wrong).
+    """
+    a, check = _read_rows(store, block, check=first, eps=eps, clamp=clamp)
     if check.nonfinite or (check.negative and not clamp):
-        return None, check, 0.0  # reported by the caller after the pass
-    a = log_transform(raw, eps=eps, clamp=clamp)
-    return a, check, float(np.sum(a.astype(np.float64) ** 2))
+        return None, check, 0.0
+    return a, check, (frobenius2(a) if norm else 0.0)
 
 
-def _power_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float,
-                clamp: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps, clamp)
+def _power_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
+                first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=False)
     w = power_step(a, x) if a is not None else np.zeros_like(x)
     return PassPart({"w": w}, {}, check, f2)
 
 
-def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float,
-                  clamp: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps, clamp)
+def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
+                  first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
     z = project(a, x) if a is not None else np.zeros((block.rows, x.shape[1]))
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def _sketch_task(store: str, block: RowBlock, omega, phi, psi, *, eps: float,
-                 clamp: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps, clamp)
+def _sketch_task(store: str, block: RowBlock, omega, phi, psi, *, eps: float, clamp: bool,
+                 first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
     psi_rows = psi[:, block.row0 : block.row0 + block.rows]
     if a is None:
         y = np.zeros((block.rows, omega.shape[1]))
@@ -197,8 +219,8 @@ def _sketch_task(store: str, block: RowBlock, omega, phi, psi, *, eps: float,
     return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
 
 
-def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float) -> PassPart:
-    raw, check = _read_rows(store, block)
+def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float, first: bool) -> PassPart:
+    raw, check = _read_rows(store, block, check=first)
     approx = reconstruct(u[block.row0 : block.row0 + block.rows], s, v, eps=eps)
     return PassPart({"sse": abrdf_squared_errors(raw, approx)}, {}, check, 0.0)
 
@@ -246,9 +268,10 @@ class _Passes:
         self.session.log(f"compress: pass {self.count}/{total} ({what}, "
                          f"{len(self.blocks)} row blocks)")
         handles = [self.session.share(a) for a in shared]
-        parts = [dask.delayed(task, pure=True)(self.store, b, *handles, **kwargs)
+        parts = [dask.delayed(task, pure=True)(self.store, b, *handles, first=self.count == 1,
+                                               **kwargs)
                  for b in self.blocks]
-        (result,) = self.session.compute(tree_sum(parts))
+        (result,) = self.session.compute(tree_sum(parts), reads=True)
         if self.count == 1:
             _raise_on_bad_data(result.check, self.params.store, self.params.clamp)
         return result
@@ -258,13 +281,15 @@ def _multi_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: 
     p = params
     rank, width = p.rank, p.rank + extra
     x = gaussian(n, width, seed=p.seed, stream=0)
+    previous = None
     for q in range(p.iterations):
-        w = passes.run(_power_task, f"power iteration {q + 1}", x, eps=p.eps,
-                       clamp=p.clamp).sums["w"]
-        x = orthonormalize(w)
-    if p.iterations == 0:
-        x = orthonormalize(x)
-    last = passes.run(_project_task, "projection", x, eps=p.eps, clamp=p.clamp)
+        w = passes.run(_power_task, f"power iteration {q + 1}", x.astype(np.float32),
+                       eps=p.eps, clamp=p.clamp).sums["w"]
+        previous, x = x, orthonormalize(w)
+    # the block Krylov space of the last two iterates (see tasks.svd)
+    x = orthonormalize(x if previous is None else np.hstack([previous, x]))
+    last = passes.run(_project_task, "projection", x.astype(np.float32), eps=p.eps,
+                      clamp=p.clamp)
     u, s, v = factors_from_projection(stacked_rows(last.rows["z"]), x, rank)
     error = {"log_relative_frobenius": error_from_identity(last.frobenius2, s),
              "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact for the "
@@ -279,8 +304,8 @@ def _one_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: in
     omega = gaussian(n, sketch.k, seed=p.seed, stream=1)
     phi = gaussian(n, sketch.t, seed=p.seed, stream=2)
     psi = gaussian(sketch.s, m, seed=p.seed, stream=3)
-    part = passes.run(_sketch_task, "one-view sketch", omega, phi, psi, eps=p.eps,
-                      clamp=p.clamp)
+    part = passes.run(_sketch_task, "one-view sketch", omega.astype(np.float32),
+                      phi.astype(np.float32), psi, eps=p.eps, clamp=p.clamp)
     u, s, v = factors_from_sketch(stacked_rows(part.rows["y"]), part.sums["w"], psi, p.rank)
     estimate = estimated_error(stacked_rows(part.rows["z"]), phi, u, s, v, part.frobenius2)
     error = {"log_relative_frobenius": estimate,
@@ -293,8 +318,8 @@ def _one_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: in
 
 def compress(params: CompressParams, session: Session) -> Path:
     """Compress the store of ``params`` into U, S, V; returns the output path."""
-    ds = open_radiance(params.store)
-    group = open_group(params.store)
+    group = open_group(params.store)  # zarr metadata only: no xarray needed here
+    check_radiance(group, params.store)
     shape = tuple(group[RADIANCE].shape)
     nv, nl, ny, nx, nc = shape
     m, n = nv * nl * nc, ny * nx
@@ -305,28 +330,30 @@ def compress(params: CompressParams, session: Session) -> Path:
     dir_chunk = group[RADIANCE].chunks[1]
     blocks = plan_row_blocks(shape, dir_chunk)
     passes = _Passes(location(params.store), blocks, params, session)
+    source_attrs = dict(group.attrs)
     attrs = {
         "source": "compress",
-        "source_btf_kind": ds.attrs.get("btf_kind"),
+        "source_btf_kind": source_attrs.get("btf_kind"),
         "source_shape": list(shape),
         "transform": {"name": "log", "formula": "log(radiance + eps)", "eps": params.eps,
                       "clamp": params.clamp},
         "provenance": provenance("compress", params),
     }
     for key in ("sampling", "material"):
-        if key in ds.attrs:
-            attrs[f"source_{key}"] = ds.attrs[key]
+        if key in source_attrs:
+            attrs[f"source_{key}"] = source_attrs[key]
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
                 f"rank {params.rank} -> {params.out}")
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
-            session.single_threaded_blas():
+            session.blas_pinned_in_tasks():
         run = _one_pass if params.one_pass else _multi_pass
         u, s, v, error = run(passes, n, m, params, extra)
         attrs["svd"] = {"rank": params.rank, "oversample": extra,
                         "power_iterations": 0 if params.one_pass else params.iterations,
                         "passes": passes.count, "seed": params.seed,
                         "method": "one-view sketch" if params.one_pass else
-                                  "randomized SVD with fused power iterations"}
+                                  "randomized SVD with fused power iterations, projected on "
+                                  "the block Krylov space of the last two iterates"}
         attrs["error"] = error
         if params.verify:
             part = passes.run(_verify_task, "verification", u.astype(np.float32),
@@ -338,8 +365,8 @@ def compress(params: CompressParams, session: Session) -> Path:
             attrs["svd"]["passes"] = passes.count
         attrs["singular_values_energy"] = float(np.sum(s**2))
         out = create_compressed_store(
-            tmp, directions=Directions.of(ds), channels=tuple(str(c) for c in
-                                                               ds["channel"].values),
+            tmp, directions=read_directions(group),
+            channels=tuple(str(c) for c in group["channel"][:]),
             ny=ny, nx=nx, rank=params.rank, chunk=group[RADIANCE].chunks[2],
             dir_chunk=dir_chunk, attrs=attrs)
         out["U"][...] = u.reshape(nv, nl, nc, params.rank).astype(np.float32)

@@ -67,6 +67,7 @@ class Session:
     def __init__(self, options: RuntimeOptions | None = None):
         self.options = options or RuntimeOptions()
         self.client = None
+        self._pin_blas = False
 
     def __enter__(self) -> Session:
         if self.options.scheduler.startswith("tcp://"):
@@ -101,8 +102,13 @@ class Session:
         if not self.options.quiet:
             print(message, file=sys.stderr, flush=True)
 
-    def compute(self, *collections: Any) -> tuple:
+    def compute(self, *collections: Any, reads: bool = False) -> tuple:
         """Compute dask collections on this session's scheduler, with a progress bar.
+
+        ``reads`` marks graphs whose tasks spend much of their time reading zarr chunks: zarr
+        serialises those reads within a process, so unless ``--workers`` says otherwise the
+        local schedulers run one more worker than there are cores, which keeps the cores busy
+        while a worker waits (measured: 14% faster compression on 2 cores).
 
         If a task fails (or the user interrupts), the tasks still running are waited for
         before the error propagates, so that no late write lands in an output that the caller
@@ -111,21 +117,31 @@ class Session:
         if self.client is not None:
             return self._compute_distributed(collections)
         settings: dict[str, Any] = {"scheduler": self.options.scheduler}
-        pool = self._local_pool()
+        workers = self.options.workers
+        if workers is None and reads and self.options.scheduler != "synchronous":
+            workers = (os.cpu_count() or 1) + 1
+        pool = self._local_pool(workers)
         if pool is not None:
             settings["pool"] = pool
-        if self.options.workers is not None:
-            settings["num_workers"] = self.options.workers
+        if workers is not None:
+            settings["num_workers"] = workers
         try:
-            with dask.config.set(settings), self._local_progress():
+            with dask.config.set(settings), self._local_progress(), self._task_blas():
                 return dask.compute(*collections)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
 
-    def _local_pool(self):
+    def _task_blas(self):
+        if not self._pin_blas:
+            return contextlib.nullcontext()
+        from threadpoolctl import threadpool_limits
+
+        return threadpool_limits(limits=1, user_api="blas")
+
+    def _local_pool(self, workers: int | None):
         """A pool of our own for the local schedulers, so that we can wait for it to drain."""
-        workers = self.options.workers or os.cpu_count() or 1
+        workers = workers or os.cpu_count() or 1
         if self.options.scheduler == "threads":
             from dask.threaded import ContextAwareThreadPoolExecutor
 
@@ -141,19 +157,22 @@ class Session:
         return None
 
     @contextlib.contextmanager
-    def single_threaded_blas(self):
-        """One BLAS thread in this process and on every worker while the block runs.
+    def blas_pinned_in_tasks(self):
+        """Run every task of the block's computes with one BLAS thread.
 
         Stages whose results come out of BLAS (the SVD) use this so that they are identical on
-        every scheduler: some OpenBLAS routines round differently with different thread counts.
-        Local process workers always run with one BLAS thread (see ``_local_pool``).
+        every scheduler: some OpenBLAS routines (dgemm, QR) round differently with different
+        thread counts. Tasks get one thread (the workers provide the parallelism); the client's
+        own factorizations between computes keep the client's thread count, which does not
+        depend on the scheduler. Local process workers always run with one BLAS thread.
         """
-        from threadpoolctl import threadpool_limits
-
         if self.client is not None:
             self.client.run(limit_blas)
-        with threadpool_limits(limits=1, user_api="blas"):
+        self._pin_blas = True
+        try:
             yield
+        finally:
+            self._pin_blas = False
 
     def share(self, value: Any) -> Any:
         """A task argument for a large value that every task of a graph reads.

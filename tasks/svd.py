@@ -5,12 +5,16 @@ texel; its entries are range-reduced radiance ``log(radiance + eps)``. ``A = U S
 eigen-ABRDFs ``U``, singular values ``S`` and eigentextures ``V``.
 
 Multi-pass (Halko, Martinsson and Tropp 2011, with fused power steps): starting from a Gaussian
-test matrix ``X`` (texels x ``l``, ``l = rank + oversampling``), every power pass computes
+test matrix ``X_0`` (texels x ``l``, ``l = rank + oversampling``), every power pass computes
 ``sum_i A_i^T (A_i X)`` over row blocks ``A_i`` (one read of the data per ``A^T A``) and
-re-orthonormalises the result by QR; the last pass computes ``Z = A X`` and ``||A||_F^2``. With
-``Z = P diag(s) R^T`` (a small SVD), ``A ~ A X X^T = P diag(s) (X R)^T``, truncated to the rank.
-Because ``X`` is orthonormal, the rows of ``A - A X X^T`` are orthogonal to those of
-``(Z - Z_K) X^T``, so the error needs no extra pass::
+re-orthonormalises the result by QR. The last pass projects onto ``X``, an orthonormal basis of
+the block Krylov space of the last two iterates ``[X_{q-1}, X_q]`` (Musco and Musco 2015): for
+the same passes it is markedly more accurate than the last iterate alone (measured on a
+generated BTF at rank 64 with two power passes: 1.002x instead of 1.016x the optimal error).
+It computes ``Z = A X`` and ``||A||_F^2``; with ``Z = P diag(s) R^T`` (a small SVD),
+``A ~ A X X^T = P diag(s) (X R)^T``, truncated to the rank. Because ``X`` is orthonormal, the
+rows of ``A - A X X^T`` are orthogonal to those of ``(Z - Z_K) X^T``, so the error needs no
+extra pass::
 
     ||A - U S V^T||_F^2 = ||A||_F^2 - ||Z||_F^2 + sum_{i>K} s_i^2 = ||A||_F^2 - sum_{i<=K} s_i^2
 
@@ -59,6 +63,9 @@ class BlockCheck:
 def check_block(radiance: np.ndarray, origin: tuple[int, ...]) -> BlockCheck:
     """Count non-finite and negative values of a block whose first element is at ``origin``."""
     radiance = np.asarray(radiance)
+    low, high = radiance.min(), radiance.max()  # NaN propagates: one cheap pass if all is well
+    if np.isfinite(low) and np.isfinite(high) and low >= 0:
+        return BlockCheck()
     nonfinite = ~np.isfinite(radiance)
     negative = radiance < 0
     n_bad, n_neg = int(nonfinite.sum()), int(negative.sum())
@@ -70,13 +77,32 @@ def check_block(radiance: np.ndarray, origin: tuple[int, ...]) -> BlockCheck:
                       first(negative) if n_neg else None)
 
 
-def log_transform(radiance: np.ndarray, *, eps: float, clamp: bool = False) -> np.ndarray:
-    """Range reduction ``log(radiance + eps)`` (float32); negatives set to 0 first if ``clamp``."""
-    x = np.array(radiance, dtype=np.float32)  # a copy: the caller's block is left alone
+def log_transform(radiance: np.ndarray, *, eps: float, clamp: bool = False,
+                  inplace: bool = False) -> np.ndarray:
+    """Range reduction ``log(radiance + eps)`` (float32); negatives set to 0 first if ``clamp``.
+
+    With ``inplace`` a float32 array is overwritten (no copy of a large block); otherwise the
+    input is left alone.
+    """
+    x = radiance if inplace else np.array(radiance, dtype=np.float32)
     if clamp:
         np.maximum(x, 0.0, out=x)
     x += np.float32(eps)
     return np.log(x, out=x)
+
+
+def frobenius2(a: np.ndarray, *, run: int = 4096) -> float:
+    """``||a||_F^2`` of float32 rows: float32 sums over runs of ``run`` values, added in float64.
+
+    Each partial sum carries a relative rounding error of about ``sqrt(run)`` float32 epsilons
+    (~4e-6, random), and there are many of them, so the total is accurate to ~1e-7.
+    """
+    a = np.ascontiguousarray(a, np.float32)
+    flat = a.reshape(-1)
+    head = flat.size - flat.size % run
+    body = flat[:head].reshape(-1, run)
+    partial = np.einsum("ij,ij->i", body, body).astype(np.float64).sum()
+    return float(partial + np.sum(flat[head:].astype(np.float64) ** 2))
 
 
 def matrix_rows(layers: np.ndarray) -> np.ndarray:
@@ -92,14 +118,34 @@ def matrix_rows(layers: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(moved).reshape(lead * nc, ny * nx)
 
 
+def log_rows(layers: np.ndarray, out: np.ndarray, *, eps: float, clamp: bool = False
+             ) -> np.ndarray:
+    """Range-reduced BTF matrix rows of a block of layers, written into ``out``.
+
+    ``layers`` is ``(..., y, x, channel)`` float32; ``out`` receives one row per (leading
+    index, channel), the same rows as ``log_transform(matrix_rows(layers))``, in one strided
+    pass per channel and one in-place log (no intermediate copy of the block).
+    """
+    ny, nx, nc = layers.shape[-3:]
+    src = np.asarray(layers, np.float32).reshape(-1, ny * nx, nc)
+    dest = out.reshape(src.shape[0], nc, ny * nx)
+    for c in range(nc):
+        if clamp:
+            np.maximum(src[:, :, c], 0.0, out=dest[:, c])
+            dest[:, c] += np.float32(eps)
+        else:
+            np.add(src[:, :, c], np.float32(eps), out=dest[:, c])
+    return np.log(out, out=out)
+
+
 def project(a: np.ndarray, x: np.ndarray, *, tile: int = TILE) -> np.ndarray:
-    """``a @ x`` for float32 rows ``a`` (r x n) and a float64 sketch ``x`` (n x l).
+    """``a @ x`` for float32 rows ``a`` (r x n) and a sketch ``x`` (n x l, ideally float32).
 
     Each tile of columns is a float32 product; the tiles are summed in float64.
     """
     out = np.zeros((a.shape[0], x.shape[1]), np.float64)
     for t in range(0, a.shape[1], tile):
-        out += a[:, t : t + tile] @ x[t : t + tile].astype(np.float32)
+        out += a[:, t : t + tile] @ np.asarray(x[t : t + tile], np.float32)
     return out
 
 
@@ -113,7 +159,8 @@ def orthonormalize(w: np.ndarray) -> np.ndarray:
     """Orthonormal basis of the columns of ``w`` (reduced Householder QR, float64).
 
     Householder QR stays orthonormal when ``w`` is rank-deficient or very ill-conditioned,
-    which is what power iterations produce.
+    which is what power iterations produce. (A shifted CholeskyQR3 was measured as well: no
+    faster here, and it needs a fallback for rank-deficient sketches.)
     """
     q, _ = np.linalg.qr(np.asarray(w, np.float64), mode="reduced")
     return q

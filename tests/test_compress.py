@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from pipeline.compress import ROW_BLOCK_BYTES, plan_row_blocks
 from pipeline.compressed import open_compressed
 from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store, open_radiance
-from tasks.svd import log_transform, matrix_rows
+from tasks.svd import log_rows, log_transform, matrix_rows
 
 EPS = 1e-3
 
@@ -37,6 +37,16 @@ def store_matrix(path, eps=EPS):
     """The range-reduced float32 BTF matrix of a store, as compress sees it."""
     rad = zarr.open_array(path, path=RADIANCE)[:]
     return matrix_rows(log_transform(rad, eps=eps)).astype(np.float64)
+
+
+@pytest.mark.parametrize("clamp", [False, True])
+def test_fused_range_reduction_matches_the_plain_one(clamp):
+    layers = np.random.default_rng(0).uniform(-0.1 if clamp else 0, 3, (2, 4, 5, 6, 3))
+    layers = layers.astype(np.float32)
+    out = np.empty((2 * 4 * 3, 30), np.float32)
+    expected = log_transform(matrix_rows(layers), eps=EPS, clamp=clamp)
+    assert np.array_equal(log_rows(layers, out, eps=EPS, clamp=clamp), expected)
+    assert matrix_rows(layers)[5, 7] == layers[0, 1, 1, 1, 2]  # row (view 0, light 1, G), y1 x1
 
 
 def spectrum_matrix(m, n, s, seed=0):

@@ -1,0 +1,370 @@
+"""Compression: ``btf compress`` against dask's and scikit-learn's randomized SVDs.
+
+One run, one stored matrix, the same rank K, oversampling P and power iterations Q, dask's
+threaded scheduler everywhere:
+
+- wall time and peak RSS of ``btf compress``, of ``dask.array.linalg.svd_compressed`` (its default
+  ``power`` iterator and ``iterator="QR"``) on the same range-reduced matrix read from the same
+  store, and of ``sklearn.utils.extmath.randomized_svd`` on the matrix in memory (if sklearn is
+  installed and the matrix fits);
+- the machine bound of ``btf compress``: for every pass, one plain dask read pass of the store
+  plus the same pass's matrix products on in-memory blocks, both measured in this run;
+- error relative to the optimal rank-K error, on a smaller store where numpy's exact SVD is
+  feasible (every method run again there);
+- a scaling table: time and peak memory of ``btf compress`` for growing stores.
+
+Stores are generated once into ``--data-dir`` and reused by later runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.harness import best_of, machine, measure
+
+SUITE = "compress"
+EPS = 1e-3
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the suite."""
+    parser.add_argument("--material", default="leather")
+    parser.add_argument("--size", type=int, default=256, help="texels per side (default 256)")
+    parser.add_argument("--sampling", default="hemi:82",
+                        help="sampling of the timed store (default hemi:82: 20172 x 65536, "
+                             "5.3 GB of float32)")
+    parser.add_argument("--small", default="64,hemi:24",
+                        help="SIZE,SAMPLING of the store for errors against an exact SVD")
+    parser.add_argument("--rank", type=int, default=64)
+    parser.add_argument("--oversample", type=int, default=10)
+    parser.add_argument("--power-iters", type=int, default=2)
+    parser.add_argument("--scaling", default="1,2,4,8",
+                        help="approximate input sizes in GB for the scaling table ('' to skip)")
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="runs of btf compress and of the bound's parts, interleaved so "
+                             "that both see the same machine (best kept; default 3); other "
+                             "methods run once")
+    parser.add_argument("--methods", default="btf,dask-power,dask-qr,sklearn",
+                        help="methods to time and compare (comma-separated)")
+    parser.add_argument("--data-dir", default=str(Path(tempfile.gettempdir()) / "btf-bench"),
+                        help="where generated stores are kept between runs")
+
+
+def _btf() -> str:
+    return str(Path(sys.executable).parent / "btf")
+
+
+def ensure_store(data: Path, material: str, size: int, sampling: str) -> Path:
+    """A generated store, made once and reused."""
+    path = data / f"{material}-{size}-{sampling.replace(':', '').replace(',', 'x')}.zarr"
+    if not (path / "zarr.json").is_file():
+        subprocess.run([_btf(), "generate", str(path), "--material", material, "--size",
+                        str(size), "--sampling", sampling, "--quiet", "--overwrite"], check=True)
+    return path
+
+
+def matrix_shape(store: Path) -> tuple[int, int]:
+    """Rows and columns of a store's BTF matrix."""
+    import zarr
+
+    nv, nl, ny, nx, nc = zarr.open_array(store, path="radiance", mode="r").shape
+    return nv * nl * nc, ny * nx
+
+
+def dask_matrix(store: str):
+    """The range-reduced BTF matrix as a dask array read from the store (task blocks)."""
+    import dask.array as da
+    import zarr
+
+    from pipeline.store import aligned_chunks
+
+    z = zarr.open_array(store, path="radiance", mode="r")
+    a = da.log(da.from_zarr(z, chunks=aligned_chunks(z)) + np.float32(EPS))
+    nv, nl, ny, nx, nc = a.shape
+    return a.transpose(0, 1, 4, 2, 3).reshape(nv * nl * nc, ny * nx)
+
+
+def run_dask(store: str, rank: int, oversample: int, power_iters: int, iterator: str):
+    """Factors from ``dask.array.linalg.svd_compressed`` on the threaded scheduler."""
+    import dask
+    import dask.array as da
+
+    u, s, vt = da.linalg.svd_compressed(dask_matrix(store), k=rank, n_power_iter=power_iters,
+                                        n_oversamples=oversample, iterator=iterator, seed=0)
+    with dask.config.set(scheduler="threads"):
+        u, s, vt = dask.compute(u, s, vt)
+    return u, s, vt.T
+
+
+def run_sklearn(store: str, rank: int, oversample: int, power_iters: int):
+    """Factors from ``sklearn.utils.extmath.randomized_svd`` (the matrix in memory)."""
+    from sklearn.utils.extmath import randomized_svd
+
+    a = dask_matrix(store).compute(scheduler="threads")
+    u, s, vt = randomized_svd(a, n_components=rank, n_oversamples=oversample,
+                              n_iter=power_iters, random_state=0)
+    return u, s, vt.T
+
+
+def read_pass(store: str) -> None:
+    """One plain dask read pass over the store (every block decoded, then dropped)."""
+    import dask.array as da
+    import zarr
+
+    from pipeline.store import aligned_chunks
+
+    z = zarr.open_array(store, path="radiance", mode="r")
+    blocks = da.from_zarr(z, chunks=aligned_chunks(z))
+    blocks.map_blocks(lambda b: np.zeros((1,) * b.ndim, b.dtype),
+                      chunks=tuple((1,) * len(c) for c in blocks.chunks)).compute(
+        scheduler="threads")
+
+
+def products_pass(store: str, rank: int, oversample: int, kind: str) -> None:
+    """One pass's matrix products of ``btf compress`` on in-memory blocks, on 2 threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import zarr
+    from threadpoolctl import threadpool_limits
+
+    from pipeline.compress import plan_row_blocks
+    from tasks.svd import frobenius2, power_step, project
+
+    z = zarr.open_array(store, path="radiance", mode="r")
+    blocks = plan_row_blocks(z.shape, z.chunks[1])
+    n = z.shape[2] * z.shape[3]
+    width = rank + oversample if kind == "power" else 2 * (rank + oversample)  # Krylov basis
+    x = np.random.default_rng(0).standard_normal((n, width)).astype(np.float32)
+    biggest = max(b.rows for b in blocks)
+    data = np.random.default_rng(1).standard_normal((biggest, n)).astype(np.float32)
+
+    def one(rows):
+        a = data[:rows]
+        if kind == "power":
+            power_step(a, x)
+        else:
+            project(a, x)
+            frobenius2(a)
+
+    with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(2) as pool:
+        list(pool.map(one, [b.rows for b in blocks]))
+
+
+def _py(code: str) -> list[str]:
+    return [sys.executable, "-c", code]
+
+
+def timed_methods(store: Path, args, tmp: Path) -> list[dict]:
+    """Wall time and peak RSS of every method on ``store``."""
+    k, p, q = args.rank, args.oversample, args.power_iters
+    methods = set(args.methods.split(","))
+    rows = []
+    for iterator in [i for i in ("power", "QR") if f"dask-{i.lower()}" in methods]:
+        m = best_of(1, _py(f"from benchmarks.compress import run_dask; run_dask("
+                                     f"{str(store)!r}, {k}, {p}, {q}, {iterator!r})"))
+        rows.append({"method": f"dask svd_compressed, iterator={iterator}",
+                     "passes": 2 * q + 2, **m.__dict__})
+    m_rows, n_cols = matrix_shape(store)
+    # sklearn needs the matrix in memory; computing it from the store briefly needs two copies
+    if ("sklearn" in methods and _have_sklearn()
+            and m_rows * n_cols * 4 * 2.2 < _available_memory() * 0.8):
+        m = best_of(1, _py(f"from benchmarks.compress import run_sklearn; "
+                                     f"run_sklearn({str(store)!r}, {k}, {p}, {q})"))
+        rows.append({"method": "sklearn randomized_svd (in memory)", "passes": 2 * q + 2,
+                     **m.__dict__})
+    return rows
+
+
+def bound_parts(store: str, rank: int, oversample: int, repeat: int) -> None:
+    """Print (JSON) the best in-process times of a read pass and of one pass's products."""
+    import json
+
+    import dask.array  # noqa: F401  (imports are start-up, not part of a pass)
+    import threadpoolctl  # noqa: F401
+    import zarr  # noqa: F401
+
+    import pipeline.compress  # noqa: F401
+
+    def best(fn, *a):
+        times = []
+        for _ in range(max(1, repeat)):
+            t = time.perf_counter()
+            fn(*a)
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    print(json.dumps({"read_pass": best(read_pass, store),
+                      "power_products": best(products_pass, store, rank, oversample, "power"),
+                      "projection_products": best(products_pass, store, rank, oversample,
+                                                  "project")}))
+
+
+def ours_and_bound(store: Path, args, tmp: Path) -> tuple[dict, dict]:
+    """``btf compress`` and its machine bound, measured in alternation (best of each).
+
+    Bound: ``Q * (read + power products) + (read + projection products)``.
+    """
+    import json
+
+    k, p, q = args.rank, args.oversample, args.power_iters
+    ours, parts = [], []
+    for _ in range(max(1, args.repeat)):
+        ours.append(measure([_btf(), "compress", str(store), str(tmp / "ours.zarr"), "--rank",
+                             str(k), "--oversample", str(p), "--power-iters", str(q),
+                             "--quiet", "--overwrite"]))
+        done = subprocess.run(_py(f"from benchmarks.compress import bound_parts; bound_parts("
+                                  f"{str(store)!r}, {k}, {p}, 1)"),
+                              capture_output=True, text=True, check=True)
+        parts.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    best = {key: min(part[key] for part in parts) for key in parts[0]}
+    start = best_of(args.repeat, _py("import pipeline.cli, dask.array, zarr"))
+    bound = (q * (best["read_pass"] + best["power_products"]) + best["read_pass"]
+             + best["projection_products"])
+    fastest = min(ours, key=lambda m: m.seconds)
+    row = {"method": "btf compress", "passes": q + 1, **fastest.__dict__,
+           "all_seconds": [m.seconds for m in ours]}
+    return row, {**best, "python_start": start.seconds, "bound": bound,
+                 "bound_with_start": bound + start.seconds}
+
+
+def errors(small: Path, args, tmp: Path) -> list[dict]:
+    """Error of each method relative to the optimal rank-K error (exact SVD), on ``small``."""
+    import zarr
+
+    from pipeline.cli import main
+
+    k, p, q = args.rank, args.oversample, args.power_iters
+    a = dask_matrix(str(small)).compute(scheduler="threads").astype(np.float64)
+    exact = np.linalg.svd(a, compute_uv=False)
+    optimal = math.sqrt(float(np.sum(exact[k:] ** 2)))
+
+    def ratio(u, s, v):
+        return float(np.linalg.norm(a - (np.asarray(u, np.float64) * s) @ np.asarray(
+            v, np.float64).T) / optimal)
+
+    out = []
+    for passes in ("auto", "1"):
+        path = tmp / f"small-{passes}.zarr"
+        extra = ["--power-iters", str(q)] if passes == "auto" else []
+        main(["compress", str(small), str(path), "--rank", str(k), "--oversample", str(p),
+              "--passes", passes, "--quiet", "--overwrite", *extra])
+        g = zarr.open_group(path, mode="r")
+        u, s, v = g["U"][:].reshape(-1, k), g["S"][:], g["V"][:].reshape(-1, k)
+        out.append({"method": "btf compress" + (", one pass" if passes == "1" else ""),
+                    "error_vs_optimal": ratio(u, s, v),
+                    "reported_error_vs_optimal": g.attrs["error"]["log_relative_frobenius"]
+                    * np.linalg.norm(a) / optimal})
+    for iterator in ("power", "QR"):
+        out.append({"method": f"dask svd_compressed, iterator={iterator}",
+                    "error_vs_optimal": ratio(*run_dask(str(small), k, p, q, iterator))})
+    if _have_sklearn():
+        out.append({"method": "sklearn randomized_svd",
+                    "error_vs_optimal": ratio(*run_sklearn(str(small), k, p, q))})
+    return out
+
+
+def scaling(args, data: Path, tmp: Path) -> list[dict]:
+    """``btf compress`` on stores of growing size: time and peak memory."""
+    rows = []
+    for gb in (float(g) for g in args.scaling.split(",") if g):
+        # hemi:N at size^2 holds 3 N^2 size^2 float32 values
+        n = max(2, round(math.sqrt(gb * 1e9 / (4 * 3 * args.size**2))))
+        store = ensure_store(data, args.material, args.size, f"hemi:{n}")
+        m_rows, n_cols = matrix_shape(store)
+        m = measure([_btf(), "compress", str(store), str(tmp / "scale.zarr"), "--rank",
+                     str(args.rank), "--oversample", str(args.oversample), "--power-iters",
+                     str(args.power_iters), "--quiet", "--overwrite"])
+        rows.append({"gigabytes": m_rows * n_cols * 4 / 1e9, "rows": m_rows, "cols": n_cols,
+                     "seconds": m.seconds, "peak_rss": m.peak_rss})
+    return rows
+
+
+def _have_sklearn() -> bool:
+    try:
+        import sklearn  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _available_memory() -> int:
+    with open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    return 8 << 30
+
+
+def run(args: argparse.Namespace) -> dict:
+    """All measurements of the suite, in one run."""
+    data = Path(args.data_dir)
+    data.mkdir(parents=True, exist_ok=True)
+    store = ensure_store(data, args.material, args.size, args.sampling)
+    small_size, small_sampling = args.small.split(",", 1)
+    small = ensure_store(data, args.material, int(small_size), small_sampling)
+    with tempfile.TemporaryDirectory(prefix="btf-bench-") as tmp:
+        tmp = Path(tmp)
+        started = time.perf_counter()
+        result = {
+            "suite": SUITE, "store": str(store), "shape": matrix_shape(store),
+            "small_shape": matrix_shape(small),
+            "rank": args.rank, "oversample": args.oversample, "power_iters": args.power_iters,
+            "timed": timed_methods(store, args, tmp),
+            "errors": errors(small, args, tmp),
+            "scaling": scaling(args, data, tmp) if args.scaling else [],
+            "machine": machine(),
+        }
+        ours, bound = ours_and_bound(store, args, tmp)
+        result["timed"].insert(0, ours)
+        result["bound"] = bound
+        result["bench_seconds"] = time.perf_counter() - started
+    return result
+
+
+def report(result: dict) -> str:
+    """Markdown tables of a result."""
+    gib = 1 << 30
+    m, n = result["shape"]
+    k, p, q = result["rank"], result["oversample"], result["power_iters"]
+    timed = result["timed"]
+    ours = timed[0]
+    qr = next((r for r in timed if r["method"].endswith("QR")), ours)
+    b = result["bound"]
+    lines = [f"Timed store: {m} x {n} BTF matrix ({m * n * 4 / 1e9:.2f} GB float32), "
+             f"K={k}, P={p}, Q={q}, dask threads on {result['machine']['cpus']} cores.", "",
+             "| method | passes | wall s | peak RSS | time vs dask QR | memory vs dask QR |",
+             "|---|---|---|---|---|---|"]
+    for r in timed:
+        lines.append(f"| {r['method']} | {r['passes']} | {r['seconds']:.1f} | "
+                     f"{r['peak_rss'] / gib:.2f} GiB | {r['seconds'] / qr['seconds']:.2f}x | "
+                     f"{r['peak_rss'] / qr['peak_rss']:.2f}x |")
+    lines += ["", f"Machine bound of btf compress ({q + 1} passes): read pass "
+              f"{b['read_pass']:.1f} s, products per power pass {b['power_products']:.1f} s, per "
+              f"projection pass {b['projection_products']:.1f} s; bound {b['bound']:.1f} s "
+              f"(+ {b['python_start']:.1f} s interpreter and imports). btf compress took "
+              f"{ours['seconds'] / b['bound']:.2f}x the bound "
+              f"({ours['seconds'] / b['bound_with_start']:.2f}x counting start-up); best of "
+              f"{len(ours.get('all_seconds', [0]))} runs alternating with the bound's, all: "
+              + ", ".join(f"{t:.1f}" for t in ours.get("all_seconds", [])) + " s.", "",
+              f"Errors on the {result['small_shape'][0]} x {result['small_shape'][1]} store "
+              "(exact SVD feasible), relative to the optimal rank-K error:", "",
+              "| method | error / optimal |", "|---|---|"]
+    for r in result["errors"]:
+        extra = (f" (reported: {r['reported_error_vs_optimal']:.3f})"
+                 if "reported_error_vs_optimal" in r else "")
+        lines.append(f"| {r['method']} | {r['error_vs_optimal']:.3f}{extra} |")
+    if result["scaling"]:
+        lines += ["", "Scaling of btf compress (same K, P, Q):", "",
+                  "| input | matrix | wall s | peak RSS |", "|---|---|---|---|"]
+        for r in result["scaling"]:
+            lines.append(f"| {r['gigabytes']:.2f} GB | {r['rows']} x {r['cols']} | "
+                         f"{r['seconds']:.1f} | {r['peak_rss'] / gib:.2f} GiB |")
+    return "\n".join(lines)
