@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +30,10 @@ from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, check_radiance, location, open_group, read_directions
 from tasks.svd import (
+    IDENTITY_RESOLUTION,
     BlockCheck,
     PassPart,
     Sketch,
-    abrdf_squared_errors,
     average_abrdf_rmse,
     check_block,
     combine_parts,
@@ -43,13 +44,14 @@ from tasks.svd import (
     frobenius2,
     gaussian,
     log_rows,
+    log_transform,
     matrix_rows,
     orthonormalize,
     power_step,
     project,
-    reconstruct,
     sketch_rows,
     stacked_rows,
+    verification,
 )
 
 ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
@@ -72,7 +74,7 @@ class CompressParams:
     power_iters: int | None = option(
         None, metavar="Q", help="power iterations, each one fused pass over the data "
                                 "(default: 2, i.e. 3 passes)")
-    passes: str = option("auto", metavar="auto|N",
+    passes: str = option("auto", metavar="auto|N", numbers_as_text=True,
                          help="passes over the data: auto (power iterations + 1), 1 (a one-view "
                               "sketch, for stores too large to read twice) or N >= 2")
     eps: float = option(1e-3, help="range reduction log(radiance + eps)")
@@ -155,6 +157,29 @@ def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *, budget: int | Non
     return blocks
 
 
+def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int, extra: int,
+                    one_pass: bool, workers: int) -> dict[str, int]:
+    """Bytes the stage will hold at its peak, roughly: sketches on the client, blocks in tasks.
+
+    The sketches grow with the texels (texels x (rank + oversampling), float64, a few copies
+    between passes); the tasks hold a row block, its range reduction in place, and a share of
+    the sketch each; a reduction task holds :data:`FAN_IN` shares.
+    """
+    nv, nl, ny, nx, nc = shape
+    m, n, width = nv * nl * nc, ny * nx, rank + extra
+    rows = max(b.rows for b in blocks)
+    if one_pass:
+        s = 2 * width + 1
+        client = 8 * (2 * s * n + m * width + n * width)
+        share = 4 * s * n
+    else:
+        client = 8 * 6 * n * width  # x, the previous iterate, their Krylov basis, QR copies
+        share = 4 * n * width
+    task = 4 * rows * n + share
+    return {"client": client, "task": task, "total": client + workers * task
+            + FAN_IN * 2 * share}
+
+
 def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,
                clamp: bool = False) -> tuple[np.ndarray, BlockCheck]:
     """The block's BTF matrix rows (float32), range-reduced if ``eps`` is given.
@@ -168,7 +193,11 @@ def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = 
     rows = np.empty((block.rows, array.shape[2] * array.shape[3]), np.float32)
     found, r = BlockCheck(), 0
     for v, l0, l1 in block.units:
-        layers = array[v : v + 1, l0:l1]
+        try:
+            layers = array[v : v + 1, l0:l1]
+        except Exception as exc:  # re-raised with the unit's key, whatever the codec raised
+            raise BTFError(f"{store}: variable 'radiance', block [view {v}, lights {l0}:{l1}] "
+                           f"is unreadable: {type(exc).__name__}: {exc}") from None
         if check:
             found = found.merge(check_block(layers, (v, l0, 0, 0, 0)))
         n = (l1 - l0) * nc
@@ -206,23 +235,27 @@ def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, cla
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def _sketch_task(store: str, block: RowBlock, omega, phi, psi, *, eps: float, clamp: bool,
-                 first: bool) -> PassPart:
+def _sketch_task(store: str, block: RowBlock, omega, phi, psi_rows, *, eps: float,
+                 clamp: bool, first: bool) -> PassPart:
     a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
-    psi_rows = psi[:, block.row0 : block.row0 + block.rows]
     if a is None:
         y = np.zeros((block.rows, omega.shape[1]))
         z = np.zeros((block.rows, phi.shape[1]))
-        w = np.zeros((psi.shape[0], omega.shape[0]))
+        w = np.zeros((psi_rows.shape[0], omega.shape[0]), np.float32)
     else:
         y, z, w = sketch_rows(a, omega, phi, psi_rows)
     return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
 
 
-def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float, first: bool) -> PassPart:
+def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float, clamp: bool,
+                 first: bool) -> PassPart:
     raw, check = _read_rows(store, block, check=first)
-    approx = reconstruct(u[block.row0 : block.row0 + block.rows], s, v, eps=eps)
-    return PassPart({"sse": abrdf_squared_errors(raw, approx)}, {}, check, 0.0)
+    if clamp:
+        np.maximum(raw, 0.0, out=raw)
+    log_a = log_transform(raw, eps=eps)  # a copy: raw stays linear for eq. (11)
+    linear, log_residual = verification(raw, log_a, u[block.row0 : block.row0 + block.rows], s,
+                                        v, eps=eps)
+    return PassPart({"sse": linear}, {}, check, log_residual)
 
 
 def tree_sum(parts: list) -> Any:
@@ -268,8 +301,10 @@ class _Passes:
         self.session.log(f"compress: pass {self.count}/{total} ({what}, "
                          f"{len(self.blocks)} row blocks)")
         handles = [self.session.share(a) for a in shared]
-        parts = [dask.delayed(task, pure=True)(self.store, b, *handles, first=self.count == 1,
-                                               **kwargs)
+        per_block = kwargs.pop("per_block", None)  # arguments that differ between blocks
+        parts = [dask.delayed(task, pure=True)(
+                     self.store, b, *handles, *(per_block(b) if per_block else ()),
+                     first=self.count == 1, **kwargs)
                  for b in self.blocks]
         (result,) = self.session.compute(tree_sum(parts), reads=True)
         if self.count == 1:
@@ -286,34 +321,45 @@ def _multi_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: 
         w = passes.run(_power_task, f"power iteration {q + 1}", x.astype(np.float32),
                        eps=p.eps, clamp=p.clamp).sums["w"]
         previous, x = x, orthonormalize(w)
+        del w  # sketches are large: keep no more of them than needed
     # the block Krylov space of the last two iterates (see tasks.svd)
     x = orthonormalize(x if previous is None else np.hstack([previous, x]))
+    del previous
     last = passes.run(_project_task, "projection", x.astype(np.float32), eps=p.eps,
                       clamp=p.clamp)
     u, s, v = factors_from_projection(stacked_rows(last.rows["z"]), x, rank)
-    error = {"log_relative_frobenius": error_from_identity(last.frobenius2, s),
-             "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact for the "
-                       "projection A X X^T computed in the last pass",
+    relative = error_from_identity(last.frobenius2, s)
+    error = {"log_relative_frobenius": max(relative, 0.0),
+             "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact in exact "
+                       "arithmetic for the projection A X X^T computed in the last pass",
+             "resolution": IDENTITY_RESOLUTION,
              "frobenius_norm": math.sqrt(last.frobenius2)}
-    return u, s, v, error
+    if relative < IDENTITY_RESOLUTION:
+        error["note"] = (f"below the identity's resolution ({IDENTITY_RESOLUTION:g}) in floating "
+                         "point: an upper bound; --verify measures it directly")
+    widths = {"sketch_columns": width, "projection_columns": x.shape[1]}
+    return u, s, v, error, widths
 
 
 def _one_pass(passes: _Passes, n: int, m: int, params: CompressParams, extra: int):
     p = params
     sketch = Sketch.for_rank(p.rank, extra)
-    omega = gaussian(n, sketch.k, seed=p.seed, stream=1)
-    phi = gaussian(n, sketch.t, seed=p.seed, stream=2)
-    psi = gaussian(sketch.s, m, seed=p.seed, stream=3)
-    part = passes.run(_sketch_task, "one-view sketch", omega.astype(np.float32),
-                      phi.astype(np.float32), psi, eps=p.eps, clamp=p.clamp)
+    # The test matrices are rounded to float32 once; the same values serve the tasks and the
+    # client's algebra (float64 copies of float32 numbers).
+    omega = gaussian(n, sketch.k, seed=p.seed, stream=1).astype(np.float32)
+    phi = gaussian(n, sketch.t, seed=p.seed, stream=2).astype(np.float32)
+    psi = gaussian(sketch.s, m, seed=p.seed, stream=3).astype(np.float32)
+    part = passes.run(_sketch_task, "one-view sketch", omega, phi, eps=p.eps, clamp=p.clamp,
+                      per_block=lambda b: (psi[:, b.row0 : b.row0 + b.rows],))
+    psi = psi.astype(np.float64)
+    phi = phi.astype(np.float64)
     u, s, v = factors_from_sketch(stacked_rows(part.rows["y"]), part.sums["w"], psi, p.rank)
     estimate = estimated_error(stacked_rows(part.rows["z"]), phi, u, s, v, part.frobenius2)
     error = {"log_relative_frobenius": estimate,
              "method": f"estimate from a Gaussian error sketch of {sketch.t} columns (Tropp "
                        "et al. 2017): E ||(A - U S V^T) Phi||_F^2 / t = ||A - U S V^T||_F^2",
-             "frobenius_norm": math.sqrt(part.frobenius2),
-             "sketch": dataclasses.asdict(sketch)}
-    return u, s, v, error
+             "frobenius_norm": math.sqrt(part.frobenius2)}
+    return u, s, v, error, {f"sketch_{k}": v for k, v in dataclasses.asdict(sketch).items()}
 
 
 def compress(params: CompressParams, session: Session) -> Path:
@@ -344,11 +390,16 @@ def compress(params: CompressParams, session: Session) -> Path:
             attrs[f"source_{key}"] = source_attrs[key]
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
                 f"rank {params.rank} -> {params.out}")
+    memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra,
+                             one_pass=params.one_pass, workers=(os.cpu_count() or 1) + 1)
+    session.log(f"compress: expected peak memory ~{memory['total'] / 2**30:.2f} GiB "
+                f"(sketches {memory['client'] / 2**30:.2f} GiB, each task "
+                f"{memory['task'] / 2**30:.2f} GiB)")
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
             session.blas_pinned_in_tasks():
         run = _one_pass if params.one_pass else _multi_pass
-        u, s, v, error = run(passes, n, m, params, extra)
-        attrs["svd"] = {"rank": params.rank, "oversample": extra,
+        u, s, v, error, widths = run(passes, n, m, params, extra)
+        attrs["svd"] = {"rank": params.rank, "oversample": extra, **widths,
                         "power_iterations": 0 if params.one_pass else params.iterations,
                         "passes": passes.count, "seed": params.seed,
                         "method": "one-view sketch" if params.one_pass else
@@ -357,8 +408,12 @@ def compress(params: CompressParams, session: Session) -> Path:
         attrs["error"] = error
         if params.verify:
             part = passes.run(_verify_task, "verification", u.astype(np.float32),
-                              s.astype(np.float32), v.astype(np.float32), eps=params.eps)
+                              s.astype(np.float32), v.astype(np.float32), eps=params.eps,
+                              clamp=params.clamp)
             attrs["error"]["abrdf_rmse"] = average_abrdf_rmse(part.sums["sse"], m)
+            norm = attrs["error"]["frobenius_norm"]
+            attrs["error"]["log_relative_frobenius_measured"] = (
+                math.sqrt(part.frobenius2) / norm if norm else 0.0)
             attrs["error"]["abrdf_rmse_definition"] = (
                 "paper 000 eq. 11: mean over texels of the RMS difference of the texel's "
                 "ABRDF (all view x light x channel values), linear radiance")

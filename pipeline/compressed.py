@@ -84,6 +84,16 @@ def check_compressed(group, path: str | Path) -> None:
                            f"{group[name].metadata.dimension_names}, expected {dims}")
     if "transform" not in group.attrs or "eps" not in group.attrs["transform"]:
         raise BTFError(f"{path}: attrs lack the range reduction ('transform' with 'eps')")
+    u, s, v = (group[n].shape for n in ("U", "S", "V"))
+    if not u[-1] == s[0] == v[-1]:
+        raise BTFError(f"{path}: U, S and V disagree on the rank: {u[-1]}, {s[0]}, {v[-1]}")
+    sizes = {"view": u[0], "light": u[1], "channel": u[2]}
+    for name, dim in {**DIRECTION_COORDS, "channel": "channel"}.items():
+        if name not in names:
+            raise BTFError(f"{path}: coordinate {name!r} is missing")
+        if group[name].shape != (sizes[dim],):
+            raise BTFError(f"{path}: coordinate {name!r} has shape {group[name].shape}, but U "
+                           f"has {sizes[dim]} {dim}(s)")
 
 
 def _rebuild(u, s, v, *, eps: float) -> np.ndarray:

@@ -38,6 +38,7 @@ def option(
     metavar: str | None = None,
     path: str | None = None,
     record: bool = True,
+    numbers_as_text: bool = False,
 ) -> Any:
     """A dataclass field of stage parameters.
 
@@ -59,9 +60,11 @@ def option(
     record
         Whether the value is part of the provenance written into outputs (options that do not
         change results, such as ``overwrite``, are not).
+    numbers_as_text
+        A text option whose values may be written as YAML integers (``passes: 1``).
     """
     meta = {"help": help, "positional": positional, "choices": choices, "metavar": metavar,
-            "path": path, "record": record}
+            "path": path, "record": record, "numbers_as_text": numbers_as_text}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -154,7 +157,11 @@ def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
     values = {}
     for name, f in known.items():
         if name in mapping:
-            values[name] = coerce(mapping[name], hints[name], name, f.metadata.get("choices"))
+            value = mapping[name]
+            if (f.metadata.get("numbers_as_text") and isinstance(value, int)
+                    and not isinstance(value, bool)):
+                value = str(value)
+            values[name] = coerce(value, hints[name], name, f.metadata.get("choices"))
         elif f.default is MISSING:
             raise ParamError(name, "is required")
     return check_paths(cls(**values))

@@ -53,6 +53,17 @@ def limit_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
+def _blas_plugin():
+    """A dask worker plugin that pins BLAS to one thread on every worker."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class SingleThreadedBlas(WorkerPlugin):
+        def setup(self, worker):
+            limit_blas()
+
+    return SingleThreadedBlas()
+
+
 def _executing(dask_worker) -> int:
     """Tasks a dask worker is running now (sent to every worker by ``Client.run``)."""
     return len(dask_worker.state.executing) + len(dask_worker.state.long_running)
@@ -160,14 +171,17 @@ class Session:
     def blas_pinned_in_tasks(self):
         """Run every task of the block's computes with one BLAS thread.
 
-        Stages whose results come out of BLAS (the SVD) use this so that they are identical on
-        every scheduler: some OpenBLAS routines (dgemm, QR) round differently with different
-        thread counts. Tasks get one thread (the workers provide the parallelism); the client's
-        own factorizations between computes keep the client's thread count, which does not
-        depend on the scheduler. Local process workers always run with one BLAS thread.
+        For stages whose tasks are BLAS-heavy (the SVD): the workers provide the parallelism,
+        so a BLAS thread pool per worker would only oversubscribe the cores; and the tasks'
+        results then do not depend on how many threads BLAS would have picked (OpenBLAS's
+        single-precision GEMM gives the same bits with any count here, its double-precision
+        GEMM and QR do not, and other BLAS builds promise less). The client's own
+        factorizations between computes keep the client's thread count, which does not depend
+        on the scheduler. Cluster workers get a worker plugin (also for workers that join
+        later); local process workers always run with one BLAS thread.
         """
         if self.client is not None:
-            self.client.run(limit_blas)
+            self.client.register_plugin(_blas_plugin(), name="btf-single-threaded-blas")
         self._pin_blas = True
         try:
             yield

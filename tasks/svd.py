@@ -18,14 +18,18 @@ extra pass::
 
     ||A - U S V^T||_F^2 = ||A||_F^2 - ||Z||_F^2 + sum_{i>K} s_i^2 = ||A||_F^2 - sum_{i<=K} s_i^2
 
+This holds in exact arithmetic. In floating point both terms carry the rounding of float32
+products (relative ~1e-7), so the difference resolves relative errors down to about
+:data:`IDENTITY_RESOLUTION` only; below that the stored value is an upper bound of that size,
+and ``--verify`` measures the error directly.
+
 Single pass (Tropp, Yurtsever, Udell and Cevher 2017, one-view sketch): one read gives the
 range sketch ``Y = A Omega``, the co-range sketch ``W = Psi A`` and an error sketch
 ``A Phi``; ``A ~ Q (Psi Q)^+ W`` with ``Q = orth(Y)``. Its error is estimated from the error
 sketch: ``E ||(A - A_hat) Phi||_F^2 / t = ||A - A_hat||_F^2`` for Gaussian ``Phi`` with ``t``
 columns.
 
-Block products run in float32 (the data's precision; single-precision GEMM is also the one that
-gives the same bits whatever BLAS threading does); sums over column tiles and over row blocks
+Block products run in float32 (the data's precision); sums over column tiles and over row blocks
 are accumulated in float64, and every orthonormalisation and small factorisation is float64.
 """
 
@@ -36,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 TILE = 16384  # columns per float32 product; longer sums are accumulated in float64
+IDENTITY_RESOLUTION = 1e-3  # relative errors the identity resolves (measured floor ~2e-4)
 
 
 @dataclass(frozen=True)
@@ -138,31 +143,51 @@ def log_rows(layers: np.ndarray, out: np.ndarray, *, eps: float, clamp: bool = F
     return np.log(out, out=out)
 
 
+def blas_ready(x: np.ndarray) -> np.ndarray:
+    """``x`` as an aligned, C-contiguous float32 array (copied only if it is not one).
+
+    numpy hands only aligned arrays to BLAS and multiplies others with its own loops, which
+    sum in another order: an array deserialized on a dask worker can sit at any address, and
+    without this its products would differ in the last bits from the same products elsewhere.
+    """
+    return np.require(x, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
+
+
 def project(a: np.ndarray, x: np.ndarray, *, tile: int = TILE) -> np.ndarray:
-    """``a @ x`` for float32 rows ``a`` (r x n) and a sketch ``x`` (n x l, ideally float32).
+    """``a @ x`` for float32 rows ``a`` (r x n) and a sketch ``x`` (n x l).
 
     Each tile of columns is a float32 product; the tiles are summed in float64.
     """
+    a, x = blas_ready(a), blas_ready(x)
     out = np.zeros((a.shape[0], x.shape[1]), np.float64)
     for t in range(0, a.shape[1], tile):
-        out += a[:, t : t + tile] @ np.asarray(x[t : t + tile], np.float32)
+        out += a[:, t : t + tile] @ x[t : t + tile]
     return out
 
 
 def power_step(a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """A row block's share ``a^T (a x)`` of one fused power pass (float64, n x l)."""
+    """A row block's share ``a^T (a x)`` of one fused power pass (n x l).
+
+    Float32, as computed (its sums over the block's rows are short); shares are added in
+    float64 by :func:`combine_parts`, which halves what travels between tasks.
+    """
+    a = blas_ready(a)
     inner = project(a, x).astype(np.float32)
-    return (a.T @ inner).astype(np.float64)
+    return a.T @ inner
 
 
 def orthonormalize(w: np.ndarray) -> np.ndarray:
     """Orthonormal basis of the columns of ``w`` (reduced Householder QR, float64).
 
     Householder QR stays orthonormal when ``w`` is rank-deficient or very ill-conditioned,
-    which is what power iterations produce. (A shifted CholeskyQR3 was measured as well: no
-    faster here, and it needs a fallback for rank-deficient sketches.)
+    which is what power iterations produce. ``w`` may be overwritten (the sketch is large and
+    the caller does not need it again). A shifted CholeskyQR3 was measured as well: no faster
+    here, and it needs a fallback for rank-deficient sketches.
     """
-    q, _ = np.linalg.qr(np.asarray(w, np.float64), mode="reduced")
+    from scipy.linalg import qr
+
+    q, _ = qr(np.asarray(w, np.float64), mode="economic", overwrite_a=True,
+              check_finite=False)
     return q
 
 
@@ -206,9 +231,11 @@ def sketch_rows(a: np.ndarray, omega: np.ndarray, phi: np.ndarray, psi: np.ndarr
     """A row block's share of a one-view sketch.
 
     Returns ``a omega`` and ``a phi`` (the block's rows of the range and error sketches) and
-    ``psi a`` (summed over row blocks); ``psi`` holds the block's columns of ``Psi``.
+    ``psi a`` (float32, summed over row blocks in float64); ``psi`` holds the block's columns
+    of ``Psi``.
     """
-    return project(a, omega), project(a, phi), (psi.astype(np.float32) @ a).astype(np.float64)
+    a = blas_ready(a)
+    return project(a, omega), project(a, phi), blas_ready(psi) @ a
 
 
 def factors_from_sketch(y: np.ndarray, w: np.ndarray, psi: np.ndarray, rank: int
@@ -237,13 +264,16 @@ _LOG_MAX = 88.0  # exp of more overflows float32
 
 
 def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float) -> np.ndarray:
-    """Radiance ``exp(u diag(s) v^T) - eps`` (float32) of ``u`` rows and ``v`` texels."""
-    log_radiance = (np.asarray(u, np.float32) * np.asarray(s, np.float32)) @ np.asarray(
-        v, np.float32).T
+    """Radiance ``max(exp(u diag(s) v^T) - eps, 0)`` (float32) of ``u`` rows and ``v`` texels.
+
+    Radiance was non-negative (or clamped to be) before compression, so the small negatives
+    that approximation error would give (down to ``-eps``) are set to 0.
+    """
+    log_radiance = (blas_ready(u) * np.asarray(s, np.float32)) @ blas_ready(v).T
     np.minimum(log_radiance, np.float32(_LOG_MAX), out=log_radiance)
     out = np.exp(log_radiance, out=log_radiance)
     out -= np.float32(eps)
-    return out
+    return np.maximum(out, 0.0, out=out)
 
 
 def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float
@@ -260,10 +290,42 @@ def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: floa
     return np.moveaxis(flat.reshape(*lead, nc, ny, nx), -3, -1)
 
 
-def abrdf_squared_errors(original: np.ndarray, approx: np.ndarray) -> np.ndarray:
-    """Per-texel sums of squared differences over a row block (float64, one per column)."""
-    d = np.asarray(original, np.float64) - np.asarray(approx, np.float64)
-    return np.einsum("ij,ij->j", d, d)
+def squared_errors(original: np.ndarray, approx: np.ndarray, *, tile: int = TILE
+                   ) -> np.ndarray:
+    """Per-column sums of squared differences of two float32 row blocks (float64 result).
+
+    Differences are taken in float32 tile by tile (no float64 copies of the blocks).
+    """
+    out = np.empty(original.shape[1], np.float64)
+    for t in range(0, original.shape[1], tile):
+        d = np.subtract(original[:, t : t + tile], approx[:, t : t + tile], dtype=np.float32)
+        out[t : t + tile] = np.einsum("ij,ij->j", d, d, dtype=np.float64)
+    return out
+
+
+def verification(raw: np.ndarray, log_rows_: np.ndarray, u: np.ndarray, s: np.ndarray,
+                 v: np.ndarray, *, eps: float, tile: int = TILE) -> tuple[np.ndarray, float]:
+    """Errors of a factorization on one row block, measured directly, tile by tile.
+
+    ``raw`` are the block's radiance rows (clamped if compression clamped them), ``log_rows_``
+    their range reduction, ``u`` the block's rows of ``U``. Returns the per-texel sums of
+    squared linear-radiance differences (for eq. 11) and the block's squared log-domain
+    residual ``||A_i - U_i S V^T||_F^2`` (float64).
+    """
+    linear = np.empty(raw.shape[1], np.float64)
+    log_residual = 0.0
+    us = blas_ready(u) * np.asarray(s, np.float32)
+    v = blas_ready(v)
+    for t in range(0, raw.shape[1], tile):
+        approx_log = us @ v[t : t + tile].T
+        d = np.subtract(log_rows_[:, t : t + tile], approx_log, dtype=np.float32)
+        log_residual += float(np.einsum("ij,ij->", d, d, dtype=np.float64))
+        np.minimum(approx_log, np.float32(_LOG_MAX), out=approx_log)
+        approx = np.exp(approx_log, out=approx_log)
+        approx -= np.float32(eps)
+        np.maximum(approx, 0.0, out=approx)
+        linear[t : t + tile] = squared_errors(raw[:, t : t + tile], approx)
+    return linear, log_residual
 
 
 def average_abrdf_rmse(squared_errors: np.ndarray, rows: int) -> float:
@@ -287,9 +349,12 @@ class PassPart:
 
 
 def combine_parts(*parts: PassPart) -> PassPart:
-    """Merge pass parts (in the given order, so the float sums are reproducible)."""
+    """Merge pass parts (in the given order, so the float sums are reproducible).
+
+    Sums are accumulated in float64 whatever the parts hold.
+    """
     first = parts[0]
-    sums = {name: first.sums[name].copy() for name in first.sums}
+    sums = {name: first.sums[name].astype(np.float64) for name in first.sums}
     rows = {name: list(first.rows[name]) for name in first.rows}
     check, frobenius2 = first.check, first.frobenius2
     for part in parts[1:]:

@@ -322,3 +322,119 @@ def test_inspect_describes_a_compressed_store(tmp_path, btf, small_abtf):
     assert (tmp_path / "spectrum.png").stat().st_size > 1000
     text = btf("inspect", tmp_path / "c.zarr").out
     assert "compression: rank 6" in text and "relative error (log domain)" in text
+
+
+def test_the_krylov_projection_beats_plain_subspace_iteration(tmp_path, btf):
+    # On this spectrum two power passes reach 1.004x the optimal error with the projection on
+    # [X_1, X_2], while projecting on X_2 alone gives 1.030x and one power pass 1.116x: the 1%
+    # tolerance fails both.
+    m, n = 144, 768
+    s = np.exp(-np.arange(144) / 20.0)
+    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
+    a = store_matrix(store)
+    optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[10:] ** 2))
+    u, sv, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "10",
+                                "--oversample", "2")
+    assert attrs["svd"]["projection_columns"] == 24
+    err = np.linalg.norm(a - (u.reshape(m, 10) * sv) @ v.reshape(n, 10).T)
+    assert err <= 1.01 * optimal, err / optimal
+
+
+def test_the_identity_floor_is_reported_and_verify_measures_below_it(tmp_path, btf):
+    # A rank-3 matrix around a typical log-radiance level: the rank-8 error is ~1e-7, far
+    # below what the identity can resolve in floating point.
+    m, n = 144, 768
+    a = spectrum_matrix(m, n, np.array([30.0, 10.0, 3.0])) - 3.0
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    _, _, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "8", "--verify")
+    error = attrs["error"]
+    assert error["log_relative_frobenius"] <= error["resolution"] and "note" in error
+    assert error["log_relative_frobenius_measured"] < 1e-5
+
+
+def test_verify_measures_the_log_domain_error(tmp_path, btf):
+    m, n = 144, 768
+    store = store_from_log_matrix(tmp_path / "s.zarr",
+                                  spectrum_matrix(m, n, 5 * np.exp(-np.arange(60) / 6.0)), SHAPE)
+    a = store_matrix(store)
+    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "6", "--verify")
+    true = np.linalg.norm(a - (u.reshape(m, 6).astype(np.float64) * s) @ v.reshape(n, 6).T)
+    measured = attrs["error"]["log_relative_frobenius_measured"] * attrs["error"][
+        "frobenius_norm"]
+    assert measured == pytest.approx(true, rel=1e-4)
+    assert attrs["error"]["log_relative_frobenius"] == pytest.approx(
+        attrs["error"]["log_relative_frobenius_measured"], rel=1e-3)
+
+
+@pytest.mark.parametrize("scheduler", ["processes",
+                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+def test_one_pass_and_verify_are_identical_on_every_scheduler(tmp_path, btf, scheduler,
+                                                               request, monkeypatch):
+    monkeypatch.setattr("pipeline.compress.MIN_ROW_BLOCKS", 5)
+    store = store_from_log_matrix(tmp_path / "s.zarr",
+                                  spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE)
+    args = ("--rank", "6", "--passes", "1", "--verify")
+    reference = _compress(btf, store, tmp_path / "ref.zarr", *args, "--scheduler", "synchronous")
+    if scheduler == "cluster":
+        scheduler = request.getfixturevalue("local_cluster")
+    other = _compress(btf, store, tmp_path / "other.zarr", *args, "--scheduler", scheduler)
+    for x, y in zip(reference[:3], other[:3], strict=True):
+        assert np.array_equal(x, y)
+    assert reference[3]["error"] == other[3]["error"]
+
+
+@pytest.mark.parametrize("scheduler", ["threads",
+                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+def test_tasks_run_with_one_blas_thread(scheduler, request):
+    import dask
+
+    from pipeline.runtime import RuntimeOptions, Session
+
+    def blas_threads():
+        from threadpoolctl import threadpool_info
+
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    if scheduler == "cluster":
+        scheduler = request.getfixturevalue("local_cluster")
+    with Session(RuntimeOptions(scheduler=scheduler, quiet=True)) as session:
+        with session.blas_pinned_in_tasks():
+            (inside,) = session.compute(dask.delayed(blas_threads)())
+    assert inside and set(inside) == {1}
+
+
+def test_an_unreadable_chunk_is_named(tmp_path, btf):
+    store = store_from_log_matrix(tmp_path / "s.zarr",
+                                  spectrum_matrix(144, 768, np.exp(-np.arange(10.0))), SHAPE)
+    chunk = next(p for p in sorted((store / RADIANCE / "c").rglob("*")) if p.is_file())
+    chunk.write_bytes(b"definitely not lz4")
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet")
+    assert result.code == 1 and "variable 'radiance', block [view" in result.err
+    assert "is unreadable" in result.err and not (tmp_path / "c.zarr").exists()
+
+
+def test_rebuilt_radiance_is_never_negative(tmp_path, btf):
+    a = np.log(EPS) + 0.01 * spectrum_matrix(144, 768, np.exp(-np.arange(20) / 3.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)  # radiance around 0
+    _compress(btf, store, tmp_path / "c.zarr", "--rank", "2", "--clamp")
+    assert open_compressed(tmp_path / "c.zarr")[RADIANCE].values.min() >= 0
+
+
+def test_a_compressed_store_with_mismatched_factors_is_refused(tmp_path, btf, small_abtf):
+    _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
+    group = zarr.open_group(tmp_path / "c.zarr", mode="r+")
+    del group["S"]
+    group.create_array("S", shape=(5,), dtype="float32", dimension_names=("component",))
+    result = btf("reconstruct", tmp_path / "c.zarr", tmp_path / "r.zarr", "--quiet")
+    assert result.code == 1 and "disagree on the rank: 6, 5, 6" in result.err
+
+
+def test_passes_may_be_written_as_a_number_in_a_config(tmp_path, btf, monkeypatch,
+                                                       small_abtf):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run.yaml").write_text(
+        f"stages:\n  - compress:\n      store: {small_abtf}\n      out: c.zarr\n"
+        "      rank: 4\n      passes: 1\n")
+    result = btf("run", "run.yaml", "--quiet")
+    assert result.code == 0, result.err
+    assert zarr.open_group(tmp_path / "c.zarr").attrs["svd"]["passes"] == 1
