@@ -1,0 +1,100 @@
+"""A canvas being quilted: every pixel is a blend of sample pixels (a prescription in the making).
+
+Quilting transfers patches of a sample image; blending a patch into its neighbourhood makes each
+output pixel a weighted sum of sample pixels. The canvas keeps, for every pixel, up to
+:data:`TERMS` (sample index, weight) pairs whose weights sum to 1, plus the blended values of the
+reference image (what patch matching compares) and whether the pixel holds anything yet. The
+terms are the rows of the prescription ``P`` (paper 003, section 2.1: transfer prescriptions),
+so applying ``P`` to any layer reproduces exactly what the planner did to the reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+TERMS = 6  # sample pixels one output pixel may blend; the smallest weight makes room for more
+_NEGLIGIBLE = 1e-4  # weights below this are dropped (and the rest renormalised)
+
+
+@dataclass
+class Canvas:
+    """A rectangle of output pixels; see the module docstring."""
+
+    index: np.ndarray  # (h, w, TERMS) int64 flat sample pixel, -1 where unused
+    weight: np.ndarray  # (h, w, TERMS) float32, rows sum to 1 where filled
+    value: np.ndarray  # (h, w, c) float32 blended reference values
+    filled: np.ndarray  # (h, w) bool
+
+    @staticmethod
+    def empty(height: int, width: int, channels: int) -> Canvas:
+        """A canvas with nothing on it."""
+        return Canvas(np.full((height, width, TERMS), -1, np.int64),
+                      np.zeros((height, width, TERMS), np.float32),
+                      np.zeros((height, width, channels), np.float32),
+                      np.zeros((height, width), bool))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Height and width."""
+        return self.filled.shape
+
+    def window(self, y0: int, x0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column indices of a window, clipped to the canvas (no wrap-around)."""
+        rows = np.arange(max(y0, 0), min(y0 + h, self.shape[0]))
+        cols = np.arange(max(x0, 0), min(x0 + w, self.shape[1]))
+        return rows, cols
+
+    def copy_from(self, other: Canvas, rows: slice, cols: slice, other_rows: slice,
+                  other_cols: slice, where: np.ndarray | None = None) -> None:
+        """Copy a region of another canvas onto this one (where ``where`` is true)."""
+        sel = (rows, cols)
+        src = (other_rows, other_cols)
+        mask = other.filled[src] if where is None else where & other.filled[src]
+        for name in ("index", "weight", "value"):
+            target = getattr(self, name)[sel]
+            target[mask] = getattr(other, name)[src][mask]
+        self.filled[sel] |= mask
+
+    def place(self, patch_index: np.ndarray, patch_value: np.ndarray, alpha: np.ndarray,
+              y0: int, x0: int) -> None:
+        """Blend a patch into the canvas at ``(y0, x0)``: ``new = alpha patch + (1-alpha) old``.
+
+        ``patch_index`` are the flat sample indices of the patch pixels, ``patch_value`` their
+        reference values, ``alpha`` the patch weights (1 wherever the canvas is empty). Parts
+        outside the canvas are ignored.
+        """
+        h, w = alpha.shape
+        rows, cols = self.window(y0, x0, h, w)
+        py, px = rows - y0, cols - x0
+        a = alpha[np.ix_(py, px)].astype(np.float32)
+        sel = np.ix_(rows, cols)
+        if np.any(~self.filled[sel] & (a < 1.0)):
+            raise ValueError("a patch must cover empty canvas pixels with weight 1")
+        keep = a > 0
+        idx = self.index[sel]
+        wt = self.weight[sel] * (1.0 - a)[..., None]
+        wt[wt < _NEGLIGIBLE] = 0.0
+        idx[wt == 0] = -1
+        slot = np.argmin(np.where(idx >= 0, wt, -1.0), axis=-1)  # a free slot, else the lightest
+        new = patch_index[np.ix_(py, px)]
+        ys, xs = np.nonzero(keep)
+        s = slot[ys, xs]
+        idx[ys, xs, s] = new[ys, xs]
+        wt[ys, xs, s] = a[ys, xs]
+        total = wt.sum(axis=-1, keepdims=True, dtype=np.float64)
+        wt = np.where(total > 0, wt / np.where(total > 0, total, 1.0), 0.0).astype(np.float32)
+        self.index[sel] = idx
+        self.weight[sel] = wt
+        value = self.value[sel]
+        self.value[sel] = np.where(
+            keep[..., None], a[..., None] * patch_value[np.ix_(py, px)] + (1 - a)[..., None]
+            * value, value)
+        self.filled[sel] |= keep
+
+    def rows_sum_to_one(self) -> bool:
+        """Whether every filled pixel's weights sum to 1 (and empty ones to 0)."""
+        total = self.weight.sum(axis=-1, dtype=np.float64)
+        return bool(np.allclose(total[self.filled], 1.0, atol=1e-5)
+                    and np.all(total[~self.filled] == 0))

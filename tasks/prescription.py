@@ -1,0 +1,65 @@
+"""Prescriptions: sparse linear operators that transfer sample pixels to output pixels.
+
+A plan made on the reference image (quilting, the roller) compiles to ``P``, a
+``(output pixels) x (sample pixels)`` matrix whose rows are blend weights summing to 1
+(DESIGN.md, "Prescription"). Applying it is ``layer_out = P @ layer_in`` for every layer, which
+is what makes the transfer identical for all light and view directions; being linear, it applies
+just as well to the eigentextures of a compressed store. Stored as padded rows (an ELL matrix:
+``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
+applied as a scipy CSR matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+
+def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> sparse.csr_matrix:
+    """The CSR matrix of padded rows ``index``/``weight`` (``-1`` marks unused terms)."""
+    index = np.asarray(index).reshape(index.shape[0], -1)
+    weight = np.asarray(weight, np.float32).reshape(index.shape)
+    used = index >= 0
+    rows = np.broadcast_to(np.arange(index.shape[0])[:, None], index.shape)[used]
+    matrix = sparse.csr_matrix((weight[used], (rows, index[used])),
+                               shape=(index.shape[0], samples), dtype=np.float32)
+    matrix.sum_duplicates()
+    return matrix
+
+
+def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
+    """What is wrong with padded prescription rows (empty list: nothing)."""
+    problems = []
+    used = index >= 0
+    if np.any(index >= samples) or np.any(index < -1):
+        problems.append(f"indices outside 0..{samples - 1}")
+    if np.any(weight[used] < 0) or np.any(weight[~used] != 0):
+        problems.append("negative weights, or weights on unused terms")
+    total = weight.sum(axis=-1, dtype=np.float64)
+    if not np.allclose(total, 1.0, atol=1e-5):
+        problems.append(f"rows do not sum to 1 (from {total.min():.6f} to {total.max():.6f})")
+    return problems
+
+
+def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int]
+          ) -> np.ndarray:
+    """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
+
+    The layers are rearranged texel-major (each texel's values across layers and channels are
+    contiguous), multiplied once, and rearranged back to ``(..., out_y, out_x, channel)``.
+    """
+    layers = np.asarray(layers, np.float32)
+    *lead, ny, nx, nc = layers.shape
+    n = int(np.prod(lead, dtype=np.int64))
+    texels = np.ascontiguousarray(np.moveaxis(layers.reshape(n, ny * nx, nc), 1, 0))
+    out = matrix @ texels.reshape(ny * nx, n * nc)
+    out = np.asarray(out, np.float32).reshape(output[0] * output[1], n, nc)
+    return np.ascontiguousarray(np.moveaxis(out, 0, 1)).reshape(*lead, *output, nc)
+
+
+def apply_texels(matrix: sparse.csr_matrix, texels: np.ndarray) -> np.ndarray:
+    """``P @ texels`` for texel-major data ``(y, x, ...)`` such as eigentextures ``(y, x, k)``."""
+    texels = np.asarray(texels)
+    ny, nx = texels.shape[:2]
+    flat = texels.reshape(ny * nx, -1)
+    return np.asarray(matrix @ flat, texels.dtype)

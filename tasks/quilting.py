@@ -1,0 +1,369 @@
+"""Periodic image quilting and corner tile sets, planned on a reference image (paper 003).
+
+Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not specific:
+
+- **Grid.** Patches are ``B x B`` windows on a grid of step ``S = B - O`` (``O`` the overlap);
+  window ``k`` of a tile starts at ``k S - B/2``, so the first window of every row and column is
+  centred on the tile's edge. Tile sizes are multiples of ``S``.
+- **Phases as shared pieces.** Phase 1 (corners), 2 (horizontal edges), 3 (vertical edges) and
+  4 (interior) become: one corner patch per corner type, centred on the tile corner; one
+  horizontal and one vertical edge strip per ordered pair of corner types, the patches centred
+  on the edge line between the two corner patches; and per tile an interior filled row by row.
+  A tile starts as the halves of its four edge strips that lie inside it. With one corner type
+  (``V = 1``) the single tile's opposite edges are the two halves of the same strip, so it
+  wraps seamlessly: the paper's periodic texture. With ``V`` types, the ``V^4`` tiles share
+  corners and edges, so any two that agree on a corner type meet seamlessly (Fig. 10-12).
+- **Edge patches keep the corners' cores.** An edge patch blends only where its window does not
+  reach within ``B/2 - O`` of a corner point, so the pixels around a corner are the corner
+  patch's in every strip that contains them.
+- **Candidates** (section 2.3): all ``B x B`` positions of the sample, compared by the sum of
+  squared differences over the filled pixels of the target window, in all channels (the
+  "monochrome error image"), computed for every position at once by FFT correlation; one of
+  the ``K`` best is drawn at random.
+- **Boundary cut** (section 2.3, Fig. 6): the minimum-error closed path around the patch's
+  inner ``(B - 2O)`` square through the error image (4-connected, edge cost the mean of the two
+  pixels' errors), found with scipy's Dijkstra: the ring is cut by a slit above the inner
+  square and the shortest loop crossing it once is kept. Pixels of the window that are still
+  empty join the inner region, and the loop may run outside the window along them: these are
+  the border flags of Fig. 8, which make the cut enclose the empty side instead of cutting
+  through it at no cost. The flags of every placement are recorded.
+- **Blending** (Fig. 7): the region inside the cut, blurred with a Gaussian of ``sigma = O/4``,
+  is the patch's weight; it is forced to 1 on the inner square and on empty pixels.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.fft import irfft2, next_fast_len, rfft2
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from tasks.canvas import Canvas
+
+SIDES = ("left", "top", "right", "bottom")
+
+
+@dataclass(frozen=True)
+class QuiltParams:
+    """Block size, overlap, number of candidates, corner types and tile size (pixels)."""
+
+    block: int = 32
+    overlap: int = 8
+    candidates: int = 5
+    corners: int = 1
+    tile: tuple[int, int] = (256, 256)
+
+    def __post_init__(self):
+        if self.block < 4 or self.block % 2:
+            raise ValueError(f"block must be an even number of at least 4, got {self.block}")
+        if not 1 <= self.overlap < self.block // 2:
+            raise ValueError(f"overlap must be between 1 and block/2 - 1, got {self.overlap}")
+        if self.candidates < 1:
+            raise ValueError(f"candidates must be at least 1, got {self.candidates}")
+        if self.corners < 1:
+            raise ValueError(f"corners must be at least 1, got {self.corners}")
+        for n in self.tile:
+            if n < self.step or n % self.step:
+                raise ValueError(f"tile size {self.tile} must be a multiple of block - overlap "
+                                 f"= {self.step}")
+
+    @property
+    def step(self) -> int:
+        """Distance between neighbouring windows."""
+        return self.block - self.overlap
+
+
+class CandidateSearch:
+    """Masked SSD of a target window against every window of the sample, by FFT.
+
+    ``SSD(s) = sum_u M(u) |S(s + u) - T(u)|^2 = corr(|S|^2, M) - 2 corr(S, M T) + sum M |T|^2``;
+    the spectra of the sample and of its squared norm are computed once.
+    """
+
+    def __init__(self, sample: np.ndarray, block: int):
+        self.sample = np.asarray(sample, np.float64)
+        self.block = block
+        h, w, _ = self.sample.shape
+        self.shape = (next_fast_len(h + block - 1, real=True),
+                      next_fast_len(w + block - 1, real=True))
+        self.valid = (h - block + 1, w - block + 1)
+        self.spectra = [rfft2(self.sample[..., c], self.shape)
+                        for c in range(self.sample.shape[-1])]
+        self.norm_spectrum = rfft2(np.sum(self.sample**2, axis=-1), self.shape)
+
+    def _correlate(self, spectrum: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+        flipped = rfft2(kernel[::-1, ::-1], self.shape)
+        full = irfft2(spectrum * flipped, self.shape)
+        b = self.block
+        return full[b - 1 : b - 1 + self.valid[0], b - 1 : b - 1 + self.valid[1]]
+
+    def errors(self, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """SSD of ``target`` over ``mask`` at every sample position ``(sy, sx)``."""
+        mask = mask.astype(np.float64)
+        out = self._correlate(self.norm_spectrum, mask)
+        cross = sum(self._correlate(spec, mask * target[..., c])
+                    for c, spec in enumerate(self.spectra))
+        out -= 2.0 * cross
+        out += float(np.sum(mask[..., None] * target.astype(np.float64) ** 2))
+        return np.maximum(out, 0.0)
+
+    def choose(self, target: np.ndarray, mask: np.ndarray, k: int,
+               rng: np.random.Generator) -> tuple[int, int]:
+        """One of the ``k`` best positions, at random; any position if nothing is masked in."""
+        if not mask.any():
+            return (int(rng.integers(self.valid[0])), int(rng.integers(self.valid[1])))
+        err = self.errors(target, mask).ravel()
+        k = min(k, err.size)
+        best = np.argpartition(err, k - 1)[:k]
+        best = best[np.argsort(err[best], kind="stable")]  # reproducible order of ties
+        pick = int(best[rng.integers(k)])
+        return divmod(pick, self.valid[1])
+
+
+def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarray
+                 ) -> np.ndarray:
+    """Region of a window enclosed by the minimum-error closed cut around ``keep``.
+
+    Parameters
+    ----------
+    error
+        ``(B, B)`` error image (squared differences between patch and canvas).
+    keep
+        ``(B, B)`` pixels the patch must take (inner square and empty pixels); the cut may not
+        cross them.
+    outside_free
+        ``(B + 2, B + 2)`` ring of positions just outside the window that the cut may use at no
+        cost: next to empty pixels (the border flags). Elsewhere outside is forbidden.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(B, B)`` bool: the pixels inside the cut (including the cut itself and ``keep``).
+    """
+    b = error.shape[0]
+    n = b + 2
+    cost = np.full((n, n), np.inf)
+    cost[1:-1, 1:-1] = np.where(keep, np.inf, error + 1e-6)  # a little length penalty
+    cost[outside_free] = 0.0
+    inner = np.zeros((n, n), bool)
+    inner[1:-1, 1:-1] = keep
+    col = n // 2
+    top = int(np.argmax(inner[:, col])) if inner[:, col].any() else n // 2
+    slit = range(0, top)  # rows above the keep region, between columns col and col + 1
+    ids = np.arange(n * n).reshape(n, n)
+    rows, cols, weights = [], [], []
+    for dy, dx in ((0, 1), (1, 0)):
+        a = ids[: n - dy, : n - dx]
+        c = ids[dy:, dx:]
+        w = 0.5 * (cost[: n - dy, : n - dx] + cost[dy:, dx:])
+        ok = np.isfinite(w)
+        if dx == 1:  # no step across the slit
+            ok[list(slit), col] = False
+        rows += [a[ok], c[ok]]
+        cols += [c[ok], a[ok]]
+        weights += [w[ok], w[ok]]
+    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+                       shape=(n * n, n * n)).tocsr()
+    sources = [r for r in slit if np.isfinite(cost[r, col]) and np.isfinite(cost[r, col + 1])]
+    if not sources:
+        return np.ones((b, b), bool)
+    starts = [ids[r, col] for r in sources]
+    dist, pred = dijkstra(graph, indices=starts, return_predecessors=True)
+    totals = [dist[i, ids[r, col + 1]] + 0.5 * (cost[r, col] + cost[r, col + 1])
+              for i, r in enumerate(sources)]
+    best = int(np.argmin(totals))
+    if not np.isfinite(totals[best]):
+        return np.ones((b, b), bool)
+    loop = np.zeros(n * n, bool)
+    node = ids[sources[best], col + 1]
+    while node >= 0:
+        loop[node] = True
+        node = pred[best, node]
+    enclosed = ndimage.binary_fill_holes(loop.reshape(n, n) | inner)
+    return enclosed[1:-1, 1:-1]
+
+
+def blend_weights(region: np.ndarray, keep: np.ndarray, overlap: int) -> np.ndarray:
+    """Patch weight: the region inside the cut, Gaussian-blurred, 1 on ``keep`` (Fig. 7)."""
+    alpha = ndimage.gaussian_filter(region.astype(np.float64), sigma=max(overlap / 4.0, 0.5),
+                                    mode="nearest")
+    alpha[keep] = 1.0
+    alpha[~region & (alpha < 1e-3)] = 0.0
+    return alpha.astype(np.float32)
+
+
+@dataclass
+class Placement:
+    """One patch transfer: where it went, where it came from, and the border flags used."""
+
+    canvas: str
+    window: tuple[int, int]
+    source: tuple[int, int]
+    flags: tuple[str, ...]
+
+
+@dataclass
+class Planner:
+    """Plans patch transfers from one sample (reference image) with a seeded generator."""
+
+    reference: np.ndarray
+    params: QuiltParams
+    rng: np.random.Generator
+    placements: list[Placement] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.reference = np.asarray(self.reference, np.float32)
+        h, w, _ = self.reference.shape
+        b = self.params.block
+        if h < b or w < b:
+            raise ValueError(f"the reference image ({h} x {w}) is smaller than a block ({b})")
+        self.search = CandidateSearch(self.reference, b)
+        self.flat = np.arange(h * w, dtype=np.int64).reshape(h, w)
+
+    def _patch(self, source: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        sy, sx = source
+        b = self.params.block
+        return (self.flat[sy : sy + b, sx : sx + b],
+                self.reference[sy : sy + b, sx : sx + b])
+
+    def place(self, canvas: Canvas, name: str, y0: int, x0: int, *,
+              protect: np.ndarray | None = None) -> None:
+        """Choose a patch for the window at ``(y0, x0)`` and blend it in along its best cut.
+
+        ``protect`` marks window pixels the patch must not change (weight 0).
+        """
+        b, o = self.params.block, self.params.overlap
+        rows, cols = canvas.window(y0, x0, b, b)
+        inside = np.zeros((b, b), bool)
+        inside[np.ix_(rows - y0, cols - x0)] = True
+        filled = np.zeros((b, b), bool)
+        filled[np.ix_(rows - y0, cols - x0)] = canvas.filled[np.ix_(rows, cols)]
+        target = np.zeros((b, b, self.reference.shape[-1]), np.float32)
+        target[np.ix_(rows - y0, cols - x0)] = canvas.value[np.ix_(rows, cols)]
+        source = self.search.choose(target, filled, self.params.candidates, self.rng)
+        index, value = self._patch(source)
+        inner = np.zeros((b, b), bool)
+        inner[o : b - o, o : b - o] = True
+        empty = inside & ~filled
+        keep = inner | empty
+        if protect is not None:
+            keep &= ~protect
+        # border flags: sides whose band is (partly) empty or off the canvas
+        flags = tuple(side for side, band in zip(SIDES, (
+            (slice(None), slice(0, o)), (slice(0, o), slice(None)),
+            (slice(None), slice(b - o, b)), (slice(b - o, b), slice(None))), strict=True)
+            if not (filled[band].all()))
+        # the cut may run just outside the window next to empty pixels, and off the canvas
+        open_px = np.pad(~filled, 1, constant_values=False)
+        outside_free = ndimage.binary_dilation(open_px, structure=np.ones((3, 3), bool))
+        ring_y = (y0 - 1 + np.arange(b + 2))[:, None]
+        ring_x = (x0 - 1 + np.arange(b + 2))[None, :]
+        h, w = canvas.shape
+        outside_free |= (ring_y < 0) | (ring_y >= h) | (ring_x < 0) | (ring_x >= w)
+        outside_free[1:-1, 1:-1] = False
+        error = np.sum((value - target) ** 2, axis=-1)
+        error[~filled] = 0.0
+        region = boundary_cut(error, keep, outside_free=outside_free)
+        alpha = blend_weights(region, keep, o)
+        if protect is not None:
+            alpha[protect & filled] = 0.0
+        alpha[~inside] = 0.0
+        alpha[empty] = 1.0
+        canvas.place(index, value, alpha, y0, x0)
+        self.placements.append(Placement(name, (y0, x0), source, flags))
+
+
+@dataclass
+class TileSet:
+    """A planned tile set: one canvas per tile and the corner types of each."""
+
+    tiles: list[Canvas]
+    corners: np.ndarray  # (tiles, 4) corner types: top-left, top-right, bottom-left, bottom-right
+    placements: list[Placement]
+    sample_shape: tuple[int, int]
+
+
+def _core(b: int, o: int, y0: int, x0: int, corners: list[tuple[int, int]]) -> np.ndarray:
+    """Window pixels within ``B/2 - O`` (per axis) of any of the corner points."""
+    r = b // 2 - o
+    ys = (y0 + np.arange(b))[:, None]
+    xs = (x0 + np.arange(b))[None, :]
+    core = np.zeros((b, b), bool)
+    for cy, cx in corners:
+        core |= (np.abs(ys + 0.5 - cy) < r) & (np.abs(xs + 0.5 - cx) < r)
+    return core
+
+
+def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
+    """Plan a corner tile set (``V^4`` tiles; one periodic tile for ``V = 1``), see the module.
+
+    Parameters
+    ----------
+    reference
+        Reference image ``(h, w, channels)`` (float).
+    params
+        Block, overlap, candidates, corner types and tile size.
+    seed
+        Seed of every random choice: the same seed gives the same plan.
+    """
+    reference = np.asarray(reference, np.float32)
+    if reference.ndim == 2:
+        reference = reference[..., None]
+    planner = Planner(reference, params, np.random.default_rng(seed))
+    b, o, s = params.block, params.overlap, params.step
+    th, tw = params.tile
+    half = b // 2
+    channels = reference.shape[-1]
+    v = params.corners
+    # Phase 1: one corner patch per corner type
+    corner_canvas = []
+    for c in range(v):
+        canvas = Canvas.empty(b, b, channels)
+        planner.place(canvas, f"corner {c}", 0, 0)
+        corner_canvas.append(canvas)
+    # Phases 2 and 3: one edge strip per ordered pair of corner types
+    def strip(a: int, z: int, length: int, horizontal: bool) -> Canvas:
+        shape = (b, length + b) if horizontal else (length + b, b)
+        canvas = Canvas.empty(*shape, channels)
+        ends = [(0, 0), (0, length)] if horizontal else [(0, 0), (length, 0)]
+        for (y, x), c in zip(ends, (a, z), strict=True):
+            canvas.copy_from(corner_canvas[c], slice(y, y + b), slice(x, x + b),
+                             slice(None), slice(None))
+        points = ([(half, half), (half, length + half)] if horizontal
+                  else [(half, half), (length + half, half)])
+        for k in range(1, length // s):
+            y0, x0 = (0, k * s) if horizontal else (k * s, 0)
+            planner.place(canvas, f"{'horizontal' if horizontal else 'vertical'} edge {a}{z}",
+                          y0, x0, protect=_core(b, o, y0, x0, points))
+        return canvas
+
+    horizontal = {(a, z): strip(a, z, tw, True) for a in range(v) for z in range(v)}
+    vertical = {(a, z): strip(a, z, th, False) for a in range(v) for z in range(v)}
+    # Phase 4: every tile, from its edges inwards
+    tiles, corners = [], []
+    for tl, tr, bl, br in itertools.product(range(v), repeat=4):
+        canvas = Canvas.empty(th, tw, channels)
+        top, bottom = horizontal[(tl, tr)], horizontal[(bl, br)]
+        left, right = vertical[(tl, bl)], vertical[(tr, br)]
+        canvas.copy_from(top, slice(0, half), slice(0, tw), slice(half, b),
+                         slice(half, half + tw))
+        canvas.copy_from(bottom, slice(th - half, th), slice(0, tw), slice(0, half),
+                         slice(half, half + tw))
+        # where a horizontal strip already put a pixel, it stays (one fixed rule)
+        canvas.copy_from(left, slice(0, th), slice(0, half), slice(half, half + th),
+                         slice(half, b), where=~canvas.filled[:, 0:half])
+        canvas.copy_from(right, slice(0, th), slice(tw - half, tw), slice(half, half + th),
+                         slice(0, half), where=~canvas.filled[:, tw - half : tw])
+        for i in range(1, th // s):
+            for j in range(1, tw // s):
+                planner.place(canvas, f"tile {tl}{tr}{bl}{br}", i * s - half, j * s - half)
+        if not canvas.filled.all():
+            raise AssertionError("a tile was left with empty pixels")
+        tiles.append(canvas)
+        corners.append((tl, tr, bl, br))
+    return TileSet(tiles, np.array(corners, np.int64), planner.placements,
+                   reference.shape[:2])
