@@ -39,7 +39,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
-def light_sums(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
+def light_sums(layers: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-texel sums over a block of light directions (the chunk step).
 
     Parameters
@@ -51,11 +51,13 @@ def light_sums(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    numpy.ndarray
+    sums : numpy.ndarray
         ``(y, x, len(SUMS))`` float64: radiance sums (RGB), the layer count, and for each
         exponent the weighted sums of light vectors and of weights. Weights are
         ``(I / max_lights I)^k`` with the maximum taken over *this block's* lights; blocks are
         combined by :func:`combine_light_sums`, which rescales them to a common maximum.
+    peak : numpy.ndarray
+        ``(y, x)`` float32: that per-texel maximum luminance of the block.
     """
     layers = np.asarray(layers, np.float32)
     nl, ny, nx, nc = layers.shape
