@@ -133,11 +133,38 @@ def _compressed_summary(group) -> dict[str, Any]:
     }
 
 
+def _tileset_summary(group) -> dict[str, Any]:
+    attrs = group.attrs
+    source = np.prod(attrs["sample_shape"]) * group["theta_view"].shape[0] * group[
+        "theta_light"].shape[0] * group["channel"].shape[0] * 4
+    tiles = group["corners"].shape[0]
+    return {"sampling": sampling_summary(group),
+            "tileset": {"tiles": tiles, "corner_types": attrs.get("corner_types"),
+                        "tile_shape": attrs.get("tile_shape"),
+                        "sample_shape": attrs.get("sample_shape"),
+                        "lattice": attrs.get("lattice"), "planner": attrs.get("quilt")
+                        or attrs.get("roller"),
+                        "size_vs_source": (tiles * np.prod(attrs["tile_shape"])
+                                           / np.prod(attrs["sample_shape"])),
+                        "source_bytes": int(source)}}
+
+
+def _fit_summary(group) -> dict[str, Any]:
+    attrs = group.attrs
+    return {"sampling": sampling_summary(group),
+            "fit": {"rotations": len(attrs["rotations"]), "elevations": len(attrs["elevations"]),
+                    "parameters": attrs["parameters"], "error": attrs.get("fit_error"),
+                    "size_ratio": attrs.get("size_ratio")}}
+
+
 # Stage-specific summaries by btf_kind; later stages register theirs here.
 SUMMARIES: dict[str, Callable[[Any], dict[str, Any]]] = {
     "btf": _radiance_summary,
     "abtf": _radiance_summary,
     "compressed": _compressed_summary,
+    "tileset": _tileset_summary,
+    "compressed-tileset": _tileset_summary,
+    "hls-fit": _fit_summary,
 }
 
 
@@ -281,6 +308,21 @@ def format_report(report: dict[str, Any]) -> str:
                             if "abrdf_rmse" in err else ""))
         if c["svd"]:
             lines.append("  " + ", ".join(f"{k}={v}" for k, v in c["svd"].items()))
+    if "tileset" in report:
+        t = report["tileset"]
+        lines.append(f"tile set: {t['tiles']} tile(s) of {t['tile_shape'][0]} x "
+                     f"{t['tile_shape'][1]} texels, {t['corner_types']} corner type(s), from a "
+                     f"{t['sample_shape'][0]} x {t['sample_shape'][1]} sample "
+                     f"({t['size_vs_source']:.2f}x its texels)")
+        if t["lattice"]:
+            lines.append(f"  lattice: {t['lattice']}")
+    if "fit" in report:
+        f = report["fit"]
+        err = f["error"] or {}
+        lines.append(f"HLS fit: {f['rotations']} rotations x {f['elevations']} elevations, "
+                     f"{f['parameters']} parameters per rotation; {f['size_ratio']:.2f}x "
+                     f"smaller than the input; error (linear RGB) RMSE {err.get('rmse', 0):.4g}, "
+                     f"max {err.get('max', 0):.4g}")
     attrs = report["attrs"]
     for key in ("material", "shading"):
         if key in attrs:

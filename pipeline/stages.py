@@ -8,10 +8,13 @@ from typing import Any
 
 from pipeline.compress import CompressParams, compress
 from pipeline.export import ExportParams, PreviewParams, export, preview
+from pipeline.fit import FitParams, fit
 from pipeline.generate import GenerateParams, generate
 from pipeline.ingest import IngestParams, ingest
 from pipeline.inspect import InspectParams, inspect
+from pipeline.quilt import QuiltStageParams, ReferenceParams, quilt, reference
 from pipeline.reconstruct import ReconstructParams, reconstruct
+from pipeline.render import RenderParams, render
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,32 @@ STAGES: dict[str, Stage] = {
               "Rebuild exactly the requested layers (--light, --view), texel region (--region) "
               "and rank (--rank) as exp(U S V^T) - eps, reading only the U chunks and V tiles "
               "they need, into a radiance store or EXR files (--format exr)."),
+        Stage("reference", ReferenceParams, reference,
+              "write the reference image that guides quilting (paper 003, 2.2)",
+              "Compute, from all layers of the view closest to the normal, the diffuse map, "
+              "a normal map from the strongest response per texel, the height map integrated "
+              "from it (Frankot-Chellappa), a reflectance map from two normal estimates with "
+              "different exponents, and their weighted combination; write them as one EXR."),
+        Stage("quilt", QuiltStageParams, quilt,
+              "plan a seamless tile set on the reference image and apply it to every layer",
+              "Periodic image quilting planned on the reference image (paper 003: corners, "
+              "edges, interior; K best candidates by masked SSD; cyclic minimum-error boundary "
+              "cut with border flags; Gaussian-blurred blending) for V corner types (V^4 "
+              "tiles; V=1: one periodic texture). The plan compiles to one sparse "
+              "prescription per tile, stored, and applied identically to every layer (or to "
+              "the eigentextures of a compressed store).", makes_store=True),
+        Stage("render", RenderParams, render,
+              "render one layer of a surface of any size from a tile set",
+              "Render one layer (--light, --view) of an unbounded surface covered by a tile "
+              "set, over a region of any size (--size, --origin): each tile is chosen by a hash "
+              "of its lattice position and --seed so corners always match, and only that layer "
+              "of the tile set is read. EXR, tone-mapped PNG, or .zarr written block by block."),
+        Stage("fit", FitParams, fit,
+              "fit an ABTF in HLS: constant hue/saturation, lightness per rotation",
+              "HLS fitting (paper 003, 2.5): per texel, hue and saturation constant over the "
+              "lights and lightness fitted, for every light rotation, by six parameters over "
+              "elevation. Reports the fit error (RMSE and maximum, linear RGB) and the size "
+              "ratio; the fitted store rebuilds radiance lazily.", makes_store=True),
         Stage("inspect", InspectParams, inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "

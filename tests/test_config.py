@@ -71,7 +71,7 @@ stages:
      "run.yaml:8: stages[1].inspect.store: 'b.zarr' does not exist and no earlier stage makes it"),
     ("stages:\n  - inspect:\n      store: a.zarr\n" + GOOD_GENERATE.split("\n", 1)[1],
      "run.yaml:3: stages[0].inspect.store: 'a.zarr' does not exist"),
-    (GOOD_GENERATE + "  - render:\n      store: a.zarr\n", "run.yaml:7: stages[1]: unknown stage"),
+    (GOOD_GENERATE + "  - paint:\n      store: a.zarr\n", "run.yaml:7: stages[1]: unknown stage"),
     (GOOD_GENERATE + "colour: blue\n", "run.yaml:7: colour: unknown key"),
     (GOOD_GENERATE + "scheduler: gpu\n", "run.yaml:7: scheduler: unknown scheduler 'gpu'"),
     (GOOD_GENERATE.replace("size: 32", "size: 32\n      size: 64"), "duplicate key 'size'"),

@@ -1,0 +1,270 @@
+"""``btf reference`` and ``btf quilt``: seamless variation tile sets (paper 003).
+
+``reference`` computes the reference image of a radiance or compressed store from the layers of
+the view closest to the normal, one spatial block and block of lights at a time
+(:mod:`tasks.reference`), and writes its maps as one EXR file.
+
+``quilt`` plans a tile set on the reference image (:func:`tasks.quilting.plan_tiles`, on the
+client: planning is sequential by nature), stores every tile's prescription, and applies them to
+every layer: one task per (view, block of lights) reads that block of the sample once and writes
+every tile's layers. From a compressed store it applies them to the eigentextures instead and
+the result is a compressed tile set.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.compressed import KIND as COMPRESSED
+from pipeline.compressed import open_compressed
+from pipeline.errors import BTFError
+from pipeline.images import write_exr
+from pipeline.params import ParamError, option
+from pipeline.provenance import provenance
+from pipeline.runtime import Session
+from pipeline.store import RADIANCE, Directions, location, open_group, open_radiance
+from pipeline.tileset import create_tileset_store
+from tasks.canvas import TERMS
+from tasks.prescription import apply, apply_texels, to_csr
+from tasks.quilting import QuiltParams, plan_tiles
+from tasks.reference import ReferenceMaps, combine_light_sums, light_sums, reference_maps
+from tasks.sampling import direction_vectors
+
+WEIGHTS_HELP = "weights D,H,R of the diffuse, height and reflectance maps in the reference image"
+
+
+def parse_weights(text: str) -> tuple[float, float, float]:
+    """``"1,0.5,0.5"`` as three non-negative floats, not all zero."""
+    try:
+        values = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or min(values) < 0 or sum(values) <= 0:
+        raise ValueError(f"expected three non-negative numbers D,H,R, not all 0, got {text!r}")
+    return values
+
+
+def open_layers(path: str | Path):
+    """A Dataset with a (lazy) ``radiance``, from a radiance or a compressed store."""
+    group = open_group(path)
+    if group.attrs.get("btf_kind") == COMPRESSED:
+        return open_compressed(path)
+    return open_radiance(path)
+
+
+def _sums_task(layers: np.ndarray, lights: np.ndarray):
+    return light_sums(np.asarray(layers), lights)
+
+
+def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
+                      view: int | None, session: Session) -> tuple[ReferenceMaps, int]:
+    """The reference maps of a store, and the view they were computed from."""
+    import dask
+
+    ds = open_layers(path)
+    d = Directions.of(ds)
+    if view is None:
+        view = int(np.argmin(d.theta_view))
+    elif not 0 <= view < d.theta_view.size:
+        raise BTFError(f"{path}: --view {view} is out of range (the store has "
+                       f"{d.theta_view.size} views)")
+    rad = ds[RADIANCE].data[view]
+    lights = direction_vectors(d.theta_light, d.phi_light)
+    lch, ych, xch, _ = rad.chunks
+    ny, nx = rad.shape[1:3]
+    blocks, where = [], []
+    l_starts = np.cumsum((0, *lch))
+    y_starts, x_starts = np.cumsum((0, *ych)), np.cumsum((0, *xch))
+    for i in range(len(ych)):
+        for j in range(len(xch)):
+            ys = slice(int(y_starts[i]), int(y_starts[i + 1]))
+            xs = slice(int(x_starts[j]), int(x_starts[j + 1]))
+            parts = [dask.delayed(_sums_task, pure=True)(
+                rad[int(l_starts[k]) : int(l_starts[k + 1]), ys, xs],
+                lights[int(l_starts[k]) : int(l_starts[k + 1])]) for k in range(len(lch))]
+            blocks.append(dask.delayed(combine_light_sums, pure=True)(parts))
+            where.append((ys, xs))
+    session.log(f"reference: {len(blocks)} spatial blocks x {len(lch)} light blocks of view "
+                f"{view} of {path}")
+    results = session.compute(*blocks)
+    sums = np.empty((ny, nx, results[0].shape[-1]), np.float64)
+    for (ys, xs), block in zip(where, results, strict=True):
+        sums[ys, xs] = block
+    return reference_maps(sums, weights=weights), view
+
+
+def write_reference(maps: ReferenceMaps, path: str | Path) -> None:
+    """All maps of a reference image as one EXR file (``diffuse.R``, ``height.Y``, ...)."""
+    planes = [maps.diffuse, maps.height[..., None], maps.reflectance[..., None], maps.normal,
+              maps.reference]
+    names = ("diffuse.R", "diffuse.G", "diffuse.B", "height.Y", "reflectance.Y", "normal.X",
+             "normal.Y", "normal.Z", "reference.R", "reference.G", "reference.B")
+    write_exr(path, np.concatenate(planes, axis=-1), names)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceParams:
+    """Parameters of ``btf reference``."""
+
+    store: str = option(help="radiance or compressed store", positional=True, path="in",
+                        metavar="IN")
+    out: str = option(help="EXR file for the maps and the reference image", positional=True,
+                      path="out")
+    weights: str = option("1,0.5,0.5", metavar="D,H,R", help=WEIGHTS_HELP)
+    view: int | None = option(None, metavar="J",
+                              help="view to use (default: the one closest to the normal)")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        try:
+            parse_weights(self.weights)
+        except ValueError as exc:
+            raise ParamError("weights", str(exc)) from None
+
+
+def reference(params: ReferenceParams, session: Session) -> Path:
+    """Write the reference maps of a store as EXR."""
+    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
+                                   view=params.view, session=session)
+    with atomic_output(params.out, directory=False, overwrite=params.overwrite) as tmp:
+        write_reference(maps, tmp)
+    session.log(f"reference: maps of view {view} -> {params.out}")
+    return Path(params.out)
+
+
+@dataclasses.dataclass(frozen=True)
+class QuiltStageParams:
+    """Parameters of ``btf quilt``."""
+
+    store: str = option(help="radiance or compressed store (the sample)", positional=True,
+                        path="in", metavar="IN")
+    out: str = option(help="output tile-set store (a .zarr directory)", positional=True,
+                      path="out")
+    block: int = option(32, metavar="B", help="patch size in texels (even)")
+    overlap: int = option(8, metavar="O", help="overlap of neighbouring patches in texels")
+    candidates: int = option(5, metavar="K",
+                             help="a patch is drawn from the K best matching ones")
+    corners: int = option(1, metavar="V", help="corner types: V^4 tiles (1: one periodic "
+                                               "texture)")
+    size: tuple[int, ...] | None = option(
+        None, metavar="H,W", help="tile size in texels, multiples of B - O (default: the "
+                                  "sample's size rounded down to such a multiple)")
+    seed: int = option(0, metavar="S", help="seed of the random choices")
+    weights: str = option("1,0.5,0.5", metavar="D,H,R", help=WEIGHTS_HELP)
+    view: int | None = option(None, metavar="J",
+                              help="view for the reference image (default: closest to normal)")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        try:
+            parse_weights(self.weights)
+        except ValueError as exc:
+            raise ParamError("weights", str(exc)) from None
+        if self.size is not None and len(self.size) not in (1, 2):
+            raise ParamError("size", f"expected H,W or N, got {self.size}")
+        if not 0 <= self.seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        try:  # the planner's own checks; its messages start with the parameter's name
+            self.quilt_params((max(self.block, 1) * 64,) * 2)
+        except ValueError as exc:
+            name = str(exc).split()[0]
+            raise ParamError("size" if name == "tile" else name, str(exc)) from None
+
+    def tile_shape(self, sample: tuple[int, int]) -> tuple[int, int]:
+        """The tile size for a sample of the given size."""
+        step = self.block - self.overlap
+        if self.size is None:
+            return tuple(max(step, (n // step) * step) for n in sample)
+        return (self.size[0], self.size[-1])
+
+    def quilt_params(self, sample: tuple[int, int]) -> QuiltParams:
+        """The planner's parameters for a sample of the given size."""
+        return QuiltParams(self.block, self.overlap, self.candidates, self.corners,
+                           self.tile_shape(sample))
+
+
+def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
+                 tile_shape) -> None:
+    import zarr
+
+    layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, light0:light1]
+    target = zarr.open_array(out, path=RADIANCE, mode="r+")
+    for t, matrix in enumerate(matrices):
+        target[t, view, light0:light1] = apply(matrix, layers, output=tile_shape)
+
+
+def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
+    import zarr
+
+    source = zarr.open_array(store, path="V", mode="r")[...]
+    target = zarr.open_array(out, path="V", mode="r+")
+    target[tile] = apply_texels(matrix, source).reshape(target.shape[1:])
+
+
+def quilt(params: QuiltStageParams, session: Session) -> Path:
+    """Plan a tile set on the reference image and apply it to every layer."""
+    import dask
+
+    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
+                                   view=params.view, session=session)
+    sample = maps.reference.shape[:2]
+    try:
+        qp = params.quilt_params(sample)
+        if min(sample) < params.block:
+            raise ValueError(f"the sample ({sample[0]} x {sample[1]}) is smaller than a block")
+    except ValueError as exc:
+        raise BTFError(f"{params.store}: {exc}") from None
+    session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
+                f"texels on the {sample[0]} x {sample[1]} reference image")
+    plan = plan_tiles(maps.reference, qp, seed=params.seed)
+    matrices = [to_csr(t.index.reshape(-1, TERMS), t.weight.reshape(-1, TERMS),
+                       sample[0] * sample[1]) for t in plan.tiles]
+    group = open_group(params.store)
+    compressed = group.attrs.get("btf_kind") == COMPRESSED
+    d = Directions.of(open_layers(params.store))
+    channels = tuple(str(c) for c in group["channel"][:])
+    attrs = {
+        "source": "quilt", "source_store": params.store,
+        "source_btf_kind": group.attrs.get("source_btf_kind") if compressed
+        else group.attrs.get("btf_kind"),
+        "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
+                  "weights": list(parse_weights(params.weights)), "reference_view": view},
+        "corner_types": qp.corners, "tile_shape": list(qp.tile), "sample_shape": list(sample),
+        "placements": [{"canvas": p.canvas, "window": list(p.window),
+                        "source": list(p.source), "flags": list(p.flags)}
+                       for p in plan.placements],
+        "provenance": provenance("quilt", params),
+    }
+    if compressed:
+        attrs["transform"] = group.attrs["transform"]
+    rank = group["S"].shape[0] if compressed else None
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
+        out = create_tileset_store(tmp, directions=d, channels=channels,
+                                   tiles=len(plan.tiles), tile_shape=qp.tile, terms=TERMS,
+                                   reference=maps.reference, attrs=attrs, rank=rank)
+        out["corners"][...] = plan.corners
+        for t, canvas in enumerate(plan.tiles):
+            out["prescription_index"][t] = canvas.index.reshape(-1, TERMS).astype(np.int32)
+            out["prescription_weight"][t] = canvas.weight.reshape(-1, TERMS)
+        shared = session.share(matrices)
+        if compressed:
+            out["U"][...] = group["U"][...]
+            out["S"][...] = group["S"][...]
+            writes = [dask.delayed(_apply_eigentextures)(location(params.store), location(tmp),
+                                                         t, m) for t, m in enumerate(matrices)]
+        else:
+            nv, nl = d.theta_view.size, d.theta_light.size
+            block = group[RADIANCE].chunks[1]
+            writes = [dask.delayed(_apply_block)(location(params.store), location(tmp), v, l0,
+                                                 min(l0 + block, nl), shared, qp.tile)
+                      for v in range(nv) for l0 in range(0, nl, block)]
+        session.log(f"quilt: applying {len(matrices)} prescription(s) to "
+                    f"{'the eigentextures' if compressed else f'{len(writes)} blocks of layers'}"
+                    f" -> {params.out}")
+        session.compute(*writes)
+    return Path(params.out)
+

@@ -1,0 +1,147 @@
+"""Tile-set stores (quilting and the roller) and surfaces rendered from them on demand.
+
+A tile-set store is a zarr v3 group holding
+
+- ``radiance``: float32 ``(tile, view, light, y, x, channel)``, one chunk per tile and layer, so
+  that rendering one layer reads nothing of the others; or, for a compressed source, ``U`` and
+  ``S`` of the source with eigentextures per tile ``V`` ``(tile, y, x, component)``;
+- ``corners`` ``(tile, corner)``: the corner types (top-left, top-right, bottom-left,
+  bottom-right) of each tile;
+- ``prescription_index`` / ``prescription_weight`` ``(tile, pixel, term)``: each tile's
+  prescription (:mod:`tasks.prescription`), so it can be applied again to other data;
+- ``reference`` ``(sample_y, sample_x, reference_channel)``: the reference image it was planned on;
+- the direction coordinates and ``channel`` labels of the source, and attrs ``btf_kind``
+  (``tileset`` or ``compressed-tileset``), the planning parameters, seed and placements.
+
+:func:`lazy_layer` is one layer of an unbounded surface covered by the tiles, as a dask array:
+each block gathers from the tiles of that layer only (:func:`tasks.placement.gather`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.store import DIRECTION_COORDS, RADIANCE, Directions, location, open_group
+from tasks.placement import gather
+
+KINDS = ("tileset", "compressed-tileset")
+CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
+
+
+def create_tileset_store(path, *, directions: Directions, channels: tuple[str, ...],
+                         tiles: int, tile_shape: tuple[int, int], terms: int,
+                         reference: np.ndarray, attrs: dict[str, Any], rank: int | None = None):
+    """Create an empty tile-set store (``rank``: a compressed one); returns the zarr group."""
+    import zarr
+    from zarr.codecs import BloscCodec
+
+    compressors = BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
+    group.attrs.update({**attrs, "btf_kind": KINDS[rank is not None]})
+    ty, tx = tile_shape
+    nv, nl, nc = directions.theta_view.size, directions.theta_light.size, len(channels)
+    if rank is None:
+        rad = group.create_array(
+            RADIANCE, shape=(tiles, nv, nl, ty, tx, nc), chunks=(1, 1, 1, ty, tx, nc),
+            dtype="float32", dimension_names=("tile", "view", "light", "y", "x", "channel"),
+            compressors=compressors, fill_value=np.nan)
+        rad.attrs["coordinates"] = " ".join(DIRECTION_COORDS)
+    else:
+        group.create_array("U", shape=(nv, nl, nc, rank), dtype="float32",
+                           dimension_names=("view", "light", "channel", "component"),
+                           compressors=compressors)
+        group.create_array("S", shape=(rank,), dtype="float32", dimension_names=("component",))
+        group.create_array("V", shape=(tiles, ty, tx, rank), chunks=(1, ty, tx, rank),
+                           dtype="float32", dimension_names=("tile", "y", "x", "component"),
+                           compressors=compressors)
+    pixels = ty * tx
+    group.create_array("corners", shape=(tiles, 4), dtype="int64",
+                       dimension_names=("tile", "corner"))
+    group.create_array("prescription_index", shape=(tiles, pixels, terms),
+                       chunks=(1, pixels, terms), dtype="int32",
+                       dimension_names=("tile", "pixel", "term"), compressors=compressors)
+    group.create_array("prescription_weight", shape=(tiles, pixels, terms),
+                       chunks=(1, pixels, terms), dtype="float32",
+                       dimension_names=("tile", "pixel", "term"), compressors=compressors)
+    ref = group.create_array("reference", shape=reference.shape, dtype="float32",
+                             dimension_names=("sample_y", "sample_x", "reference_channel"),
+                             compressors=compressors)
+    ref[...] = reference
+    for name, dim in DIRECTION_COORDS.items():
+        values = getattr(directions, name)
+        coord = group.create_array(name, shape=values.shape, dtype="float64",
+                                   dimension_names=(dim,), compressors=None)
+        coord[:] = values
+    labels = group.create_array("channel", shape=(nc,), dtype=str,
+                                dimension_names=("channel",), compressors=None)
+    labels[:] = np.array(channels)
+    names = group.create_array("corner", shape=(4,), dtype=str, dimension_names=("corner",),
+                               compressors=None)
+    names[:] = np.array(CORNERS)
+    return group
+
+
+def open_tileset(path: str | Path):
+    """Open a tile-set store (zarr group), checking its kind and variables."""
+    group = open_group(path)
+    kind = group.attrs.get("btf_kind")
+    if kind not in KINDS:
+        raise BTFError(f"{path}: not a tile-set store (btf_kind is {kind!r}; make one with btf "
+                       "quilt or btf roller)")
+    needed = [RADIANCE] if kind == "tileset" else ["U", "S", "V"]
+    for name in (*needed, "corners", "prescription_index", "prescription_weight"):
+        if name not in group.array_keys():
+            raise BTFError(f"{path}: variable {name!r} is missing")
+    return group
+
+
+def _layer_tiles(store: str, view: int, light: int) -> np.ndarray:
+    """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32 (reads only that layer)."""
+    import zarr
+
+    group = zarr.open_group(store, mode="r")
+    if group.attrs["btf_kind"] == "tileset":
+        return group[RADIANCE][:, view, light]
+    from tasks.svd import reconstruct_layers
+
+    u = group["U"][view, light]  # (channel, component)
+    s = group["S"][:]
+    eps = float(group.attrs["transform"]["eps"])
+    return np.stack([reconstruct_layers(u, s, v, eps=eps) for v in group["V"]])
+
+
+def _surface_block(tiles, block_info=None, *, origin, seed, corners):
+    (y0, y1), (x0, x1), _ = block_info[None]["array-location"]
+    return gather(tiles, origin[0] + y0, origin[1] + x0, y1 - y0, x1 - x0, seed=seed,
+                  corners=corners)
+
+
+def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int],
+               origin: tuple[int, int] = (0, 0), seed: int = 0, chunk: int = 2048):
+    """One layer of the surface tiled by a tile set, as a lazy dask array ``(y, x, channel)``.
+
+    The tiles of the layer are read once (one task) and every block of the surface is a pure
+    gather from them, placed by a hash of the tile coordinates and ``seed``.
+    """
+    import dask
+    import dask.array as da
+
+    group = open_tileset(path)
+    nv, nl = group["theta_view"].shape[0], group["theta_light"].shape[0]
+    if not 0 <= view < nv:
+        raise BTFError(f"{path}: --view {view} is out of range (the tile set has {nv} views)")
+    if not 0 <= light < nl:
+        raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
+    corners = int(group.attrs["corner_types"])
+    channels = group["channel"].shape[0]
+    tiles = dask.delayed(_layer_tiles, pure=True)(location(path), view, light)
+    h, w = size
+    chunks = (tuple(min(chunk, h - i) for i in range(0, h, chunk)),
+              tuple(min(chunk, w - i) for i in range(0, w, chunk)), (channels,))
+    return da.map_blocks(_surface_block, tiles, chunks=chunks, dtype=np.float32,
+                         meta=np.empty((0, 0, 0), np.float32), origin=origin, seed=seed,
+                         corners=corners)
