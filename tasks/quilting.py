@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
-from scipy.fft import irfft2, next_fast_len, rfft2
+from scipy.fft import fft, irfft2, next_fast_len, rfft, rfft2
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -81,7 +81,9 @@ class CandidateSearch:
     """Masked SSD of a target window against every window of the sample, by FFT.
 
     ``SSD(s) = sum_u M(u) |S(s + u) - T(u)|^2 = corr(|S|^2, M) - 2 corr(S, M T) + sum M |T|^2``;
-    the spectra of the sample and of its squared norm are computed once.
+    the spectra of the sample and of its squared norm are computed once. Per target the
+    ``1 + channels`` kernel spectra are summed in the frequency domain, so one inverse FFT gives
+    the whole error image, and the kernels' transforms skip their all-zero rows.
     """
 
     def __init__(self, sample: np.ndarray, block: int):
@@ -91,24 +93,22 @@ class CandidateSearch:
         self.shape = (next_fast_len(h + block - 1, real=True),
                       next_fast_len(w + block - 1, real=True))
         self.valid = (h - block + 1, w - block + 1)
-        self.spectra = [rfft2(self.sample[..., c], self.shape)
-                        for c in range(self.sample.shape[-1])]
-        self.norm_spectrum = rfft2(np.sum(self.sample**2, axis=-1), self.shape)
-
-    def _correlate(self, spectrum: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-        flipped = rfft2(kernel[::-1, ::-1], self.shape)
-        full = irfft2(spectrum * flipped, self.shape)
-        b = self.block
-        return full[b - 1 : b - 1 + self.valid[0], b - 1 : b - 1 + self.valid[1]]
+        planes = [np.sum(self.sample**2, axis=-1)]
+        planes += [-2.0 * self.sample[..., c] for c in range(self.sample.shape[-1])]
+        self.spectra = rfft2(np.stack(planes), self.shape)
 
     def errors(self, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """SSD of ``target`` over ``mask`` at every sample position ``(sy, sx)``."""
         mask = mask.astype(np.float64)
-        out = self._correlate(self.norm_spectrum, mask)
-        cross = sum(self._correlate(spec, mask * target[..., c])
-                    for c, spec in enumerate(self.spectra))
-        out -= 2.0 * cross
-        out += float(np.sum(mask[..., None] * target.astype(np.float64) ** 2))
+        target = target.astype(np.float64)
+        kernels = np.concatenate([mask[None], np.moveaxis(mask[..., None] * target, -1, 0)])
+        flipped = kernels[:, ::-1, ::-1]
+        rows = rfft(flipped, n=self.shape[1], axis=-1)  # only the B non-zero rows
+        spectrum = fft(rows, n=self.shape[0], axis=-2)
+        full = irfft2(np.einsum("kij,kij->ij", self.spectra, spectrum), self.shape)
+        b = self.block
+        out = full[b - 1 : b - 1 + self.valid[0], b - 1 : b - 1 + self.valid[1]]
+        out += float(np.sum(mask[..., None] * target**2))
         return np.maximum(out, 0.0)
 
     def choose(self, target: np.ndarray, mask: np.ndarray, k: int,

@@ -17,7 +17,7 @@ from pipeline.tileset import lazy_layer
 from tasks.canvas import TERMS
 from tasks.materials import Material
 from tasks.prescription import check, to_csr
-from tasks.quilting import QuiltParams, plan_tiles
+from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut, plan_tiles
 
 PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
 
@@ -67,6 +67,30 @@ def _naive_copy(img, block, size, seed=0):
             sy, sx = rng.integers(0, img.shape[0] - block, 2)
             out[y : y + block, x : x + block] = img[sy : sy + block, sx : sx + block]
     return out
+
+
+def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position():
+    rng = np.random.default_rng(4)
+    sample = rng.random((37, 45, 3))
+    target = rng.random((8, 8, 3))
+    mask = rng.random((8, 8)) > 0.4
+    errors = CandidateSearch(sample, 8).errors(target, mask)
+    brute = np.array([[np.sum(mask[..., None] * (sample[y : y + 8, x : x + 8] - target) ** 2)
+                       for x in range(45 - 7)] for y in range(37 - 7)])
+    assert errors.shape == brute.shape
+    np.testing.assert_allclose(errors, brute, rtol=0, atol=1e-10)
+
+
+def test_the_boundary_cut_follows_the_cheapest_loop_around_the_kept_square():
+    b = 12
+    error = np.full((b, b), 10.0)
+    error[2, 2:10] = error[9, 2:10] = error[2:10, 2] = error[2:10, 9] = 0.0  # a cheap ring
+    keep = np.zeros((b, b), bool)
+    keep[4:8, 4:8] = True
+    region = boundary_cut(error, keep, outside_free=np.zeros((b + 2, b + 2), bool))
+    expected = np.zeros((b, b), bool)
+    expected[2:10, 2:10] = True
+    np.testing.assert_array_equal(region, expected)
 
 
 @pytest.mark.parametrize("material", ["fabric", "stone", "tiles"])
