@@ -38,12 +38,17 @@ def gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, seed: int,
     """Pixels ``[y0, y0+ny) x [x0, x0+nx)`` of the surface covered by ``tiles``.
 
     ``tiles`` is ``(n, ty, tx, ...)``. Coordinates may be negative: the surface is unbounded.
+    Each lattice cell the region overlaps is one rectangular slice copy from its tile.
     """
     _, ty, tx = tiles.shape[:3]
-    ys = np.arange(y0, y0 + ny)
-    xs = np.arange(x0, x0 + nx)
-    cy, cx = np.floor_divide(ys, ty), np.floor_divide(xs, tx)
-    ids = cell_tiles(int(cy[0]), int(cx[0]), int(cy[-1] - cy[0] + 1), int(cx[-1] - cx[0] + 1),
-                     seed=seed, corners=corners)
-    which = ids[(cy - cy[0])[:, None], (cx - cx[0])[None, :]]
-    return tiles[which, (ys % ty)[:, None], (xs % tx)[None, :]]
+    cy0, cx0 = y0 // ty, x0 // tx
+    cy1, cx1 = (y0 + ny - 1) // ty, (x0 + nx - 1) // tx
+    ids = cell_tiles(cy0, cx0, cy1 - cy0 + 1, cx1 - cx0 + 1, seed=seed, corners=corners)
+    out = np.empty((ny, nx, *tiles.shape[3:]), tiles.dtype)
+    for i, cy in enumerate(range(cy0, cy1 + 1)):
+        ya, yb = max(y0, cy * ty), min(y0 + ny, (cy + 1) * ty)
+        for j, cx in enumerate(range(cx0, cx1 + 1)):
+            xa, xb = max(x0, cx * tx), min(x0 + nx, (cx + 1) * tx)
+            out[ya - y0 : yb - y0, xa - x0 : xb - x0] = tiles[
+                ids[i, j], ya - cy * ty : yb - cy * ty, xa - cx * tx : xb - cx * tx]
+    return out

@@ -45,16 +45,16 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
           ) -> np.ndarray:
     """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
 
-    The layers are rearranged texel-major (each texel's values across layers and channels are
-    contiguous), multiplied once, and rearranged back to ``(..., out_y, out_x, channel)``.
+    One sparse product per layer on its ``(texels, channel)`` view: no transposes, about twice
+    as fast as rearranging all layers texel-major for a single product (``btf bench quilt``).
     """
     layers = np.asarray(layers, np.float32)
     *lead, ny, nx, nc = layers.shape
-    n = int(np.prod(lead, dtype=np.int64))
-    texels = np.ascontiguousarray(np.moveaxis(layers.reshape(n, ny * nx, nc), 1, 0))
-    out = matrix @ texels.reshape(ny * nx, n * nc)
-    out = np.asarray(out, np.float32).reshape(output[0] * output[1], n, nc)
-    return np.ascontiguousarray(np.moveaxis(out, 0, 1)).reshape(*lead, *output, nc)
+    flat = layers.reshape(-1, ny * nx, nc)
+    out = np.empty((flat.shape[0], output[0] * output[1], nc), np.float32)
+    for i, layer in enumerate(flat):
+        out[i] = matrix @ layer
+    return out.reshape(*lead, *output, nc)
 
 
 def apply_texels(matrix: sparse.csr_matrix, texels: np.ndarray) -> np.ndarray:

@@ -213,6 +213,19 @@ def test_rendering_is_consistent_where_regions_overlap(tmp_path, btf, samples):
     assert not np.array_equal(a, other)
 
 
+@pytest.mark.parametrize("origin", [(0, 0), (-13, -4), (95, -301)])
+def test_a_rendered_texel_is_its_cells_tile_at_its_offset(origin):
+    from tasks.placement import cell_tiles, gather
+
+    tiles = np.random.default_rng(0).random((16, 7, 5, 3)).astype(np.float32)
+    y0, x0 = origin
+    out = gather(tiles, y0, x0, 23, 19, seed=3, corners=2)
+    for y, x in itertools.product(range(23), range(19)):
+        cy, cx = (y0 + y) // 7, (x0 + x) // 5
+        tile = cell_tiles(cy, cx, 1, 1, seed=3, corners=2)[0, 0]
+        assert np.array_equal(out[y, x], tiles[tile, (y0 + y) % 7, (x0 + x) % 5])
+
+
 def test_rendering_one_layer_reads_no_other_layer(tmp_path, btf, samples, monkeypatch):
     from test_compress import ReadCounter
 

@@ -1,0 +1,255 @@
+"""Quilting: one plan for all layers against quilting each layer, application, rendering.
+
+All in one run, on generated ABTFs with 24 lights (``abtf:6,4``, one view):
+
+- **planning**: :func:`tasks.quilting.plan_tiles` on the reference image of a 256^2 and a 512^2
+  sample (block 32, overlap 8, K = 5, one corner type: a periodic texture), against the same
+  code run on each of the 24 layers independently, which is what a user without prescriptions
+  would do; how much those independent plans disagree (share of output texels whose main source
+  texel differs from layer 0's plan) shows why that gives inconsistent layers;
+- **application**: the 512^2 plan's prescription applied to the 24 layers in memory
+  (:func:`tasks.prescription.apply`), with one thread and with two threads splitting the layers
+  as the pipeline's tasks do, in GB/s of output, next to ``numpy.copyto`` of the same bytes with
+  the same threads; and ``btf quilt`` end to end (fresh process: wall time and peak RSS);
+- **rendering**: one layer of a large surface from the tile set, computed block by block with
+  dask's threads and dropped (:func:`pipeline.tileset.lazy_layer`), against ``numpy.tile`` of
+  one tile into blocks of the same size and threads; and ``btf render`` of that region into a
+  zarr array end to end (wall time and peak RSS: bounded by the block size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.harness import best_of, machine, measure
+
+SUITE = "quilt"
+SAMPLING = "abtf:6,4"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the suite."""
+    parser.add_argument("--material", default="fabric")
+    parser.add_argument("--sizes", default="256,512",
+                        help="sample sizes to plan on (comma-separated; the last one is also "
+                             "applied and rendered)")
+    parser.add_argument("--block", type=int, default=32)
+    parser.add_argument("--overlap", type=int, default=8)
+    parser.add_argument("--candidates", type=int, default=5)
+    parser.add_argument("--render", type=int, default=16384,
+                        help="side of the rendered region in texels (default 16384)")
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="runs of the planning, application and copy timings; the fastest "
+                             "is kept (default 3); independent per-layer plans run once")
+
+
+def _best(repeat: int, fn) -> tuple[float, object]:
+    best, result = np.inf, None
+    for _ in range(max(1, repeat)):
+        start = time.perf_counter()
+        result = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def _main_source(tile) -> np.ndarray:
+    """Per output texel, the sample texel with the largest weight."""
+    from tasks.canvas import TERMS
+
+    index = tile.index.reshape(-1, TERMS)
+    weight = tile.weight.reshape(-1, TERMS)
+    return index[np.arange(index.shape[0]), np.argmax(weight, axis=1)]
+
+
+def _in_threads(threads: int, fn, parts) -> None:
+    if threads == 1:
+        for p in parts:
+            fn(p)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(fn, parts))
+
+
+def _planning(store: Path, args, session) -> tuple[dict, object, object]:
+    from pipeline.quilt import compute_reference, open_layers
+    from pipeline.store import RADIANCE
+    from tasks.quilting import QuiltParams, plan_tiles
+
+    maps, view = compute_reference(store, weights=(1.0, 0.5, 0.5), view=None, session=session)
+    sample = maps.reference.shape[:2]
+    step = args.block - args.overlap
+    params = QuiltParams(args.block, args.overlap, args.candidates, 1,
+                         tuple((n // step) * step for n in sample))
+    seconds, plan = _best(args.repeat, lambda: plan_tiles(maps.reference, params, seed=0))
+    layers = open_layers(store)[RADIANCE].data[view].compute()
+    main = None
+    disagree, start = [], time.perf_counter()
+    for layer in layers:
+        tile = plan_tiles(layer, params, seed=0).tiles[0]
+        if main is None:
+            main = _main_source(tile)
+        else:
+            disagree.append(float(np.mean(_main_source(tile) != main)))
+    independent = time.perf_counter() - start
+    row = {"size": sample[0], "tile": list(params.tile), "placements": len(plan.placements),
+           "plan_seconds": seconds, "layers": len(layers), "independent_seconds": independent,
+           "independent_disagreement": float(np.mean(disagree)) if disagree else None}
+    return row, plan, layers
+
+
+def _application(plan, layers: np.ndarray, args) -> dict:
+    from tasks.canvas import TERMS
+    from tasks.prescription import apply, to_csr
+
+    tile = plan.tiles[0]
+    ny, nx = layers.shape[1:3]
+    matrix = to_csr(tile.index.reshape(-1, TERMS), tile.weight.reshape(-1, TERMS), ny * nx)
+    shape = tile.index.shape[:2]
+    out = np.empty((layers.shape[0], *shape, layers.shape[-1]), np.float32)
+    source = np.ones_like(out)
+    nbytes = out.nbytes
+    halves = np.array_split(np.arange(layers.shape[0]), 2)
+    def prescribed(ls):
+        out[ls] = apply(matrix, layers[ls], output=shape)
+
+    def copied(ls):
+        np.copyto(out[ls], source[ls])
+
+    rows = {}
+    for threads in (1, 2):
+        parts = halves if threads == 2 else [np.arange(layers.shape[0])]
+        t_apply, _ = _best(args.repeat, partial(_in_threads, threads, prescribed, parts))
+        t_copy, _ = _best(args.repeat, partial(_in_threads, threads, copied, parts))
+        rows[threads] = {"apply_gbps": nbytes / t_apply / 1e9,
+                         "copy_gbps": nbytes / t_copy / 1e9, "ratio": t_copy / t_apply}
+    return {"bytes": nbytes, "nnz_per_row": matrix.nnz / matrix.shape[0], "threads": rows}
+
+
+class _Sink:
+    """A write target that drops what it is given (for timing a computation alone)."""
+
+    def __setitem__(self, key, value) -> None:
+        pass
+
+
+def _rendering(tileset: Path, args) -> dict:
+    import dask
+    import dask.array as da
+
+    from pipeline.tileset import lazy_layer, open_tileset
+
+    size = args.render
+    layer = lazy_layer(tileset, view=0, light=0, size=(size, size), seed=0)
+    nbytes = size * size * layer.shape[-1] * 4
+    with dask.config.set(scheduler="threads", num_workers=2):
+        t_render, _ = _best(args.repeat, lambda: da.store(layer, _Sink(), lock=False))
+    tile = open_tileset(tileset)["radiance"][0, 0, 0]
+    block = layer.chunksize[0]
+    reps = (-(-block // tile.shape[0]), -(-block // tile.shape[1]), 1)
+    blocks = range(len(layer.chunks[0]) * len(layer.chunks[1]))
+
+    def tiled(_):
+        np.ascontiguousarray(np.tile(tile, reps)[:block, :block])
+
+    t_tile, _ = _best(args.repeat, lambda: _in_threads(2, tiled, blocks))
+    return {"size": size, "bytes": nbytes, "block": block, "render_seconds": t_render,
+            "render_gbps": nbytes / t_render / 1e9, "tile_seconds": t_tile,
+            "tile_gbps": nbytes / t_tile / 1e9, "ratio": t_tile / t_render}
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Plan, apply and render, with their references, in this run."""
+    from pipeline.runtime import RuntimeOptions, Session
+
+    btf = str(Path(sys.executable).parent / "btf")
+    tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
+    sizes = [int(s) for s in args.sizes.split(",")]
+    planning = []
+    try:
+        with Session(RuntimeOptions(quiet=True)) as session:
+            for size in sizes:
+                store = tmp / f"{args.material}-{size}.zarr"
+                subprocess.run([btf, "generate", str(store), "--material", args.material,
+                                "--size", str(size), "--sampling", SAMPLING, "--quiet"],
+                               check=True)
+                row, plan, layers = _planning(store, args, session)
+                planning.append(row)
+                print(f"planned {size}^2: {row['plan_seconds']:.2f} s; {row['layers']} layers "
+                      f"independently {row['independent_seconds']:.1f} s", file=sys.stderr)
+        application = _application(plan, layers, args)
+        tiles = tmp / "tiles.zarr"
+        quilt = best_of(args.repeat, [btf, "quilt", str(store), str(tiles), "--block",
+                                      str(args.block), "--overlap", str(args.overlap),
+                                      "--candidates", str(args.candidates), "--quiet",
+                                      "--overwrite"])
+        rendering = _rendering(tiles, args)
+        region = tmp / "surface.zarr"
+        render_cli = measure([btf, "render", str(tiles), str(region), "--light", "0", "--size",
+                              f"{args.render},{args.render}", "--quiet"])
+        rendering.update({"cli_seconds": render_cli.seconds, "cli_peak_rss": render_cli.peak_rss})
+        shutil.rmtree(region)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"suite": SUITE, "material": args.material, "sampling": SAMPLING,
+            "params": {"block": args.block, "overlap": args.overlap,
+                       "candidates": args.candidates}, "repeat": args.repeat,
+            "planning": planning, "application": application,
+            "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
+                          "peak_rss": quilt.peak_rss},
+            "rendering": rendering, "machine": machine(),
+            "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                                  text=True).stdout.strip()}
+
+
+def report(result: dict) -> str:
+    """Markdown tables of a result."""
+    mib = 1 << 20
+    p = result["params"]
+    lines = [f"`btf bench quilt`: {result['material']} samples, {result['sampling']} "
+             f"(24 lights, one view); block {p['block']}, overlap {p['overlap']}, "
+             f"K = {p['candidates']}, one corner type; best of {result['repeat']} runs.",
+             "",
+             "| sample | tile | placements | plan once (s) | each layer on its own (s) | ratio | "
+             "independent plans disagree |",
+             "|---|---|---|---|---|---|---|"]
+    for r in result["planning"]:
+        lines.append(f"| {r['size']}^2 | {r['tile'][0]}^2 | {r['placements']} | "
+                     f"{r['plan_seconds']:.2f} | {r['independent_seconds']:.1f} "
+                     f"({r['layers']} layers) | {r['independent_seconds'] / r['plan_seconds']:.1f}x"
+                     f" | {100 * r['independent_disagreement']:.0f}% of texels |")
+    a = result["application"]
+    lines += ["", f"Application of the {result['planning'][-1]['size']}^2 plan's prescription "
+                  f"({a['nnz_per_row']:.2f} terms per output texel) to 24 layers, "
+                  f"{a['bytes'] / mib:.0f} MiB of output:", "",
+              "| threads | prescription GB/s | numpy copy GB/s | ratio (target >= 0.25) |",
+              "|---|---|---|---|"]
+    for threads, t in a["threads"].items():
+        lines.append(f"| {threads} | {t['apply_gbps']:.2f} | {t['copy_gbps']:.2f} | "
+                     f"{t['ratio']:.2f} |")
+    q = result["quilt_cli"]
+    r = result["rendering"]
+    lines += ["", f"`btf quilt` end to end on the {q['size']}^2 sample (reference, plan, "
+                  f"application, writing): {q['seconds']:.1f} s, peak RSS "
+                  f"{q['peak_rss'] / mib:.0f} MiB.", "",
+              f"Rendering one layer, {r['size']} x {r['size']} texels "
+              f"({r['bytes'] / mib:.0f} MiB), blocks of {r['block']}^2, 2 threads:", "",
+              "| what | seconds | GB/s |", "|---|---|---|",
+              f"| lazy render (hash placement + gather), computed and dropped | "
+              f"{r['render_seconds']:.2f} | {r['render_gbps']:.2f} |",
+              f"| numpy.tile of one tile into the same blocks (reference) | "
+              f"{r['tile_seconds']:.2f} | {r['tile_gbps']:.2f} |",
+              f"| `btf render ... OUT.zarr` end to end (writes lz4 zarr) | "
+              f"{r['cli_seconds']:.2f} | {r['bytes'] / r['cli_seconds'] / 1e9:.2f} |",
+              "", f"Render vs numpy.tile: {r['ratio']:.2f}x its speed; `btf render` peak RSS "
+                  f"{r['cli_peak_rss'] / mib:.0f} MiB for a {r['bytes'] / mib:.0f} MiB region."]
+    return "\n".join(lines)
