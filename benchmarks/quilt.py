@@ -81,8 +81,9 @@ def _in_threads(threads: int, fn, parts) -> None:
 
 
 def _planning(store: Path, args, session) -> tuple[dict, object, object]:
-    from pipeline.quilt import compute_reference, open_layers
+    from pipeline.quilt import compute_reference
     from pipeline.store import RADIANCE
+    from pipeline.tileset import open_layers
     from tasks.quilting import QuiltParams, plan_tiles
 
     maps, view = compute_reference(store, weights=(1.0, 0.5, 0.5), view=None, session=session)
@@ -118,7 +119,8 @@ def _application(plan, layers: np.ndarray, args) -> dict:
     out = np.empty((layers.shape[0], *shape, layers.shape[-1]), np.float32)
     source = np.ones_like(out)
     nbytes = out.nbytes
-    halves = np.array_split(np.arange(layers.shape[0]), 2)
+    half = layers.shape[0] // 2
+    halves = [slice(0, half), slice(half, None)]  # slices: views, not fancy-indexed copies
     def prescribed(ls):
         out[ls] = apply(matrix, layers[ls], output=shape)
 
@@ -127,7 +129,7 @@ def _application(plan, layers: np.ndarray, args) -> dict:
 
     rows = {}
     for threads in (1, 2):
-        parts = halves if threads == 2 else [np.arange(layers.shape[0])]
+        parts = halves if threads == 2 else [slice(None)]
         t_apply, _ = _best(args.repeat, partial(_in_threads, threads, prescribed, parts))
         t_copy, _ = _best(args.repeat, partial(_in_threads, threads, copied, parts))
         rows[threads] = {"apply_gbps": nbytes / t_apply / 1e9,

@@ -314,8 +314,17 @@ def format_report(report: dict[str, Any]) -> str:
                      f"{t['tile_shape'][1]} texels, {t['corner_types']} corner type(s), from a "
                      f"{t['sample_shape'][0]} x {t['sample_shape'][1]} sample "
                      f"({t['size_vs_source']:.2f}x its texels)")
-        if t["lattice"]:
-            lines.append(f"  lattice: {t['lattice']}")
+        lat = t["lattice"]
+        if lat:
+            for name, vec, n, a in zip("uv", (lat["u"], lat["v"]), lat["lengths_px"],
+                                       lat["angles_deg"], strict=True):
+                lines.append(f"  lattice {name} = [{vec[0]:.2f}, {vec[1]:.2f}] ({n:.2f} px at "
+                             f"{a:.1f} deg)")
+            lines.append(f"  confidence {lat['confidence']:.2f}; each tile spans U = {lat['U']}, "
+                         f"V = {lat['V']} ({lat['periods'][0]} x {lat['periods'][1]} periods), "
+                         f"stored as {lat['hnf'][0]} x {lat['hnf'][1]} (Hermite layout, shear "
+                         f"{lat['hnf'][2]})")
+        lines.append(f"  size relative to the sample: 1 : {1 / t['size_vs_source']:.2f}")
     if "fit" in report:
         f = report["fit"]
         err = f["error"] or {}

@@ -214,6 +214,8 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         else:
             kwargs["type"] = base
         if meta["positional"]:
+            if f.default is not MISSING:  # an optional positional argument
+                kwargs.update(nargs="?", default=f.default)
             parser.add_argument(f.name, **kwargs)
         else:
             if f.default is MISSING:

@@ -19,17 +19,14 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_output
-from pipeline.compressed import KIND as COMPRESSED
-from pipeline.compressed import open_compressed
 from pipeline.errors import BTFError
 from pipeline.images import write_exr
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
-from pipeline.store import RADIANCE, Directions, location, open_group, open_radiance
-from pipeline.tileset import create_tileset_store
+from pipeline.store import RADIANCE, Directions, open_group
+from pipeline.tileset import open_layers, write_tileset
 from tasks.canvas import TERMS
-from tasks.prescription import apply, apply_texels, to_csr
 from tasks.quilting import QuiltParams, plan_tiles
 from tasks.reference import ReferenceMaps, combine_light_sums, light_sums, reference_maps
 from tasks.sampling import direction_vectors
@@ -46,14 +43,6 @@ def parse_weights(text: str) -> tuple[float, float, float]:
     if len(values) != 3 or min(values) < 0 or sum(values) <= 0:
         raise ValueError(f"expected three non-negative numbers D,H,R, not all 0, got {text!r}")
     return values
-
-
-def open_layers(path: str | Path):
-    """A Dataset with a (lazy) ``radiance``, from a radiance or a compressed store."""
-    group = open_group(path)
-    if group.attrs.get("btf_kind") == COMPRESSED:
-        return open_compressed(path)
-    return open_radiance(path)
 
 
 def _sums_task(layers: np.ndarray, lights: np.ndarray):
@@ -94,6 +83,8 @@ def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
     sums = np.empty((ny, nx, results[0].shape[-1]), np.float64)
     for (ys, xs), block in zip(where, results, strict=True):
         sums[ys, xs] = block
+    if not np.isfinite(sums).all():
+        raise BTFError(f"{path}: variable 'radiance' has NaN or Inf values in view {view}")
     return reference_maps(sums, weights=weights), view
 
 
@@ -178,7 +169,7 @@ class QuiltStageParams:
         """The tile size for a sample of the given size."""
         step = self.block - self.overlap
         if self.size is None:
-            return tuple(max(step, (n // step) * step) for n in sample)
+            return tuple(max(2 * step, (n // step) * step) for n in sample)
         return (self.size[0], self.size[-1])
 
     def quilt_params(self, sample: tuple[int, int]) -> QuiltParams:
@@ -187,28 +178,8 @@ class QuiltStageParams:
                            self.tile_shape(sample))
 
 
-def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
-                 tile_shape) -> None:
-    import zarr
-
-    layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, light0:light1]
-    target = zarr.open_array(out, path=RADIANCE, mode="r+")
-    for t, matrix in enumerate(matrices):
-        target[t, view, light0:light1] = apply(matrix, layers, output=tile_shape)
-
-
-def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
-    import zarr
-
-    source = zarr.open_array(store, path="V", mode="r")[...]
-    target = zarr.open_array(out, path="V", mode="r+")
-    target[tile] = apply_texels(matrix, source).reshape(target.shape[1:])
-
-
 def quilt(params: QuiltStageParams, session: Session) -> Path:
     """Plan a tile set on the reference image and apply it to every layer."""
-    import dask
-
     maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
                                    view=params.view, session=session)
     sample = maps.reference.shape[:2]
@@ -221,50 +192,21 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
                 f"texels on the {sample[0]} x {sample[1]} reference image")
     plan = plan_tiles(maps.reference, qp, seed=params.seed)
-    matrices = [to_csr(t.index.reshape(-1, TERMS), t.weight.reshape(-1, TERMS),
-                       sample[0] * sample[1]) for t in plan.tiles]
     group = open_group(params.store)
-    compressed = group.attrs.get("btf_kind") == COMPRESSED
-    d = Directions.of(open_layers(params.store))
-    channels = tuple(str(c) for c in group["channel"][:])
     attrs = {
-        "source": "quilt", "source_store": params.store,
-        "source_btf_kind": group.attrs.get("source_btf_kind") if compressed
-        else group.attrs.get("btf_kind"),
+        "source": "quilt",
         "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
                   "weights": list(parse_weights(params.weights)), "reference_view": view},
-        "corner_types": qp.corners, "tile_shape": list(qp.tile), "sample_shape": list(sample),
+        "corner_types": qp.corners,
         "placements": [{"canvas": p.canvas, "window": list(p.window),
                         "source": list(p.source), "flags": list(p.flags)}
                        for p in plan.placements],
         "provenance": provenance("quilt", params),
     }
-    if compressed:
-        attrs["transform"] = group.attrs["transform"]
-    rank = group["S"].shape[0] if compressed else None
+    index = np.stack([t.index.reshape(-1, TERMS) for t in plan.tiles])
+    weight = np.stack([t.weight.reshape(-1, TERMS) for t in plan.tiles])
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-        out = create_tileset_store(tmp, directions=d, channels=channels,
-                                   tiles=len(plan.tiles), tile_shape=qp.tile, terms=TERMS,
-                                   reference=maps.reference, attrs=attrs, rank=rank)
-        out["corners"][...] = plan.corners
-        for t, canvas in enumerate(plan.tiles):
-            out["prescription_index"][t] = canvas.index.reshape(-1, TERMS).astype(np.int32)
-            out["prescription_weight"][t] = canvas.weight.reshape(-1, TERMS)
-        shared = session.share(matrices)
-        if compressed:
-            out["U"][...] = group["U"][...]
-            out["S"][...] = group["S"][...]
-            writes = [dask.delayed(_apply_eigentextures)(location(params.store), location(tmp),
-                                                         t, m) for t, m in enumerate(matrices)]
-        else:
-            nv, nl = d.theta_view.size, d.theta_light.size
-            block = group[RADIANCE].chunks[1]
-            writes = [dask.delayed(_apply_block)(location(params.store), location(tmp), v, l0,
-                                                 min(l0 + block, nl), shared, qp.tile)
-                      for v in range(nv) for l0 in range(0, nl, block)]
-        session.log(f"quilt: applying {len(matrices)} prescription(s) to "
-                    f"{'the eigentextures' if compressed else f'{len(writes)} blocks of layers'}"
-                    f" -> {params.out}")
-        session.compute(*writes)
+        write_tileset(params.store, tmp, group=group, index=index, weight=weight,
+                      tile_shape=qp.tile, reference=maps.reference, corners=plan.corners,
+                      attrs=attrs, session=session, label="quilt", output=params.out)
     return Path(params.out)
-

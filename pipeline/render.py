@@ -34,7 +34,8 @@ class RenderParams:
     view: int = option(0, metavar="J", help="view index")
     origin: tuple[int, ...] = option((0, 0), metavar="Y,X",
                                      help="first texel of the region on the surface")
-    seed: int = option(0, metavar="S", help="seed of the tile placement")
+    seed: int | None = option(None, metavar="S",
+                              help="seed of the tile placement (default: the tile set's)")
     chunk: int = option(2048, metavar="N", help="texels per side of a block computed at once")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
@@ -46,6 +47,8 @@ class RenderParams:
         suffix = Path(self.out).suffix.lower()
         if suffix not in (".exr", ".png", ".zarr"):
             raise ParamError("out", f"must end in .exr, .png or .zarr, got {self.out!r}")
+        if self.seed is not None and not 0 <= self.seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
         if self.chunk < 16:
             raise ParamError("chunk", f"must be at least 16, got {self.chunk}")
 

@@ -15,6 +15,7 @@ from pipeline.inspect import InspectParams, inspect
 from pipeline.quilt import QuiltStageParams, ReferenceParams, quilt, reference
 from pipeline.reconstruct import ReconstructParams, reconstruct
 from pipeline.render import RenderParams, render
+from pipeline.roller import RollerStageParams, roller
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,16 @@ STAGES: dict[str, Stage] = {
               "tiles; V=1: one periodic texture). The plan compiles to one sparse "
               "prescription per tile, stored, and applied identically to every layer (or to "
               "the eigentextures of a compressed store).", makes_store=True),
+        Stage("roller", RollerStageParams, roller,
+              "detect the periodicity lattice and build double toroidal tiles (paper 004)",
+              "Detect the two periodicity vectors u, v (any direction) of the perpendicularly "
+              "lit layer from its Fourier spectrum and autocorrelation (--detect-only prints "
+              "them; --json as one object). Otherwise cut a tile spanned by whole periods "
+              "along the cheapest paths through the overlap error (scipy's Dijkstra) so it "
+              "repeats seamlessly on the lattice, optionally N tiles with identical borders "
+              "(--tiles), and apply it to every layer (or to the eigentextures of a "
+              "compressed store). btf render lays the tiles on surfaces of any size.",
+              makes_store=True),
         Stage("render", RenderParams, render,
               "render one layer of a surface of any size from a tile set",
               "Render one layer (--light, --view) of an unbounded surface covered by a tile "

@@ -26,7 +26,7 @@ import numpy as np
 
 from pipeline.errors import BTFError
 from pipeline.store import DIRECTION_COORDS, RADIANCE, Directions, location, open_group
-from tasks.placement import gather
+from tasks.placement import gather, lattice_gather
 
 KINDS = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
@@ -85,6 +85,94 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
     return group
 
 
+def open_layers(path: str | Path):
+    """A Dataset with a (lazy) ``radiance``, from a radiance or a compressed store."""
+    from pipeline.compressed import KIND as COMPRESSED
+    from pipeline.compressed import open_compressed
+    from pipeline.store import open_radiance
+
+    group = open_group(path)
+    if group.attrs.get("btf_kind") == COMPRESSED:
+        return open_compressed(path)
+    return open_radiance(path)
+
+
+def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
+                 tile_shape) -> None:
+    import zarr
+
+    from tasks.prescription import apply
+
+    layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, light0:light1]
+    target = zarr.open_array(out, path=RADIANCE, mode="r+")
+    for t, matrix in enumerate(matrices):
+        target[t, view, light0:light1] = apply(matrix, layers, output=tile_shape)
+
+
+def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
+    import zarr
+
+    from tasks.prescription import apply_texels
+
+    source = zarr.open_array(store, path="V", mode="r")[...]
+    target = zarr.open_array(out, path="V", mode="r+")
+    target[tile] = apply_texels(matrix, source).reshape(target.shape[1:])
+
+
+def write_tileset(store: str, tmp, *, group, index: np.ndarray, weight: np.ndarray,
+                  tile_shape: tuple[int, int], reference: np.ndarray, corners: np.ndarray,
+                  attrs: dict[str, Any], session, label: str, output,
+                  arrays: dict[str, np.ndarray] | None = None) -> None:
+    """Write a tile set into ``tmp``: the prescriptions, and every layer of ``store``.
+
+    The prescriptions ``(tile, pixel, term)`` are applied to every layer of ``store``, or to its
+    eigentextures (then the tile set is compressed).
+    """
+    import dask
+
+    from pipeline.compressed import KIND as COMPRESSED
+    from tasks.prescription import to_csr
+
+    compressed = group.attrs.get("btf_kind") == COMPRESSED
+    d = Directions.of(open_layers(store))
+    channels = tuple(str(c) for c in group["channel"][:])
+    samples = int(np.prod(reference.shape[:2]))
+    matrices = [to_csr(i, w, samples) for i, w in zip(index, weight, strict=True)]
+    attrs = {**attrs, "source_store": store, "tile_shape": list(tile_shape),
+             "sample_shape": list(reference.shape[:2]),
+             "source_btf_kind": group.attrs.get("source_btf_kind") if compressed
+             else group.attrs.get("btf_kind")}
+    if compressed:
+        attrs["transform"] = group.attrs["transform"]
+    out = create_tileset_store(tmp, directions=d, channels=channels, tiles=len(matrices),
+                               tile_shape=tile_shape, terms=index.shape[-1],
+                               reference=reference, attrs=attrs,
+                               rank=group["S"].shape[0] if compressed else None)
+    out["corners"][...] = corners
+    for t in range(len(matrices)):
+        out["prescription_index"][t] = index[t].astype(np.int32)
+        out["prescription_weight"][t] = weight[t]
+    for name, values in (arrays or {}).items():
+        out.create_array(name, shape=values.shape, dtype=values.dtype, compressors=None)[...] = (
+            values)
+    shared = session.share(matrices)
+    if compressed:
+        out["U"][...] = group["U"][...]
+        out["S"][...] = group["S"][...]
+        writes = [dask.delayed(_apply_eigentextures)(location(store), location(tmp), t, m)
+                  for t, m in enumerate(matrices)]
+    else:
+        nv, nl = d.theta_view.size, d.theta_light.size
+        block = group[RADIANCE].chunks[1]
+        writes = [dask.delayed(_apply_block)(location(store), location(tmp), v, l0,
+                                             min(l0 + block, nl), shared, tile_shape)
+                  for v in range(nv) for l0 in range(0, nl, block)]
+    session.log(f"{label}: applying {len(matrices)} prescription(s) to "
+                f"{'the eigentextures' if compressed else f'{len(writes)} blocks of layers'}"
+                f" -> {output}")
+    session.compute(*writes)
+
+
 def open_tileset(path: str | Path):
     """Open a tile-set store (zarr group), checking its kind and variables."""
     group = open_group(path)
@@ -120,12 +208,20 @@ def _surface_block(tiles, block_info=None, *, origin, seed, corners):
                   corners=corners)
 
 
+def _lattice_block(tiles, block_info=None, *, origin, seed, hnf, basis, representative):
+    (y0, y1), (x0, x1), _ = block_info[None]["array-location"]
+    return lattice_gather(tiles, origin[0] + y0, origin[1] + x0, y1 - y0, x1 - x0, hnf=hnf,
+                          basis=basis, representative=representative, seed=seed)
+
+
 def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int],
-               origin: tuple[int, int] = (0, 0), seed: int = 0, chunk: int = 2048):
+               origin: tuple[int, int] = (0, 0), seed: int | None = None, chunk: int = 2048):
     """One layer of the surface tiled by a tile set, as a lazy dask array ``(y, x, channel)``.
 
     The tiles of the layer are read once (one task) and every block of the surface is a pure
-    gather from them, placed by a hash of the tile coordinates and ``seed``.
+    gather from them: quilting's tiles placed by the corner types a hash of the lattice
+    vertices and ``seed`` gives, the roller's on their (possibly sheared) lattice, chosen per
+    cell by a hash of the cell and ``seed``. ``seed=None``: the seed stored with the tile set.
     """
     import dask
     import dask.array as da
@@ -136,12 +232,21 @@ def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int]
         raise BTFError(f"{path}: --view {view} is out of range (the tile set has {nv} views)")
     if not 0 <= light < nl:
         raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
-    corners = int(group.attrs["corner_types"])
+    if seed is None:
+        seed = int(group.attrs.get("seed", 0))
     channels = group["channel"].shape[0]
     tiles = dask.delayed(_layer_tiles, pure=True)(location(path), view, light)
     h, w = size
     chunks = (tuple(min(chunk, h - i) for i in range(0, h, chunk)),
               tuple(min(chunk, w - i) for i in range(0, w, chunk)), (channels,))
-    return da.map_blocks(_surface_block, tiles, chunks=chunks, dtype=np.float32,
-                         meta=np.empty((0, 0, 0), np.float32), origin=origin, seed=seed,
-                         corners=corners)
+    meta = np.empty((0, 0, 0), np.float32)
+    if group.attrs.get("placement") == "lattice":
+        lattice = group.attrs["lattice"]
+        rep = group["representative"][...] if "representative" in group.array_keys() else None
+        return da.map_blocks(_lattice_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,
+                             origin=origin, seed=seed, hnf=tuple(lattice["hnf"]),
+                             basis=(tuple(lattice["U"]), tuple(lattice["V"])),
+                             representative=rep)
+    corners = int(group.attrs["corner_types"])
+    return da.map_blocks(_surface_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,
+                         origin=origin, seed=seed, corners=corners)

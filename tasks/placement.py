@@ -52,3 +52,57 @@ def gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, seed: int,
             out[ya - y0 : yb - y0, xa - x0 : xb - x0] = tiles[
                 ids[i, j], ya - cy * ty : yb - cy * ty, xa - cx * tx : xb - cx * tx]
     return out
+
+
+def _bands(y0: int, x0: int, ny: int, nx: int, hnf):
+    """The stored-tile slices of a region: ``(out_rows, out_cols, rows, cols)`` per piece."""
+    h, w, s = hnf
+    for k in range(y0 // h, (y0 + ny - 1) // h + 1):
+        ya, yb = max(y0, k * h), min(y0 + ny, (k + 1) * h)
+        shifted = x0 - k * s
+        for j in range(shifted // w, (shifted + nx - 1) // w + 1):
+            xa, xb = max(shifted, j * w), min(shifted + nx, (j + 1) * w)
+            yield (slice(ya - y0, yb - y0), slice(xa - shifted, xb - shifted),
+                   slice(ya - k * h, yb - k * h), slice(xa - j * w, xb - j * w))
+
+
+def lattice_cells(y0: int, x0: int, ny: int, nx: int, *, hnf, basis, representative
+                  ) -> np.ndarray:
+    """Lattice cell ``(i, j)`` of every texel of a region tiled by cut tiles ``(ny, nx, 2)``.
+
+    Texel ``p`` is stored texel ``q`` (Hermite layout, see :func:`lattice_gather`) and lies in
+    the cell ``(i, j)`` with ``p = i U + j V + representative[q]``.
+    """
+    from tasks.roller import lattice_coordinates
+
+    out = np.empty((ny, nx, 2), np.int64)
+    for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
+        yy, xx = np.mgrid[y0 + orows.start : y0 + orows.stop, x0 + ocols.start : x0 + ocols.stop]
+        cell, _ = lattice_coordinates(np.stack([yy, xx], -1) - representative[rows, cols],
+                                      *basis)
+        out[orows, ocols] = cell
+    return out
+
+
+def lattice_gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, hnf,
+                   basis=None, representative=None, seed: int = 0) -> np.ndarray:
+    """Pixels of the surface covered by tiles stored in Hermite normal form (the roller).
+
+    The tile lattice has the basis ``(h, s)``, ``(0, w)`` (``hnf = (h, w, s)``): texel
+    ``(y, x)`` is stored texel ``(y - k h, x - k s - j w)`` of row band ``k = y // h``. With one
+    tile that is all (slice copies). With several, the tile is chosen per lattice cell of the
+    *cut* tile (:func:`lattice_cells`; ``basis`` the tile vectors ``(U, V)``): cell ``(i, j)``
+    gets tile ``hash(i, j, seed) % n``.
+    """
+    n = tiles.shape[0]
+    out = np.empty((ny, nx, *tiles.shape[3:]), tiles.dtype)
+    if n == 1:
+        for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
+            out[orows, ocols] = tiles[0, rows, cols]
+        return out
+    cells = lattice_cells(y0, x0, ny, nx, hnf=hnf, basis=basis, representative=representative)
+    pick = (hash_coords(cells[..., 0], cells[..., 1], seed=seed) % np.uint64(n)).astype(np.int64)
+    for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
+        out[orows, ocols] = tiles[pick[orows, ocols], np.arange(rows.start, rows.stop)[:, None],
+                                  np.arange(cols.start, cols.stop)[None, :]]
+    return out

@@ -67,9 +67,10 @@ class QuiltParams:
         if self.corners < 1:
             raise ValueError(f"corners must be at least 1, got {self.corners}")
         for n in self.tile:
-            if n < self.step or n % self.step:
+            if n < 2 * self.step or n % self.step:
                 raise ValueError(f"tile size {self.tile} must be a multiple of block - overlap "
-                                 f"= {self.step}")
+                                 f"= {self.step}, at least twice it (one step leaves no room "
+                                 f"for edge patches)")
 
     @property
     def step(self) -> int:

@@ -1,0 +1,161 @@
+"""``btf roller``: periodicity detection and double toroidal tiles (paper 004).
+
+The lattice is detected on one grey-scale image (:mod:`tasks.lattice`): the perpendicularly
+lit layer (the light and view closest to the normal; ``--image reference`` uses quilting's
+reference image instead). The tiles are planned on the same image in colour
+(:mod:`tasks.roller`), and their prescriptions are applied to every layer, or to the
+eigentextures of a compressed store, by the machinery quilting uses
+(:func:`pipeline.tileset.write_tileset`). The result is a tile set that ``btf render`` lays on
+surfaces of any size with pure gathers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, option
+from pipeline.provenance import provenance
+from pipeline.runtime import Session
+from pipeline.store import RADIANCE, Directions, open_group
+from pipeline.tileset import open_layers, write_tileset
+from tasks.lattice import Lattice, detect_lattice
+from tasks.reference import luminance
+from tasks.roller import RollerParams, plan_roller
+
+LOW_CONFIDENCE = "the texture shows no clear periodicity"
+
+
+@dataclasses.dataclass(frozen=True)
+class RollerStageParams:
+    """Parameters of ``btf roller``."""
+
+    store: str = option(help="radiance or compressed store (the sample)", positional=True,
+                        path="in", metavar="IN")
+    out: str | None = option(None, help="output tile-set store (not needed with --detect-only)",
+                             positional=True, path="out")
+    detect_only: bool = option(False, help="only detect and print the periodicity vectors")
+    json: bool = option(False, record=False,
+                        help="with --detect-only: print one JSON object (u, v as [dy, dx], "
+                             "angles_deg, lengths_px, confidence, periodic, message)")
+    tiles: int = option(1, metavar="N", help="tiles with identical borders and different "
+                                             "content, chosen per lattice cell by a hash")
+    periods: tuple[int, ...] | None = option(
+        None, metavar="A,B", help="periods of u and v per tile edge (default: a tile of at most "
+                                  "a quarter of the sample)")
+    seed: int = option(0, metavar="S", help="seed recorded for rendering (placement of tiles)")
+    band: int = option(4, metavar="PX", help="half-width of the band the cuts may use")
+    min_confidence: float = option(0.5, metavar="C",
+                                   help="refuse to build tiles below this confidence")
+    image: str = option("layer", choices=("layer", "reference"),
+                        help="image to analyse: the perpendicularly lit layer, or quilting's "
+                             "reference image")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        if not self.detect_only and self.out is None:
+            raise ParamError("out", "is required (unless --detect-only)")
+        if self.json and not self.detect_only:
+            raise ParamError("json", "only goes with --detect-only")
+        if not 0 <= self.seed < 2**63:
+            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        if self.periods is not None and len(self.periods) != 2:
+            raise ParamError("periods", f"expected A,B, got {self.periods}")
+        try:
+            self.roller_params()
+        except ValueError as exc:
+            raise ParamError(str(exc).split()[0], str(exc)) from None
+
+    def roller_params(self) -> RollerParams:
+        """The planner's parameters."""
+        return RollerParams(tiles=self.tiles, periods=self.periods, band=self.band)
+
+
+def analysis_image(path: str, image: str, session: Session) -> tuple[np.ndarray, str]:
+    """The colour image the roller analyses, and a description of it."""
+    if image == "reference":
+        from pipeline.quilt import compute_reference
+
+        maps, view = compute_reference(path, weights=(1.0, 0.5, 0.5), view=None,
+                                       session=session)
+        return maps.reference.astype(np.float64), f"the reference image of view {view}"
+    ds = open_layers(path)
+    d = Directions.of(ds)
+    view = int(np.argmin(d.theta_view))
+    light = int(np.argmin(d.theta_light))
+    (layer,) = session.compute(ds[RADIANCE].data[view, light])
+    return (np.asarray(layer, np.float64),
+            f"view {view}, light {light} (theta {d.theta_light[light]:.0f} deg)")
+
+
+def describe(lattice: Lattice) -> str:
+    """The lattice as lines of text."""
+    lines = []
+    for name, vec, length, angle in zip("uv", (lattice.u, lattice.v), lattice.lengths_px,
+                                        lattice.angles_deg, strict=True):
+        lines.append(f"  {name} = [dy, dx] = [{vec[0]:.2f}, {vec[1]:.2f}]: {length:.2f} px "
+                     f"at {angle:.2f} deg")
+    return "\n".join(lines)
+
+
+def roller(params: RollerStageParams, session: Session) -> Path | None:
+    """Detect the lattice and, unless ``--detect-only``, write a roller tile set."""
+    image, what = analysis_image(params.store, params.image, session)
+    gray = luminance(image) if image.shape[-1] == 3 else image.mean(axis=-1)
+    try:
+        lattice = detect_lattice(gray)
+    except ValueError as exc:
+        raise BTFError(f"{params.store}: {exc}") from None
+    periodic = lattice.confidence >= params.min_confidence
+    message = ("periodic" if periodic else
+               f"{LOW_CONFIDENCE} (confidence {lattice.confidence:.2f} < {params.min_confidence}"
+               f"); the roller would repeat an arbitrary crop: use btf quilt for it")
+    if params.detect_only:
+        if params.json:
+            print(json.dumps({**lattice.as_dict(), "periodic": periodic, "message": message}))
+        else:
+            print(f"{params.store}: lattice of {what}:\n{describe(lattice)}\n"
+                  f"  confidence {lattice.confidence:.2f}: {message}")
+        if not periodic:
+            print(f"btf roller: {params.store}: {message}", file=sys.stderr)
+        return None
+    if not periodic:
+        raise BTFError(f"{params.store}: {message} (--min-confidence sets the threshold)")
+    session.log(f"roller: lattice of {what}:\n{describe(lattice)}\n  confidence "
+                f"{lattice.confidence:.2f}")
+    try:
+        plan = plan_roller(image, lattice.u, lattice.v, params.roller_params())
+    except ValueError as exc:
+        raise BTFError(f"{params.store}: {exc}") from None
+    h, w, _ = plan.hnf
+    session.log(f"roller: {params.tiles} tile(s) spanned by U = {plan.U}, V = {plan.V} "
+                f"({plan.periods[0]} x {plan.periods[1]} periods, {plan.area} texels, stored "
+                f"{h} x {w}) at {plan.origin}")
+    group = open_group(params.store)
+    attrs = {
+        "source": "roller",
+        "placement": "lattice",
+        "corner_types": 1,
+        "lattice": {**lattice.as_dict(), "U": list(plan.U), "V": list(plan.V),
+                    "periods": list(plan.periods), "hnf": list(plan.hnf),
+                    "origin": list(plan.origin), "offsets": [list(o) for o in plan.offsets],
+                    "image": what},
+        "roller": {**dataclasses.asdict(params.roller_params()), "seed": params.seed,
+                   "cut_u": plan.cut_u.tolist(), "cut_v": plan.cut_v.tolist()},
+        "seed": params.seed,
+        "provenance": provenance("roller", params),
+    }
+    reference = image.astype(np.float32)
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
+        write_tileset(params.store, tmp, group=group, index=plan.index, weight=plan.weight,
+                      tile_shape=plan.tile_shape, reference=reference,
+                      corners=np.zeros((params.tiles, 4), np.int64), attrs=attrs,
+                      session=session, label="roller", output=params.out,
+                      arrays={"representative": plan.representative.astype(np.int64)})
+    return Path(params.out)

@@ -1,0 +1,414 @@
+"""Double toroidal tiles on a (possibly sheared) lattice: the generalized roller (paper 004).
+
+Given the periodicity vectors ``u``, ``v`` (:mod:`tasks.lattice`), the tile is spanned by
+``U = a u`` and ``V = b v`` rounded to whole pixels, so it repeats by exact integer shifts.
+Choices where the paper is not specific:
+
+- **Tile size**: by default ``a, b`` whose rhomboid covers at most a quarter of the sample (the
+  paper reports about 1:4), fits with its cut bands (and, for several tiles, with room for the
+  other tiles' positions), and is large without being elongated (:func:`choose_periods`).
+- **Overlap errors** (eq. 1): ``psi_u(r) = |Y(r) - Y(r + U)|^2`` and ``psi_v(r) = |Y(r) -
+  Y(r + V)|^2`` on the reference image (all channels).
+- **Optimal vertex** ``r*``: the admissible origin with the smallest ``psi_u + psi_v`` summed
+  over a 5 x 5 neighbourhood.
+- **Optimal cuts**: each cut runs from ``r*`` to ``r* + V`` (the ``U`` cut) or ``r* + U``, in a
+  band of ``+-band`` pixels around the rhomboid's edge, on a grid of one step per pixel along
+  the edge and one pixel across it (a move changes the offset by at most one pixel per step);
+  the cheapest path through the overlap error is found with scipy's Dijkstra. A cut is an
+  offset ``f(t)`` of the edge in lattice coordinates, periodic because it starts and ends at
+  the vertices, so the two cuts combine into one tile without special cases at the corners.
+- **Tile content**: every residue class of the tile lattice (one texel of the tile) takes the
+  sample texel of the rhomboid, moved by ``U`` and/or ``V`` to the side of the cuts it belongs
+  to; within about ``2 sigma`` of a cut it is blended with the texel on the other side
+  (Gaussian profile, ``sigma`` = 1 px by default), as quilting blends its cuts.
+- **Multiple tiles** (paper: "identical tile borders but different content"): tile ``k > 0``
+  takes its interior from the rhomboid moved by a small lattice vector ``i u + j v`` (the most
+  similar positions first, by SSD on the reference image), and its border, the texels less
+  than ``border`` pixels (Euclidean, to the nearest texel next to another cell) from the cut
+  tile's edge, from tile 0; a linear ramp of ``ramp`` pixels joins the two. (Simpler than the
+  paper's joint optimal cut of the stacked rhomboids.) Borders are therefore identical, and
+  any tile may follow any other.
+- **Storage**: a tile is stored as its lattice's Hermite normal form rectangle ``h x w`` (the
+  lattice has the basis ``(h, s)``, ``(0, w)``), so every tile is a plain array and rendering
+  is slice copies (one tile) or a per-texel gather (several); ``representative`` gives, for
+  every stored texel, its position in the cut tile relative to ``r*``, which decides the
+  lattice cell a surface texel belongs to.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.special import erfc
+
+from tasks.prescription import to_csr
+
+TERMS = 8
+
+
+@dataclass(frozen=True)
+class RollerParams:
+    """Tile count, periods per tile edge (``None``: automatic), cut band, blend, border."""
+
+    tiles: int = 1
+    periods: tuple[int, int] | None = None
+    band: int = 4
+    sigma: float = 1.0
+    border: int = 4
+    ramp: int = 4
+
+    def __post_init__(self):
+        if self.tiles < 1:
+            raise ValueError(f"tiles must be at least 1, got {self.tiles}")
+        if self.periods is not None and min(self.periods) < 1:
+            raise ValueError(f"periods must be at least 1, got {self.periods}")
+        if self.band < 1:
+            raise ValueError(f"band must be at least 1, got {self.band}")
+        if not 0.25 <= self.sigma <= 8:
+            raise ValueError(f"sigma must be between 0.25 and 8, got {self.sigma}")
+        if self.border < 3 * self.sigma or self.ramp < 1:
+            raise ValueError(f"border must be at least 3 sigma = {3 * self.sigma:g} (the "
+                             f"blend across a cut stays inside it) and ramp at least 1")
+
+
+@dataclass
+class RollerPlan:
+    """A planned tile set: lattice, layout, cuts and one prescription per tile."""
+
+    U: tuple[int, int]
+    V: tuple[int, int]
+    hnf: tuple[int, int, int]  # h, w, shear s: basis (h, s), (0, w)
+    origin: tuple[int, int]
+    offsets: list[tuple[int, int]]  # per tile: its interior's shift from tile 0's
+    cut_u: np.ndarray  # offsets (px across the edge) of the U cut at each step along V
+    cut_v: np.ndarray
+    index: np.ndarray  # (tiles, h * w, TERMS) int32, -1 unused
+    weight: np.ndarray  # (tiles, h * w, TERMS) float32
+    representative: np.ndarray  # (h, w, 2) int64, position in the cut tile relative to origin
+    periods: tuple[int, int] = (1, 1)
+    errors: dict = field(default_factory=dict)
+
+    @property
+    def tile_shape(self) -> tuple[int, int]:
+        """Stored tile size ``(h, w)``."""
+        return self.hnf[0], self.hnf[1]
+
+    @property
+    def area(self) -> int:
+        """Texels per tile (the lattice's determinant)."""
+        return self.hnf[0] * self.hnf[1]
+
+
+def hermite(U, V) -> tuple[int, int, int]:
+    """``(h, w, s)``: the lattice spanned by ``U``, ``V`` has the basis ``(h, s)``, ``(0, w)``."""
+    uy, ux = (int(c) for c in U)
+    vy, vx = (int(c) for c in V)
+    det = uy * vx - ux * vy
+    if det == 0:
+        raise ValueError(f"U = {U} and V = {V} are parallel")
+    g, p, q = _egcd(uy, vy)
+    if g == 0:  # both horizontal: impossible with det != 0
+        raise ValueError(f"U = {U} and V = {V} do not span the plane")
+    h = abs(g)
+    sx = p * ux + q * vx
+    if g < 0:
+        sx = -sx
+    w = abs(det) // h
+    return h, w, sx % w
+
+
+def _egcd(a: int, b: int) -> tuple[int, int, int]:
+    """``(g, p, q)`` with ``p a + q b = g = gcd(a, b)``."""
+    if b == 0:
+        return (a, 1, 0)
+    g, p, q = _egcd(b, a % b)
+    return g, q, p - (a // b) * q
+
+
+def lattice_coordinates(points: np.ndarray, U, V) -> tuple[np.ndarray, np.ndarray]:
+    """Integer part and fraction of ``points`` (``(..., 2)`` int) in the basis ``U``, ``V``.
+
+    Exact integer arithmetic: ``points = floor_a U + floor_b V + (frac_a U + frac_b V)``.
+    """
+    uy, ux = U
+    vy, vx = V
+    det = uy * vx - ux * vy
+    y, x = points[..., 0].astype(np.int64), points[..., 1].astype(np.int64)
+    num_a = vx * y - vy * x
+    num_b = -ux * y + uy * x
+    if det < 0:
+        num_a, num_b, det = -num_a, -num_b, -det
+    ia, ib = np.floor_divide(num_a, det), np.floor_divide(num_b, det)
+    return np.stack([ia, ib], -1), np.stack([(num_a - ia * det) / det,
+                                             (num_b - ib * det) / det], -1)
+
+
+def _extent(U, V, margin_s: float, margin_t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max ``(dy, dx)`` of the rhomboid extended by the margins (lattice units)."""
+    corners = np.array([[s, t] for s in (-margin_s, 1 + margin_s)
+                        for t in (-margin_t, 1 + margin_t)])
+    pts = corners @ np.array([U, V], float)
+    return np.floor(pts.min(axis=0)).astype(int), np.ceil(pts.max(axis=0)).astype(int)
+
+
+def _margins(U, V, params: RollerParams) -> tuple[float, float, float, float]:
+    det = abs(U[0] * V[1] - U[1] * V[0])
+    width_u = det / math.hypot(*V)  # tile width across the cut along V
+    width_v = det / math.hypot(*U)
+    reach = params.band + 3 * params.sigma + 2
+    return reach / width_u, reach / width_v, width_u, width_v
+
+
+def _admissible(shape, U, V, params: RollerParams, shifts=((0, 0),)) -> tuple[range, range]:
+    """Origins for which the extended rhomboid (at every shift) lies inside the sample."""
+    ms, mt, _, _ = _margins(U, V, params)
+    lo, hi = _extent(U, V, ms, mt)
+    sh = np.asarray(shifts)
+    lo = lo + sh.min(axis=0)
+    hi = hi + sh.max(axis=0)
+    return range(-lo[0], shape[0] - hi[0]), range(-lo[1], shape[1] - hi[1])
+
+
+def _lattice_shifts(u, v, reach: int = 6) -> list[tuple[int, int]]:
+    """Small lattice vectors ``i u + j v`` (rounded), shortest first, excluding 0."""
+    out = {}
+    for i in range(-reach, reach + 1):
+        for j in range(-reach, reach + 1):
+            if (i, j) != (0, 0):
+                d = tuple(int(c) for c in np.rint(i * np.asarray(u) + j * np.asarray(v)))
+                out.setdefault(d, math.hypot(*d))
+    return sorted(out, key=lambda d: (out[d], d))
+
+
+def choose_periods(shape, u, v, params: RollerParams) -> tuple[int, int]:
+    """``(a, b)`` for a large rhomboid, at most a quarter of the sample, that fits.
+
+    Among those, the largest ``area * sqrt(short side / long side)``: large but not elongated.
+    """
+    lu, lv = math.hypot(*u), math.hypot(*v)
+    limit = shape[0] * shape[1] / 4.0
+    shifts = [(0, 0), *_lattice_shifts(u, v)[: 4 * (params.tiles - 1)]]
+    best = None
+    for a in range(1, int(max(shape) / lu) + 2):
+        for b in range(1, int(max(shape) / lv) + 2):
+            U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
+            V = tuple(int(c) for c in np.rint(b * np.asarray(v)))
+            area = abs(U[0] * V[1] - U[1] * V[0])
+            if area == 0 or (area > limit and (a, b) != (1, 1)):
+                continue
+            ys, xs = _admissible(shape, U, V, params, shifts)
+            if len(ys) == 0 or len(xs) == 0:
+                continue
+            sides = sorted((math.hypot(*U), math.hypot(*V)))
+            key = (area * math.sqrt(sides[0] / sides[1]), area)  # large, not too elongated
+            if best is None or key > best[0]:
+                best = (key, (a, b))
+    if best is None:
+        raise ValueError(f"the sample ({shape[0]} x {shape[1]}) is too small for one period "
+                         f"u = {tuple(round(c, 1) for c in u)}, v = "
+                         f"{tuple(round(c, 1) for c in v)} plus the cut bands")
+    return best[1]
+
+
+def _overlap_error(img: np.ndarray, shift) -> np.ndarray:
+    """``|Y(r) - Y(r + shift)|^2`` summed over channels (inf where ``r + shift`` is outside)."""
+    h, w = img.shape[:2]
+    dy, dx = shift
+    out = np.full((h, w), np.inf)
+    ys = slice(max(0, -dy), min(h, h - dy))
+    xs = slice(max(0, -dx), min(w, w - dx))
+    ys2 = slice(ys.start + dy, ys.stop + dy)
+    xs2 = slice(xs.start + dx, xs.stop + dx)
+    out[ys, xs] = np.sum((img[ys, xs] - img[ys2, xs2]) ** 2, axis=-1)
+    return out
+
+
+def _cut(error: np.ndarray, origin, along, across_unit, steps: int, band: int) -> np.ndarray:
+    """Offsets (pixels across the edge) of the cheapest path along an edge of the tile.
+
+    The path runs from ``origin`` to ``origin + along`` in ``steps + 1`` rows, with offset 0 at
+    both ends, changing by at most one pixel per row.
+    """
+    rows = np.arange(steps + 1)[:, None] / steps
+    offs = np.arange(-band, band + 1)[None, :]
+    pts = (np.asarray(origin)[None, None, :] + rows[..., None] * np.asarray(along)
+           + offs[..., None] * np.asarray(across_unit))
+    iy = np.clip(np.rint(pts[..., 0]).astype(int), 0, error.shape[0] - 1)
+    ix = np.clip(np.rint(pts[..., 1]).astype(int), 0, error.shape[1] - 1)
+    cost = error[iy, ix] + 1e-9
+    n_off = 2 * band + 1
+    ids = np.arange((steps + 1) * n_off).reshape(steps + 1, n_off)
+    src, dst, wts = [], [], []
+    for d in (-1, 0, 1):
+        a = ids[:-1, max(0, -d) : n_off - max(0, d)]
+        b = ids[1:, max(0, d) : n_off - max(0, -d)]
+        c = cost[1:, max(0, d) : n_off - max(0, -d)]
+        ok = np.isfinite(c)
+        src.append(a[ok])
+        dst.append(b[ok])
+        wts.append(c[ok])
+    graph = coo_matrix((np.concatenate(wts), (np.concatenate(src), np.concatenate(dst))),
+                       shape=(ids.size, ids.size)).tocsr()
+    start, end = ids[0, band], ids[-1, band]
+    _, pred = dijkstra(graph, indices=start, return_predecessors=True)
+    path = np.zeros(steps + 1, int)
+    node = end
+    if pred[node] < 0:
+        return path.astype(float)  # no finite path (should not happen inside the sample)
+    while node >= 0:
+        i, j = divmod(int(node), n_off)
+        path[i] = j - band
+        node = pred[node]
+    return path.astype(float)
+
+
+def _feather(frac: np.ndarray, cut: np.ndarray, along: np.ndarray, width: float,
+             sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Main and neighbour shifts, the neighbour's weight, and the distance to the tile edge.
+
+    ``frac`` is the texel's coordinate across the cut (lattice units, ``[0, 1)``), ``along`` its
+    coordinate along it; ``cut`` the cut's offsets in pixels at ``len(cut)`` steps.
+    """
+    f = np.interp(along, np.linspace(0.0, 1.0, cut.size), cut) / width
+    rel = frac - f
+    main = -np.floor(rel)
+    inside = (rel + main) * width  # pixels from the tile's first edge, [0, width)
+    near_first = inside <= width - inside
+    dist = np.where(near_first, inside, width - inside)
+    other = np.where(near_first, main + 1, main - 1)
+    alpha = 0.5 * erfc((dist + 0.5) / (sigma * math.sqrt(2.0)))
+    alpha = np.where(alpha < 1e-3, 0.0, alpha)
+    return main.astype(np.int64), other.astype(np.int64), alpha, dist
+
+
+def plan_roller(image: np.ndarray, u, v, params: RollerParams) -> RollerPlan:
+    """Plan the tile set on ``image`` (``(y, x, channel)``) for periodicity vectors ``u``, ``v``."""
+    img = np.asarray(image, np.float64)
+    if img.ndim == 2:
+        img = img[..., None]
+    shape = img.shape[:2]
+    a, b = params.periods or choose_periods(shape, u, v, params)
+    U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
+    V = tuple(int(c) for c in np.rint(b * np.asarray(v)))
+    if U[0] * V[1] - U[1] * V[0] == 0:
+        raise ValueError(f"the tile vectors {U} and {V} are parallel")
+    if U[0] * V[1] - U[1] * V[0] < 0:
+        U, V = V, U
+        a, b = b, a
+    shifts = _lattice_shifts(u, v)
+    ys, xs = _admissible(shape, U, V, params)
+    if len(ys) == 0 or len(xs) == 0:
+        raise ValueError(f"the sample ({shape[0]} x {shape[1]}) is too small for a tile "
+                         f"spanned by {U} and {V} plus its cut bands")
+    psi_u, psi_v = _overlap_error(img, U), _overlap_error(img, V)
+    score = ndimage.uniform_filter(np.where(np.isfinite(psi_u + psi_v), psi_u + psi_v, 1e30),
+                                   size=5)
+    sub = score[ys.start : ys.stop, xs.start : xs.stop]
+    oy, ox = np.unravel_index(int(np.argmin(sub)), sub.shape)
+    origin = (ys.start + int(oy), xs.start + int(ox))
+
+    _, _, width_u, width_v = _margins(U, V, params)
+    det = U[0] * V[1] - U[1] * V[0]
+    across_u = np.array([V[1], -V[0]], float) * (det / abs(det)) / math.hypot(*V)
+    across_v = np.array([-U[1], U[0]], float) * (det / abs(det)) / math.hypot(*U)
+    # unit normals pointing into the tile from its U-cut edge (t axis) and V-cut edge (s axis)
+    cut_u = _cut(psi_u, origin, V, across_u, max(1, round(math.hypot(*V))), params.band)
+    cut_v = _cut(psi_v, origin, U, across_v, max(1, round(math.hypot(*U))), params.band)
+
+    h, w, s = hermite(U, V)
+    yy, xx = np.mgrid[0:h, 0:w]
+    stored = np.stack([yy, xx], -1).reshape(-1, 2)
+    cell, frac = lattice_coordinates(stored, U, V)
+    base = stored - cell @ np.array([U, V])  # the texel of the rhomboid, relative to origin
+    mu, ou, alpha, _ = _feather(frac[:, 0], cut_u, frac[:, 1], width_u, params.sigma)
+    mv, ov, beta, _ = _feather(frac[:, 1], cut_v, frac[:, 0], width_v, params.sigma)
+    Ua, Va = np.array(U), np.array(V)
+    terms = [(mu, mv, (1 - alpha) * (1 - beta)), (ou, mv, alpha * (1 - beta)),
+             (mu, ov, (1 - alpha) * beta), (ou, ov, alpha * beta)]
+    representative = (base + mu[:, None] * Ua + mv[:, None] * Va).reshape(h, w, 2)
+    edge = _edge_distance(representative, U, V, (h, w, s))
+
+    offsets = [(0, 0)]
+    if params.tiles > 1:
+        offsets += _similar_shifts(img, origin, base, mu, mv, Ua, Va, shape, U, V, params,
+                                   shifts)
+    gamma = np.clip((edge - params.border) / params.ramp, 0.0, 1.0)
+    index = np.full((params.tiles, h * w, TERMS), -1, np.int32)
+    weight = np.zeros((params.tiles, h * w, TERMS), np.float32)
+    for k, off in enumerate(offsets):
+        parts = [(terms, 1.0 - gamma if k else np.ones_like(gamma), (0, 0))]
+        if k:
+            parts.append((terms, gamma, off))
+        col = 0
+        for group, scale, shift in parts:
+            for su, sv, wt in group:
+                pos = (np.asarray(origin) + base + su[:, None] * Ua + sv[:, None] * Va
+                       + np.asarray(shift))
+                index[k, :, col] = pos[:, 0] * shape[1] + pos[:, 1]
+                weight[k, :, col] = wt * scale
+                col += 1
+        unused = weight[k] == 0
+        index[k][unused] = -1
+    _compact(index, weight, shape[0] * shape[1])
+    return RollerPlan(U=U, V=V, hnf=(h, w, s), origin=origin, offsets=offsets, cut_u=cut_u,
+                      cut_v=cut_v, index=index, weight=weight, representative=representative,
+                      periods=(a, b))
+
+
+def _edge_distance(representative: np.ndarray, U, V, hnf) -> np.ndarray:
+    """Per stored texel, the distance (pixels) from its place in the cut tile to the edge.
+
+    That is the Euclidean distance to the nearest texel with a 4-neighbour in another cell.
+    """
+    from tasks.placement import lattice_cells
+
+    rep = representative.reshape(-1, 2)
+    lo, hi = rep.min(axis=0) - 2, rep.max(axis=0) + 3
+    cells = lattice_cells(int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1]),
+                          hnf=hnf, basis=(U, V), representative=representative)
+    other = np.zeros(cells.shape[:2], bool)
+    for axis in (0, 1):
+        step = np.any(np.diff(cells, axis=axis) != 0, axis=-1)
+        lead = [slice(None)] * 2
+        lead[axis] = slice(1, None)
+        other[tuple(lead)] |= step
+        lead[axis] = slice(None, -1)
+        other[tuple(lead)] |= step
+    dist = ndimage.distance_transform_edt(~other)
+    return dist[rep[:, 0] - lo[0], rep[:, 1] - lo[1]]
+
+
+def _similar_shifts(img, origin, base, mu, mv, Ua, Va, shape, U, V, params, shifts):
+    """The ``tiles - 1`` lattice shifts whose rhomboid is most like tile 0's (SSD)."""
+    pos = np.asarray(origin) + base + mu[:, None] * Ua + mv[:, None] * Va
+    ref = img[pos[:, 0], pos[:, 1]]
+    ranked = []
+    for d in shifts:
+        ys, xs = _admissible(shape, U, V, params, [(0, 0), d])
+        if origin[0] in ys and origin[1] in xs:
+            moved = img[pos[:, 0] + d[0], pos[:, 1] + d[1]]
+            ranked.append((float(np.sum((moved - ref) ** 2)), d))
+    ranked.sort()
+    if len(ranked) < params.tiles - 1:
+        raise ValueError(f"only {len(ranked)} other tile position(s) fit in the sample; ask for "
+                         f"at most {len(ranked) + 1} tiles or smaller ones (--periods)")
+    return [d for _, d in ranked[: params.tiles - 1]]
+
+
+def _compact(index: np.ndarray, weight: np.ndarray, samples: int) -> None:
+    """Sum duplicate indices within each row, drop zero weights, pad last (in place)."""
+    for k in range(index.shape[0]):
+        m = to_csr(index[k], weight[k], samples)
+        m.eliminate_zeros()
+        counts = np.diff(m.indptr)
+        rows = np.repeat(np.arange(counts.size), counts)
+        cols = np.arange(m.nnz) - np.repeat(m.indptr[:-1], counts)
+        index[k] = -1
+        weight[k] = 0.0
+        index[k][rows, cols] = m.indices
+        weight[k][rows, cols] = m.data

@@ -1,0 +1,237 @@
+"""The generalized roller (paper 004): lattice detection, double toroidal tiles, rendering."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import zarr
+from scipy import ndimage
+
+from helpers import generate_store, no_partial_outputs
+from pipeline.images import write_exr
+from pipeline.store import RADIANCE, open_radiance
+from pipeline.tileset import lazy_layer
+from tasks.lattice import detect_lattice
+from tasks.placement import lattice_cells
+from tasks.prescription import check, to_csr
+
+ROT = np.radians(30.0)
+LATTICES = {  # (u, v) as (dy, dx)
+    "axis-aligned": ((0.0, 20.0), (24.0, 0.0)),
+    "rotated-30": ((24 * np.sin(ROT), 24 * np.cos(ROT)),
+                   (20 * np.sin(ROT + np.pi / 2), 20 * np.cos(ROT + np.pi / 2))),
+    "sheared": ((0.0, 22.0), (18.0, 8.0)),
+}
+
+
+def constructed(u, v, size=160, seed=0, noise=0.05) -> np.ndarray:
+    """A texture with exactly the lattice ``u``, ``v``: a random Fourier series on the torus."""
+    rng = np.random.default_rng(seed)
+    basis_inv = np.linalg.inv(np.array([u, v], float).T)
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    a, b = np.einsum("ij,jyx->iyx", basis_inv, np.stack([yy, xx]))
+    g = np.zeros((size, size))
+    for k1 in range(-3, 4):
+        for k2 in range(0, 4):
+            if k2 == 0 and k1 <= 0:
+                continue
+            g += rng.random() / (1 + k1 * k1 + k2 * k2) * np.cos(
+                2 * np.pi * (k1 * a + k2 * b) + rng.random() * 2 * np.pi)
+    g = (g - g.min()) / (g.max() - g.min())
+    return 0.15 + 0.7 * np.clip(g + noise * rng.standard_normal(g.shape), 0, 1)
+
+
+def same_vector(found, truth, px=1.0, deg=2.0) -> bool:
+    """Equal up to sign within ``px`` pixels and ``deg`` degrees."""
+    found, truth = np.asarray(found), np.asarray(truth)
+    if np.linalg.norm(found + truth) < np.linalg.norm(found - truth):
+        found = -found
+    cos = found @ truth / np.linalg.norm(found) / np.linalg.norm(truth)
+    return (np.linalg.norm(found - truth) <= px
+            and np.degrees(np.arccos(np.clip(cos, -1, 1))) <= deg)
+
+
+def same_lattice(found_u, found_v, u, v) -> bool:
+    return ((same_vector(found_u, u) and same_vector(found_v, v))
+            or (same_vector(found_u, v) and same_vector(found_v, u)))
+
+
+@pytest.mark.parametrize("name", sorted(LATTICES))
+@pytest.mark.parametrize("seed", [0, 1])
+def test_detects_a_known_lattice_within_a_pixel_and_two_degrees(name, seed):
+    u, v = LATTICES[name]
+    lattice = detect_lattice(constructed(u, v, seed=seed))
+    assert same_lattice(lattice.u, lattice.v, u, v), (lattice, u, v)
+    assert lattice.confidence > 0.8
+
+
+def _albedo_store(tmp_path, name, image):
+    path = tmp_path / f"{name}.exr"
+    write_exr(path, np.repeat(image[..., None], 3, axis=-1).astype(np.float32), ("R", "G", "B"))
+    return generate_store(tmp_path / f"{name}.zarr", "--albedo", str(path), "--sampling",
+                          "abtf:4,2", "--chunk", "64")
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("roller")
+    out = {"tiles": generate_store(tmp / "tiles.zarr", "--material", "tiles", "--size", "160",
+                                   "--scale", "32", "--sampling", "abtf:4,2", "--seed", "3"),
+           "stone": generate_store(tmp / "stone.zarr", "--material", "stone", "--size", "128",
+                                   "--sampling", "abtf:4,2", "--seed", "3")}
+    for name in ("rotated-30", "sheared"):
+        out[name] = _albedo_store(tmp, name, constructed(*LATTICES[name], seed=4))
+    return out
+
+
+def _detect(btf, store):
+    result = btf("roller", store, "--detect-only", "--json", "--quiet")
+    assert result.code == 0, result.err
+    return json.loads(result.out)
+
+
+@pytest.mark.parametrize("name", ["tiles", "rotated-30", "sheared"])
+def test_btf_roller_detects_the_lattice_of_a_store(btf, stores, name):
+    found = _detect(btf, stores[name])
+    assert set(found) >= {"u", "v", "angles_deg", "lengths_px", "confidence"}
+    u, v = ((0.0, 32.0), (32.0, 0.0)) if name == "tiles" else LATTICES[name]
+    assert same_lattice(found["u"], found["v"], u, v), found
+    for vec, length, angle in zip((found["u"], found["v"]), found["lengths_px"],
+                                  found["angles_deg"], strict=True):
+        assert length == pytest.approx(np.hypot(*vec), abs=1e-2)
+        a = np.radians(angle)  # the line of the vector: cross product with it is 0
+        assert np.cos(a) * vec[0] - np.sin(a) * vec[1] == pytest.approx(0.0, abs=1e-2)
+    assert found["confidence"] > 0.5 and found["periodic"]
+
+
+def test_a_texture_without_periodicity_is_reported_and_not_tiled(btf, stores, tmp_path):
+    found = _detect(btf, stores["stone"])
+    assert found["confidence"] < 0.5 and not found["periodic"]
+    assert "no clear periodicity" in found["message"]
+    text = btf("roller", stores["stone"], "--detect-only", "--quiet")
+    assert text.code == 0 and "no clear periodicity" in text.err
+    out = tmp_path / "stone_tiles.zarr"
+    result = btf("roller", stores["stone"], out, "--quiet")
+    assert result.code == 1
+    assert "no clear periodicity" in result.err and "stone.zarr" in result.err
+    assert no_partial_outputs(out)
+
+
+def _roller(btf, store, out, *args):
+    result = btf("roller", store, out, "--quiet", *args)
+    assert result.code == 0, result.err
+    return zarr.open_group(out, mode="r")
+
+
+def _cells(group, size, origin=(0, 0)):
+    lat = group.attrs["lattice"]
+    return lattice_cells(*origin, *size, hnf=tuple(lat["hnf"]),
+                         basis=(tuple(lat["U"]), tuple(lat["V"])),
+                         representative=group["representative"][...])
+
+
+def _seams(cells):
+    """Masks of horizontal and vertical neighbour pairs that lie in different cells."""
+    return (np.any(cells[:, 1:] != cells[:, :-1], axis=-1),
+            np.any(cells[1:] != cells[:-1], axis=-1))
+
+
+def _pair_differences(img, masks):
+    dx = np.abs(np.diff(img, axis=1)).mean(axis=-1)
+    dy = np.abs(np.diff(img, axis=0)).mean(axis=-1)
+    return np.concatenate([dx[masks[0]], dy[masks[1]]])
+
+
+def _sample_roughness(img):
+    return float(np.mean([np.abs(np.diff(img, axis=a)).mean() for a in (0, 1)]))
+
+
+TOLERANCE = 1.5
+
+
+@pytest.mark.parametrize("name", ["tiles", "rotated-30", "sheared"])
+def test_roller_output_is_seamless_and_a_naive_repeat_is_not(btf, stores, tmp_path, name):
+    group = _roller(btf, stores[name], tmp_path / "t.zarr")
+    sample = open_radiance(stores[name])[RADIANCE].values[0]
+    size = (300, 340)
+    for light in (0, 5):
+        img = lazy_layer(tmp_path / "t.zarr", view=0, light=light, size=size).compute()
+        seams = _pair_differences(img, _seams(_cells(group, size)))
+        assert seams.size > 100
+        ratio = seams.mean() / _sample_roughness(sample[light])
+        assert ratio < TOLERANCE, (light, ratio)
+    # a naive repeat of an arbitrary crop of about the same area (not a multiple of the period)
+    ty = tx = int(np.sqrt(np.prod(group["representative"].shape[:2]))) + 11
+    crop = sample[0, 7 : 7 + ty, 5 : 5 + tx]
+    naive = np.tile(crop, (size[0] // ty + 1, size[1] // tx + 1, 1))[: size[0], : size[1]]
+    yy, xx = np.mgrid[0 : size[0], 0 : size[1]]
+    cells = np.stack([yy // ty, xx // tx], -1)
+    ratio = _pair_differences(naive, _seams(cells)).mean() / _sample_roughness(sample[0])
+    assert ratio > TOLERANCE
+
+
+def test_every_layer_uses_the_same_cut(btf, stores, tmp_path):
+    group = _roller(btf, stores["sheared"], tmp_path / "t.zarr", "--tiles", "2")
+    sample = open_radiance(stores["sheared"])[RADIANCE].values[0]
+    ny, nx = sample.shape[1:3]
+    out = group[RADIANCE][:]
+    for t in range(2):
+        index = group["prescription_index"][t]
+        weight = group["prescription_weight"][t]
+        assert check(index, weight, ny * nx) == []
+        matrix = to_csr(index, weight, ny * nx)
+        for light in range(sample.shape[0]):
+            expected = (matrix @ sample[light].reshape(ny * nx, -1)).reshape(out.shape[3:])
+            np.testing.assert_allclose(out[t, 0, light], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_multiple_tiles_share_their_borders_exactly_and_seeds_reproduce(btf, stores, tmp_path):
+    # the constructed texture has noise: rhomboids one period apart differ (the generated tiles
+    # material is exactly periodic, so its extra tiles would equal the first)
+    group = _roller(btf, stores["sheared"], tmp_path / "t.zarr", "--tiles", "3", "--seed", "5")
+    tiles = group[RADIANCE][:, 0, 2]
+    assert not np.array_equal(tiles[0], tiles[1]) and not np.array_equal(tiles[1], tiles[2])
+    size = (260, 300)
+
+    def render(seed):
+        return lazy_layer(tmp_path / "t.zarr", view=0, light=2, size=size, seed=seed).compute()
+
+    a, b = render(1), render(2)
+    assert np.array_equal(a, render(1))
+    assert np.array_equal(render(None), render(5))  # the tile set's own seed by default
+    cells = _cells(group, size)
+    ids = cells[..., 0] * 100003 + cells[..., 1]
+    near = (ndimage.maximum_filter(ids, size=5) != ndimage.minimum_filter(ids, size=5))
+    assert near.mean() > 0.05
+    np.testing.assert_array_equal(a[near], b[near])  # borders: identical in every tile
+    assert not np.array_equal(a[~near], b[~near])  # interiors: the seed picks other tiles
+    seams = _pair_differences(a, _seams(cells)).mean()
+    sample = open_radiance(stores["sheared"])[RADIANCE].values[0, 2]
+    assert seams / _sample_roughness(sample) < TOLERANCE
+
+
+def test_inspect_reports_the_lattice_and_the_ratio(btf, stores, tmp_path):
+    _roller(btf, stores["rotated-30"], tmp_path / "t.zarr")
+    result = btf("inspect", tmp_path / "t.zarr")
+    assert result.code == 0, result.err
+    assert "lattice" in result.out and "u = " in result.out and "1 :" in result.out
+
+
+def test_render_a_roller_tile_set_into_an_exr(btf, stores, tmp_path):
+    _roller(btf, stores["sheared"], tmp_path / "t.zarr")
+    out = tmp_path / "surface.exr"
+    result = btf("render", tmp_path / "t.zarr", out, "--light", "1", "--size", "200,333",
+                 "--quiet")
+    assert result.code == 0, result.err
+    assert out.exists()
+
+
+def test_bad_roller_options_are_named(btf, stores, tmp_path):
+    result = btf("roller", stores["tiles"], "--quiet")
+    assert result.code == 2 and "OUT" in result.err
+    result = btf("roller", stores["tiles"], tmp_path / "x.zarr", "--json")
+    assert result.code == 2 and "--json" in result.err
+    result = btf("roller", stores["tiles"], tmp_path / "x.zarr", "--tiles", "0")
+    assert result.code == 2 and "--tiles" in result.err
