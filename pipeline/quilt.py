@@ -34,6 +34,14 @@ from tasks.sampling import direction_vectors
 WEIGHTS_HELP = "weights D,H,R of the diffuse, height and reflectance maps in the reference image"
 
 
+def check_weights(text: str) -> None:
+    """Raise :class:`ParamError` for ``weights`` that :func:`parse_weights` refuses."""
+    try:
+        parse_weights(text)
+    except ValueError as exc:
+        raise ParamError("weights", str(exc)) from None
+
+
 def parse_weights(text: str) -> tuple[float, float, float]:
     """``"1,0.5,0.5"`` as three non-negative floats, not all zero."""
     try:
@@ -111,10 +119,7 @@ class ReferenceParams:
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
-        try:
-            parse_weights(self.weights)
-        except ValueError as exc:
-            raise ParamError("weights", str(exc)) from None
+        check_weights(self.weights)
 
 
 def reference(params: ReferenceParams, session: Session) -> Path:
@@ -151,10 +156,7 @@ class QuiltStageParams:
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
-        try:
-            parse_weights(self.weights)
-        except ValueError as exc:
-            raise ParamError("weights", str(exc)) from None
+        check_weights(self.weights)
         if self.size is not None and len(self.size) not in (1, 2):
             raise ParamError("size", f"expected H,W or N, got {self.size}")
         if not 0 <= self.seed < 2**63:

@@ -38,7 +38,7 @@ Choices where the paper is not specific:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -91,7 +91,6 @@ class RollerPlan:
     weight: np.ndarray  # (tiles, h * w, TERMS) float32
     representative: np.ndarray  # (h, w, 2) int64, position in the cut tile relative to origin
     periods: tuple[int, int] = (1, 1)
-    errors: dict = field(default_factory=dict)
 
     @property
     def tile_shape(self) -> tuple[int, int]:
@@ -268,8 +267,8 @@ def _cut(error: np.ndarray, origin, along, across_unit, steps: int, band: int) -
 
 
 def _feather(frac: np.ndarray, cut: np.ndarray, along: np.ndarray, width: float,
-             sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Main and neighbour shifts, the neighbour's weight, and the distance to the tile edge.
+             sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Main and neighbour shifts across a cut, and the neighbour's weight.
 
     ``frac`` is the texel's coordinate across the cut (lattice units, ``[0, 1)``), ``along`` its
     coordinate along it; ``cut`` the cut's offsets in pixels at ``len(cut)`` steps.
@@ -283,7 +282,7 @@ def _feather(frac: np.ndarray, cut: np.ndarray, along: np.ndarray, width: float,
     other = np.where(near_first, main + 1, main - 1)
     alpha = 0.5 * erfc((dist + 0.5) / (sigma * math.sqrt(2.0)))
     alpha = np.where(alpha < 1e-3, 0.0, alpha)
-    return main.astype(np.int64), other.astype(np.int64), alpha, dist
+    return main.astype(np.int64), other.astype(np.int64), alpha
 
 
 def plan_roller(image: np.ndarray, u, v, params: RollerParams) -> RollerPlan:
@@ -325,8 +324,8 @@ def plan_roller(image: np.ndarray, u, v, params: RollerParams) -> RollerPlan:
     stored = np.stack([yy, xx], -1).reshape(-1, 2)
     cell, frac = lattice_coordinates(stored, U, V)
     base = stored - cell @ np.array([U, V])  # the texel of the rhomboid, relative to origin
-    mu, ou, alpha, _ = _feather(frac[:, 0], cut_u, frac[:, 1], width_u, params.sigma)
-    mv, ov, beta, _ = _feather(frac[:, 1], cut_v, frac[:, 0], width_v, params.sigma)
+    mu, ou, alpha = _feather(frac[:, 0], cut_u, frac[:, 1], width_u, params.sigma)
+    mv, ov, beta = _feather(frac[:, 1], cut_v, frac[:, 0], width_v, params.sigma)
     Ua, Va = np.array(U), np.array(V)
     terms = [(mu, mv, (1 - alpha) * (1 - beta)), (ou, mv, alpha * (1 - beta)),
              (mu, ov, (1 - alpha) * beta), (ou, ov, alpha * beta)]
