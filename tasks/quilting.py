@@ -13,9 +13,13 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
   (``V = 1``) the single tile's opposite edges are the two halves of the same strip, so it
   wraps seamlessly: the paper's periodic texture. With ``V`` types, the ``V^4`` tiles share
   corners and edges, so any two that agree on a corner type meet seamlessly (Fig. 10-12).
-- **Edge patches keep the corners' cores.** An edge patch blends only where its window does not
-  reach within ``B/2 - O`` of a corner point, so the pixels around a corner are the corner
-  patch's in every strip that contains them.
+- **Corner quadrants.** The quarter of a corner patch inside a tile is where a horizontal and a
+  vertical strip meet: each blended its first (or last) edge patch into the corner patch's
+  overlap band. The tile takes the horizontal strip there and blends the vertical strip's
+  edge patches over it again with the weights they had in the vertical strip. Near the tile's
+  vertical border the result equals the vertical strip, near its horizontal border the
+  horizontal strip, so the four tiles around a corner point agree along both borders, and no
+  overlap band is dropped.
 - **Candidates** (section 2.3): all ``B x B`` positions of the sample, compared by the sum of
   squared differences over the filled pixels of the target window, in all channels (the
   "monochrome error image"), computed for every position at once by FFT correlation; one of
@@ -27,8 +31,11 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
   empty join the inner region, and the loop may run outside the window along them: these are
   the border flags of Fig. 8, which make the cut enclose the empty side instead of cutting
   through it at no cost. The flags of every placement are recorded.
-- **Blending** (Fig. 7): the region inside the cut, blurred with a Gaussian of ``sigma = O/4``,
-  is the patch's weight; it is forced to 1 on the inner square and on empty pixels.
+  The cut never runs along a window pixel whose outside neighbour is filled canvas: there it
+  would leave the patch's outermost row next to canvas pixels with no transition.
+- **Blending** (Fig. 7): the region inside the cut, blurred with a Gaussian of ``sigma = O/4``
+  (with canvas, weight 0, beyond the window's filled sides), is the patch's weight; it is
+  forced to 1 on the inner square and on empty pixels.
 """
 
 from __future__ import annotations
@@ -60,8 +67,8 @@ class QuiltParams:
     def __post_init__(self):
         if self.block < 4 or self.block % 2:
             raise ValueError(f"block must be an even number of at least 4, got {self.block}")
-        if not 1 <= self.overlap < self.block // 2:
-            raise ValueError(f"overlap must be between 1 and block/2 - 1, got {self.overlap}")
+        if not 2 <= self.overlap < self.block // 2:  # a cut needs a row off the window's edge
+            raise ValueError(f"overlap must be between 2 and block/2 - 1, got {self.overlap}")
         if self.candidates < 1:
             raise ValueError(f"candidates must be at least 1, got {self.candidates}")
         if self.corners < 1:
@@ -148,7 +155,14 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
     b = error.shape[0]
     n = b + 2
     cost = np.full((n, n), np.inf)
-    cost[1:-1, 1:-1] = np.where(keep, np.inf, error + 1e-6)  # a little length penalty
+    # a window pixel next to filled canvas outside may not carry the cut (see the module)
+    closed = ~outside_free
+    beside = np.zeros((b, b), bool)
+    beside[0, :] |= closed[0, 1:-1]
+    beside[-1, :] |= closed[-1, 1:-1]
+    beside[:, 0] |= closed[1:-1, 0]
+    beside[:, -1] |= closed[1:-1, -1]
+    cost[1:-1, 1:-1] = np.where(keep | beside, np.inf, error + 1e-6)  # a little length penalty
     cost[outside_free] = 0.0
     inner = np.zeros((n, n), bool)
     inner[1:-1, 1:-1] = keep
@@ -189,9 +203,13 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
 
 
 def blend_weights(region: np.ndarray, keep: np.ndarray, overlap: int) -> np.ndarray:
-    """Patch weight: the region inside the cut, Gaussian-blurred, 1 on ``keep`` (Fig. 7)."""
+    """Patch weight: the region inside the cut, Gaussian-blurred, 1 on ``keep`` (Fig. 7).
+
+    Beyond the window the blur sees weight 0 (the canvas), so a region reaching the window's
+    edge still fades out instead of ending in a hard edge.
+    """
     alpha = ndimage.gaussian_filter(region.astype(np.float64), sigma=max(overlap / 4.0, 0.5),
-                                    mode="nearest")
+                                    mode="constant", cval=0.0)
     alpha[keep] = 1.0
     alpha[~region & (alpha < 1e-3)] = 0.0
     return alpha.astype(np.float32)
@@ -205,6 +223,23 @@ class Placement:
     window: tuple[int, int]
     source: tuple[int, int]
     flags: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Blend:
+    """A patch as it was blended into a canvas: sample indices, values, weights, window."""
+
+    index: np.ndarray
+    value: np.ndarray
+    alpha: np.ndarray
+    y0: int
+    x0: int
+
+    def again(self, canvas: Canvas, dy: int, dx: int, rows: np.ndarray) -> None:
+        """Blend it into another canvas, shifted by ``(dy, dx)``, only on the canvas ``rows``."""
+        ys = self.y0 + dy + np.arange(self.alpha.shape[0])
+        alpha = np.where(np.isin(ys, rows)[:, None], self.alpha, 0.0)
+        canvas.place(self.index, self.value, alpha, self.y0 + dy, self.x0 + dx)
 
 
 @dataclass
@@ -231,12 +266,8 @@ class Planner:
         return (self.flat[sy : sy + b, sx : sx + b],
                 self.reference[sy : sy + b, sx : sx + b])
 
-    def place(self, canvas: Canvas, name: str, y0: int, x0: int, *,
-              protect: np.ndarray | None = None) -> None:
-        """Choose a patch for the window at ``(y0, x0)`` and blend it in along its best cut.
-
-        ``protect`` marks window pixels the patch must not change (weight 0).
-        """
+    def place(self, canvas: Canvas, name: str, y0: int, x0: int) -> Blend:
+        """Choose a patch for the window at ``(y0, x0)`` and blend it in along its best cut."""
         b, o = self.params.block, self.params.overlap
         rows, cols = canvas.window(y0, x0, b, b)
         inside = np.zeros((b, b), bool)
@@ -251,8 +282,6 @@ class Planner:
         inner[o : b - o, o : b - o] = True
         empty = inside & ~filled
         keep = inner | empty
-        if protect is not None:
-            keep &= ~protect
         # border flags: sides whose band is (partly) empty or off the canvas
         flags = tuple(side for side, band in zip(SIDES, (
             (slice(None), slice(0, o)), (slice(0, o), slice(None)),
@@ -270,12 +299,11 @@ class Planner:
         error[~filled] = 0.0
         region = boundary_cut(error, keep, outside_free=outside_free)
         alpha = blend_weights(region, keep, o)
-        if protect is not None:
-            alpha[protect & filled] = 0.0
         alpha[~inside] = 0.0
         alpha[empty] = 1.0
         canvas.place(index, value, alpha, y0, x0)
         self.placements.append(Placement(name, (y0, x0), source, flags))
+        return Blend(index, value, alpha, y0, x0)
 
 
 @dataclass
@@ -286,17 +314,6 @@ class TileSet:
     corners: np.ndarray  # (tiles, 4) corner types: top-left, top-right, bottom-left, bottom-right
     placements: list[Placement]
     sample_shape: tuple[int, int]
-
-
-def _core(b: int, o: int, y0: int, x0: int, corners: list[tuple[int, int]]) -> np.ndarray:
-    """Window pixels within ``B/2 - O`` (per axis) of any of the corner points."""
-    r = b // 2 - o
-    ys = (y0 + np.arange(b))[:, None]
-    xs = (x0 + np.arange(b))[None, :]
-    core = np.zeros((b, b), bool)
-    for cy, cx in corners:
-        core |= (np.abs(ys + 0.5 - cy) < r) & (np.abs(xs + 0.5 - cx) < r)
-    return core
 
 
 def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
@@ -327,38 +344,40 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
         planner.place(canvas, f"corner {c}", 0, 0)
         corner_canvas.append(canvas)
     # Phases 2 and 3: one edge strip per ordered pair of corner types
-    def strip(a: int, z: int, length: int, horizontal: bool) -> Canvas:
+    def strip(a: int, z: int, length: int, horizontal: bool) -> tuple[Canvas, list[Blend]]:
         shape = (b, length + b) if horizontal else (length + b, b)
         canvas = Canvas.empty(*shape, channels)
         ends = [(0, 0), (0, length)] if horizontal else [(0, 0), (length, 0)]
         for (y, x), c in zip(ends, (a, z), strict=True):
             canvas.copy_from(corner_canvas[c], slice(y, y + b), slice(x, x + b),
                              slice(None), slice(None))
-        points = ([(half, half), (half, length + half)] if horizontal
-                  else [(half, half), (length + half, half)])
-        for k in range(1, length // s):
-            y0, x0 = (0, k * s) if horizontal else (k * s, 0)
-            planner.place(canvas, f"{'horizontal' if horizontal else 'vertical'} edge {a}{z}",
-                          y0, x0, protect=_core(b, o, y0, x0, points))
-        return canvas
+        name = f"{'horizontal' if horizontal else 'vertical'} edge {a}{z}"
+        blends = [planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)))
+                  for k in range(1, length // s)]
+        return canvas, blends
 
-    horizontal = {(a, z): strip(a, z, tw, True) for a in range(v) for z in range(v)}
+    horizontal = {(a, z): strip(a, z, tw, True)[0] for a in range(v) for z in range(v)}
     vertical = {(a, z): strip(a, z, th, False) for a in range(v) for z in range(v)}
+    # the tile rows of its corner quadrants, where vertical edge patches are blended again
+    quadrants = np.r_[0:half, th - half : th]
     # Phase 4: every tile, from its edges inwards
     tiles, corners = [], []
     for tl, tr, bl, br in itertools.product(range(v), repeat=4):
         canvas = Canvas.empty(th, tw, channels)
         top, bottom = horizontal[(tl, tr)], horizontal[(bl, br)]
-        left, right = vertical[(tl, bl)], vertical[(tr, br)]
+        (left, left_blends), (right, right_blends) = vertical[(tl, bl)], vertical[(tr, br)]
         canvas.copy_from(top, slice(0, half), slice(0, tw), slice(half, b),
                          slice(half, half + tw))
         canvas.copy_from(bottom, slice(th - half, th), slice(0, tw), slice(0, half),
                          slice(half, half + tw))
-        # where a horizontal strip already put a pixel, it stays (one fixed rule)
-        canvas.copy_from(left, slice(0, th), slice(0, half), slice(half, half + th),
-                         slice(half, b), where=~canvas.filled[:, 0:half])
-        canvas.copy_from(right, slice(0, th), slice(tw - half, tw), slice(half, half + th),
-                         slice(0, half), where=~canvas.filled[:, tw - half : tw])
+        canvas.copy_from(left, slice(half, th - half), slice(0, half), slice(b, th),
+                         slice(half, b))
+        canvas.copy_from(right, slice(half, th - half), slice(tw - half, tw), slice(b, th),
+                         slice(0, half))
+        for blend in left_blends:
+            blend.again(canvas, -half, -half, quadrants)
+        for blend in right_blends:
+            blend.again(canvas, -half, tw - half, quadrants)
         for i in range(1, th // s):
             for j in range(1, tw // s):
                 planner.place(canvas, f"tile {tl}{tr}{bl}{br}", i * s - half, j * s - half)
