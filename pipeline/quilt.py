@@ -17,6 +17,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
@@ -191,8 +192,16 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
             raise ValueError(f"the sample ({sample[0]} x {sample[1]}) is smaller than a block")
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
+    need = qp.plan_bytes(maps.reference.shape[-1])
+    available = psutil.virtual_memory().available
+    if need > 0.8 * available:
+        raise BTFError(f"{params.store}: planning {qp.corners ** 4} tiles of {qp.tile[0]} x "
+                       f"{qp.tile[1]} texels needs about {need / 2**30:.1f} GiB, more than the "
+                       f"{available / 2**30:.1f} GiB available: use fewer --corners or a "
+                       "smaller --size")
     session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
-                f"texels on the {sample[0]} x {sample[1]} reference image")
+                f"texels on the {sample[0]} x {sample[1]} reference image (about "
+                f"{need / 2**20:.0f} MiB)")
     plan = plan_tiles(maps.reference, qp, seed=params.seed)
     group = open_group(params.store)
     attrs = {
@@ -205,8 +214,8 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
                        for p in plan.placements],
         "provenance": provenance("quilt", params),
     }
-    index = np.stack([t.index.reshape(-1, TERMS) for t in plan.tiles])
-    weight = np.stack([t.weight.reshape(-1, TERMS) for t in plan.tiles])
+    index = [t.index.reshape(-1, TERMS) for t in plan.tiles]
+    weight = [t.weight.reshape(-1, TERMS) for t in plan.tiles]
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
         write_tileset(params.store, tmp, group=group, index=index, weight=weight,
                       tile_shape=qp.tile, reference=maps.reference, corners=plan.corners,

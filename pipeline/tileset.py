@@ -19,6 +19,7 @@ each block gathers from the tiles of that layer only (:func:`tasks.placement.gat
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -97,35 +98,53 @@ def open_layers(path: str | Path):
     return open_radiance(path)
 
 
+APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
+
+
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
                  tile_shape) -> None:
+    """Apply every tile's prescription to a block of lights, a few whole layers at a time."""
     import zarr
 
     from tasks.prescription import apply
 
-    layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, light0:light1]
+    source = zarr.open_array(store, path=RADIANCE, mode="r")
     target = zarr.open_array(out, path=RADIANCE, mode="r+")
-    for t, matrix in enumerate(matrices):
-        target[t, view, light0:light1] = apply(matrix, layers, output=tile_shape)
+    ny, nx, nc = source.shape[-3:]
+    layer = 4 * nc * max(ny * nx, tile_shape[0] * tile_shape[1])
+    step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
+    for l0 in range(light0, light1, step):
+        l1 = min(l0 + step, light1)
+        layers = source[view, l0:l1]
+        for t, matrix in enumerate(matrices):
+            target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape)
 
 
 def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
+    """One tile's eigentextures, reading the source's in bands of stored chunk rows."""
     import zarr
 
-    from tasks.prescription import apply_texels
+    from tasks.prescription import apply_texel_rows
 
-    source = zarr.open_array(store, path="V", mode="r")[...]
+    source = zarr.open_array(store, path="V", mode="r")
     target = zarr.open_array(out, path="V", mode="r+")
-    target[tile] = apply_texels(matrix, source).reshape(target.shape[1:])
+    ny, nx, rank = source.shape
+    columns = matrix.tocsc()
+    result = np.zeros((matrix.shape[0], rank), np.float32)
+    band = source.chunks[0]
+    for y0 in range(0, ny, band):
+        apply_texel_rows(columns, source[y0 : y0 + band], y0 * nx, result)
+    target[tile] = result.reshape(target.shape[1:])
 
 
-def write_tileset(store: str, tmp, *, group, index: np.ndarray, weight: np.ndarray,
+def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
+                  weight: Sequence[np.ndarray],
                   tile_shape: tuple[int, int], reference: np.ndarray, corners: np.ndarray,
                   attrs: dict[str, Any], session, label: str, output,
                   arrays: dict[str, np.ndarray] | None = None) -> None:
     """Write a tile set into ``tmp``: the prescriptions, and every layer of ``store``.
 
-    The prescriptions ``(tile, pixel, term)`` are applied to every layer of ``store``, or to its
+    The prescriptions (per tile, ``(pixel, term)``) are applied to every layer of ``store``, or to its
     eigentextures (then the tile set is compressed).
     """
     import dask
@@ -145,7 +164,7 @@ def write_tileset(store: str, tmp, *, group, index: np.ndarray, weight: np.ndarr
     if compressed:
         attrs["transform"] = group.attrs["transform"]
     out = create_tileset_store(tmp, directions=d, channels=channels, tiles=len(matrices),
-                               tile_shape=tile_shape, terms=index.shape[-1],
+                               tile_shape=tile_shape, terms=index[0].shape[-1],
                                reference=reference, attrs=attrs,
                                rank=group["S"].shape[0] if compressed else None)
     out["corners"][...] = corners

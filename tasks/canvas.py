@@ -22,7 +22,7 @@ _NEGLIGIBLE = 1e-4  # weights below this are dropped (and the rest renormalised)
 class Canvas:
     """A rectangle of output pixels; see the module docstring."""
 
-    index: np.ndarray  # (h, w, TERMS) int64 flat sample pixel, -1 where unused
+    index: np.ndarray  # (h, w, TERMS) int32 flat sample pixel, -1 where unused
     weight: np.ndarray  # (h, w, TERMS) float32, rows sum to 1 where filled
     value: np.ndarray  # (h, w, c) float32 blended reference values
     filled: np.ndarray  # (h, w) bool
@@ -30,7 +30,7 @@ class Canvas:
     @staticmethod
     def empty(height: int, width: int, channels: int) -> Canvas:
         """A canvas with nothing on it."""
-        return Canvas(np.full((height, width, TERMS), -1, np.int64),
+        return Canvas(np.full((height, width, TERMS), -1, np.int32),
                       np.zeros((height, width, TERMS), np.float32),
                       np.zeros((height, width, channels), np.float32),
                       np.zeros((height, width), bool))

@@ -57,9 +57,14 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     return out.reshape(*lead, *output, nc)
 
 
-def apply_texels(matrix: sparse.csr_matrix, texels: np.ndarray) -> np.ndarray:
-    """``P @ texels`` for texel-major data ``(y, x, ...)`` such as eigentextures ``(y, x, k)``."""
-    texels = np.asarray(texels)
-    ny, nx = texels.shape[:2]
-    flat = texels.reshape(ny * nx, -1)
-    return np.asarray(matrix @ flat, texels.dtype)
+def apply_texel_rows(matrix: sparse.csc_matrix, texels: np.ndarray, start: int,
+                     out: np.ndarray) -> None:
+    """Add the part of ``P @ texels`` that comes from some sample texels to ``out``.
+
+    ``texels`` are the sample's texels ``start, start + 1, ...`` (flat, row-major: whole rows of
+    the sample) with trailing data such as eigentexture components; ``matrix`` is ``P`` as CSC,
+    whose column slices are cheap. Summed over row bands covering the sample, ``out`` is
+    ``P @ texels`` (up to float rounding) with only one band in memory at a time.
+    """
+    flat = np.asarray(texels).reshape(-1, out.shape[-1])
+    out += matrix[:, start : start + flat.shape[0]] @ flat

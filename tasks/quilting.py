@@ -49,7 +49,7 @@ from scipy.fft import fft, irfft2, next_fast_len, rfft, rfft2
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from tasks.canvas import Canvas
+from tasks.canvas import TERMS, Canvas
 
 SIDES = ("left", "top", "right", "bottom")
 
@@ -83,6 +83,11 @@ class QuiltParams:
     def step(self) -> int:
         """Distance between neighbouring windows."""
         return self.block - self.overlap
+
+    def plan_bytes(self, channels: int) -> int:
+        """About how much memory :func:`plan_tiles` holds: every tile's canvas."""
+        per_texel = TERMS * (4 + 4) + 4 * channels + 1  # index, weight, value, filled
+        return self.corners**4 * self.tile[0] * self.tile[1] * per_texel
 
 
 class CandidateSearch:
@@ -257,8 +262,10 @@ class Planner:
         b = self.params.block
         if h < b or w < b:
             raise ValueError(f"the reference image ({h} x {w}) is smaller than a block ({b})")
+        if h * w >= 2**31:
+            raise ValueError(f"the reference image ({h} x {w}) has 2**31 texels or more")
         self.search = CandidateSearch(self.reference, b)
-        self.flat = np.arange(h * w, dtype=np.int64).reshape(h, w)
+        self.flat = np.arange(h * w, dtype=np.int32).reshape(h, w)
 
     def _patch(self, source: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         sy, sx = source

@@ -216,7 +216,9 @@ def test_no_two_neighbouring_output_pixels_join_two_patches_without_a_blend(smoo
         assert total > 0 and bad == 0, (seed, bad, total)
 
 
-def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, samples):
+def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, samples,
+                                                              monkeypatch):
+    monkeypatch.setattr("pipeline.tileset.APPLY_BUDGET", 1)  # one layer at a time
     sample = samples["fabric"]
     group = _quilt(btf, sample, tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
     layers = open_radiance(sample)[RADIANCE].values
@@ -358,6 +360,14 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
 def test_bad_quilt_options_are_named(tmp_path, btf, samples, args, message):
     result = btf("quilt", samples["stone"], tmp_path / "q.zarr", *PARAMS, *args)
     assert result.code == 2 and message in result.err
+    assert not (tmp_path / "q.zarr").exists()
+
+
+def test_a_tile_set_too_large_to_plan_is_refused_before_planning(tmp_path, btf, samples):
+    result = btf("quilt", samples["stone"], tmp_path / "q.zarr", *PARAMS, "--corners", "9",
+                 "--size", "1200,1200")
+    assert result.code == 1 and "6561 tiles of 1200 x 1200 texels needs about" in result.err
+    assert "use fewer --corners or a smaller --size" in result.err
     assert not (tmp_path / "q.zarr").exists()
 
 
