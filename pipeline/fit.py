@@ -53,12 +53,16 @@ def _fit_task(store: str, out: str, view: int, ys: slice, xs: slice, grid, eleva
     import zarr
 
     layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, :, ys, xs]
+    bad = int(np.count_nonzero(~np.isfinite(layers)))
+    if bad:
+        return None, (f"{bad} NaN or Inf values in view {view}, y {ys.start}:{ys.stop}, "
+                      f"x {xs.start}:{xs.stop}")
     h, s, coef, errors = fit_block(layers, grid, elevations)
     target = zarr.open_group(out, mode="r+")
     target["hue"][view, ys, xs] = h
     target["saturation"][view, ys, xs] = s
     target["lightness"][view, :, :, ys, xs] = coef
-    return errors
+    return errors, None
 
 
 def fit(params: FitParams, session: Session) -> Path:
@@ -104,7 +108,13 @@ def fit(params: FitParams, session: Session) -> Path:
                  for v in range(nv) for y0, h in blocks(ych) for x0, w in blocks(xch)]
         session.log(f"fit: {nv} view(s) x {rotations.size} rotations x {elevations.size} "
                     f"elevations, {len(tasks)} blocks -> {params.out}")
-        errors = session.compute(*tasks)
+        results = session.compute(*tasks)
+        problems = [p for _, p in results if p is not None]
+        if problems:
+            raise BTFError(f"{params.store}: variable 'radiance' has {problems[0]}"
+                           + (f" (and {len(problems) - 1} more blocks)" if len(problems) > 1
+                              else ""))
+        errors = [e for e, _ in results]
         sse = sum(e[0] for e in errors)
         count = sum(e[2] for e in errors)
         original = nv * nl * ny * nx * nc

@@ -157,6 +157,13 @@ def _fit_summary(group) -> dict[str, Any]:
                     "size_ratio": attrs.get("size_ratio")}}
 
 
+def _surface_summary(group) -> dict[str, Any]:
+    attrs = group.attrs
+    return {"surface": {key: attrs.get(key) for key in ("tileset", "light", "view", "origin",
+                                                          "seed")}
+            | {"shape": list(group[RADIANCE].shape)}}
+
+
 # Stage-specific summaries by btf_kind; later stages register theirs here.
 SUMMARIES: dict[str, Callable[[Any], dict[str, Any]]] = {
     "btf": _radiance_summary,
@@ -165,6 +172,7 @@ SUMMARIES: dict[str, Callable[[Any], dict[str, Any]]] = {
     "tileset": _tileset_summary,
     "compressed-tileset": _tileset_summary,
     "hls-fit": _fit_summary,
+    "surface": _surface_summary,
 }
 
 
@@ -328,10 +336,16 @@ def format_report(report: dict[str, Any]) -> str:
     if "fit" in report:
         f = report["fit"]
         err = f["error"] or {}
+        ratio = f["size_ratio"]
+        size = (f"{ratio:.2f}x smaller than" if ratio >= 1 else f"{1 / ratio:.2f}x larger than")
         lines.append(f"HLS fit: {f['rotations']} rotations x {f['elevations']} elevations, "
-                     f"{f['parameters']} parameters per rotation; {f['size_ratio']:.2f}x "
-                     f"smaller than the input; error (linear RGB) RMSE {err.get('rmse', 0):.4g}, "
-                     f"max {err.get('max', 0):.4g}")
+                     f"{f['parameters']} parameters per rotation; {size} the input; error "
+                     f"(linear RGB) RMSE {err.get('rmse', 0):.4g}, max {err.get('max', 0):.4g}")
+    if "surface" in report:
+        f = report["surface"]
+        lines.append(f"surface: {f['shape'][0]} x {f['shape'][1]} texels of light {f['light']}"
+                     f", view {f['view']} at {tuple(f['origin'])}, seed {f['seed']}, from "
+                     f"{f['tileset']}")
     attrs = report["attrs"]
     for key in ("material", "shading"):
         if key in attrs:

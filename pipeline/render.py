@@ -3,22 +3,29 @@
 Tiles are placed by a hash of their lattice coordinates and the seed
 (:mod:`tasks.placement`), so any region of the unbounded surface can be rendered on its own and
 regions that overlap agree. Only the requested layer of the tile set is read. Output: EXR (the
-region in memory), PNG (tone-mapped preview) or a zarr array written block by block, for regions
-too large to hold.
+region in memory), PNG (tone-mapped preview) or a zarr store written block by block, for regions
+too large to hold (``btf_kind: surface``: ``radiance`` ``(y, x, channel)``, ``channel`` labels,
+and attrs naming the tile set, layer, origin, seed and provenance).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, option
+from pipeline.provenance import provenance
 from pipeline.runtime import Session
-from pipeline.store import location
+from pipeline.store import RADIANCE, location, store_aligned
 from pipeline.tileset import lazy_layer, open_tileset
 from tasks.tonemap import exposure, to_uint8, tonemap
+
+SURFACE = "surface"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +60,26 @@ class RenderParams:
             raise ParamError("chunk", f"must be at least 16, got {self.chunk}")
 
 
+def create_surface_store(path, shape: tuple[int, int, int], channels: tuple[str, ...], *,
+                         chunk: int, attrs: dict[str, Any]):
+    """Create an empty surface store and return its ``radiance`` array.
+
+    ``btf_kind: surface``: ``radiance`` ``(y, x, channel)`` of one layer, ``channel`` labels.
+    """
+    import zarr
+
+    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
+    group.attrs.update({**attrs, "btf_kind": SURFACE})
+    h, w, nc = shape
+    radiance = group.create_array(RADIANCE, shape=shape, dtype="float32",
+                                  chunks=(min(chunk, h), min(chunk, w), nc),
+                                  dimension_names=("y", "x", "channel"))
+    labels = group.create_array("channel", shape=(nc,), dtype=str,
+                                dimension_names=("channel",), compressors=None)
+    labels[:] = np.array(channels)
+    return radiance
+
+
 def render(params: RenderParams, session: Session) -> Path:
     """Render the requested region of one layer."""
     group = open_tileset(params.store)
@@ -64,19 +91,13 @@ def render(params: RenderParams, session: Session) -> Path:
     session.log(f"render: light {params.light}, view {params.view}, {h} x {w} texels at "
                 f"{tuple(params.origin)} -> {params.out}")
     if suffix == ".zarr":
-        import zarr
-
-        from pipeline.store import store_aligned
-
         with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-            target = zarr.create_array(location(tmp), shape=layer.shape, dtype="float32",
-                                       chunks=(min(params.chunk, h), min(params.chunk, w),
-                                               len(channels)),
-                                       dimension_names=("y", "x", "channel"))
-            target.attrs.update({"source": "render", "tileset": params.store,
-                                 "light": params.light, "view": params.view,
-                                 "origin": list(params.origin), "seed": params.seed,
-                                 "channels": list(channels)})
+            target = create_surface_store(tmp, layer.shape, channels, chunk=params.chunk, attrs={
+                "source": "render", "tileset": params.store, "light": params.light,
+                "view": params.view, "origin": list(params.origin),
+                "seed": params.seed if params.seed is not None
+                else int(group.attrs.get("seed", 0)),
+                "provenance": provenance("render", params)})
             session.compute(store_aligned([layer], [target]))
         return Path(params.out)
     (pixels,) = session.compute(layer)

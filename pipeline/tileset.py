@@ -4,7 +4,9 @@ A tile-set store is a zarr v3 group holding
 
 - ``radiance``: float32 ``(tile, view, light, y, x, channel)``, one chunk per tile and layer, so
   that rendering one layer reads nothing of the others; or, for a compressed source, ``U`` and
-  ``S`` of the source with eigentextures per tile ``V`` ``(tile, y, x, component)``;
+  ``S`` of the source with eigentextures per tile ``V`` ``(tile, y, x, component)`` (the
+  prescription blends the log-domain eigentextures, so blended texels are weighted geometric
+  means of the radiance they join);
 - ``corners`` ``(tile, corner)``: the corner types (top-left, top-right, bottom-left,
   bottom-right) of each tile;
 - ``prescription_index`` / ``prescription_weight`` ``(tile, pixel, term)``: each tile's
@@ -144,8 +146,8 @@ def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
                   arrays: dict[str, np.ndarray] | None = None) -> None:
     """Write a tile set into ``tmp``: the prescriptions, and every layer of ``store``.
 
-    The prescriptions (per tile, ``(pixel, term)``) are applied to every layer of ``store``, or to its
-    eigentextures (then the tile set is compressed).
+    The prescriptions (per tile, ``(pixel, term)``) are applied to every layer of ``store``, or
+    to its eigentextures (then the tile set is compressed).
     """
     import dask
 
@@ -206,19 +208,40 @@ def open_tileset(path: str | Path):
     return group
 
 
-def _layer_tiles(store: str, view: int, light: int) -> np.ndarray:
-    """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32 (reads only that layer)."""
+def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32, in ``order``.
+
+    Reads only that layer.
+    """
     import zarr
 
     group = zarr.open_group(store, mode="r")
     if group.attrs["btf_kind"] == "tileset":
-        return group[RADIANCE][:, view, light]
-    from tasks.svd import reconstruct_layers
+        tiles = group[RADIANCE][:, view, light]
+    else:
+        from tasks.svd import reconstruct_layers
 
-    u = group["U"][view, light]  # (channel, component)
-    s = group["S"][:]
-    eps = float(group.attrs["transform"]["eps"])
-    return np.stack([reconstruct_layers(u, s, v, eps=eps) for v in group["V"]])
+        u = group["U"][view, light]  # (channel, component)
+        s = group["S"][:]
+        eps = float(group.attrs["transform"]["eps"])
+        tiles = np.stack([reconstruct_layers(u, s, v, eps=eps) for v in group["V"]])
+    return tiles if order is None else tiles[order]
+
+
+def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
+    """Stored tile of each corner combination, in :func:`tasks.placement.cell_tiles` order.
+
+    Every combination of ``types`` corner types must be stored exactly once.
+    """
+    corners = np.asarray(corners)
+    codes = ((corners[:, 0] * types + corners[:, 1]) * types + corners[:, 2]) * types + corners[
+        :, 3]
+    if (corners.min(initial=0) < 0 or corners.max(initial=0) >= types
+            or sorted(codes.tolist()) != list(range(types**4))):
+        raise BTFError(f"{path}: variable 'corners' does not hold every combination of "
+                       f"{types} corner types exactly once")
+    return np.argsort(codes)
 
 
 def _surface_block(tiles, block_info=None, *, origin, seed, corners):
@@ -254,17 +277,20 @@ def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int]
     if seed is None:
         seed = int(group.attrs.get("seed", 0))
     channels = group["channel"].shape[0]
-    tiles = dask.delayed(_layer_tiles, pure=True)(location(path), view, light)
+    lattice = group.attrs.get("placement") == "lattice"
+    order = None if lattice else corner_order(path, group["corners"][...],
+                                              int(group.attrs["corner_types"]))
+    tiles = dask.delayed(_layer_tiles, pure=True)(location(path), view, light, order)
     h, w = size
     chunks = (tuple(min(chunk, h - i) for i in range(0, h, chunk)),
               tuple(min(chunk, w - i) for i in range(0, w, chunk)), (channels,))
     meta = np.empty((0, 0, 0), np.float32)
-    if group.attrs.get("placement") == "lattice":
-        lattice = group.attrs["lattice"]
+    if lattice:
+        spec = group.attrs["lattice"]
         rep = group["representative"][...] if "representative" in group.array_keys() else None
         return da.map_blocks(_lattice_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,
-                             origin=origin, seed=seed, hnf=tuple(lattice["hnf"]),
-                             basis=(tuple(lattice["U"]), tuple(lattice["V"])),
+                             origin=origin, seed=seed, hnf=tuple(spec["hnf"]),
+                             basis=(tuple(spec["U"]), tuple(spec["V"])),
                              representative=rep)
     corners = int(group.attrs["corner_types"])
     return da.map_blocks(_surface_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,

@@ -5,7 +5,8 @@ output pixel a weighted sum of sample pixels. The canvas keeps, for every pixel,
 :data:`TERMS` (sample index, weight) pairs whose weights sum to 1, plus the blended values of the
 reference image (what patch matching compares) and whether the pixel holds anything yet. The
 terms are the rows of the prescription ``P`` (paper 003, section 2.1: transfer prescriptions),
-so applying ``P`` to any layer reproduces exactly what the planner did to the reference.
+so applying ``P`` to any layer does what the planner did to the reference (up to float32
+rounding: the canvas blends values patch by patch, ``P`` sums each row's terms at once).
 """
 
 from __future__ import annotations

@@ -339,7 +339,7 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
     if reference.ndim == 2:
         reference = reference[..., None]
     planner = Planner(reference, params, np.random.default_rng(seed))
-    b, o, s = params.block, params.overlap, params.step
+    b, s = params.block, params.step
     th, tw = params.tile
     half = b // 2
     channels = reference.shape[-1]

@@ -6,8 +6,9 @@ of one view (the one closest to the normal):
 
 - **diffuse map**: the mean over light directions of the radiance ("normalized sum");
 - **normal map**: the direction of the strongest response, estimated as the average of the
-  light directions weighted by ``(I / max I)^k`` with a large exponent ``k`` (paper: "the
-  averaged direction to the strongest incoming light contribution");
+  light directions weighted by ``(I / max I)^k`` (paper: "the averaged direction to the
+  strongest incoming light contribution"). The map uses the low exponent ``k = 1``: on glossy
+  texels a high exponent follows the specular highlight rather than the normal;
 - **height map**: the normal map integrated in the Fourier domain (Frankot and Chellappa 1988);
 - **reflectance map**: how far two such normal estimates, weighted with a low and a high
   exponent, disagree. On a diffuse texel both point along the normal; on a glossy one the

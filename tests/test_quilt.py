@@ -7,9 +7,9 @@ import itertools
 import numpy as np
 import pytest
 import zarr
-from scipy import ndimage
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import ndimage
 
 from helpers import generate_store
 from pipeline.errors import BTFError
@@ -274,6 +274,21 @@ def test_rendering_is_consistent_where_regions_overlap(tmp_path, btf, samples):
     assert not np.array_equal(a, other)
 
 
+def test_rendering_follows_the_stored_corner_types_of_each_tile(tmp_path, btf, samples):
+    path = tmp_path / "q.zarr"
+    _quilt(btf, samples["fabric"], path, "--corners", "2", "--size", "24,24")
+    before = lazy_layer(path, view=0, light=1, size=(80, 90), origin=(-7, 5)).compute()
+    group = zarr.open_group(path, mode="r+")
+    perm = np.random.default_rng(1).permutation(16)
+    group[RADIANCE][...] = group[RADIANCE][...][perm]
+    group["corners"][...] = group["corners"][...][perm]
+    after = lazy_layer(path, view=0, light=1, size=(80, 90), origin=(-7, 5)).compute()
+    assert np.array_equal(before, after)
+    group["corners"][3] = group["corners"][4]
+    with pytest.raises(BTFError, match="'corners' does not hold every combination"):
+        lazy_layer(path, view=0, light=1, size=(8, 8))
+
+
 @pytest.mark.parametrize("origin", [(0, 0), (-13, -4), (95, -301)])
 def test_a_rendered_texel_is_its_cells_tile_at_its_offset(origin):
     from tasks.placement import cell_tiles, gather
@@ -298,7 +313,15 @@ def test_rendering_one_layer_reads_no_other_layer(tmp_path, btf, samples, monkey
     layers = {key.split("/radiance/c/")[1].split("/")[2] for key in counter.chunks(RADIANCE)
               if "q.zarr" in key}
     assert layers == {"5"}  # chunk keys: tile/view/light/...
-    assert zarr.open_array(out)[:].shape == (700, 900, 3)
+    surface = zarr.open_group(out, mode="r")
+    assert surface.attrs["btf_kind"] == "surface" and surface.attrs["light"] == 5
+    expected = lazy_layer(tmp_path / "q.zarr", view=0, light=5, size=(700, 900)).compute()
+    assert np.array_equal(surface[RADIANCE][:], expected)
+    report = btf("inspect", out)
+    assert report.code == 0 and "surface: 700 x 900 texels of light 5, view 0" in report.out
+    again = btf("render", tmp_path / "q.zarr", out, "--light", "2", "--size", "70,90",
+                "--overwrite", "--quiet")
+    assert again.code == 0 and zarr.open_group(out)[RADIANCE].shape == (70, 90, 3)
 
 
 def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
@@ -431,6 +454,16 @@ def test_the_hls_fit_of_a_generated_material_reports_its_error(tmp_path, btf):
     # six parameters over elevation do much better than each texel's mean over the lights
     flat = original - original.mean(axis=1, keepdims=True)
     assert fit["error"]["rmse"] < 0.3 * np.sqrt(np.mean(flat**2))
+
+
+def test_fit_refuses_radiance_with_nan(tmp_path, btf):
+    src = generate_store(tmp_path / "n.zarr", "--material", "fabric", "--size", "32",
+                         "--sampling", "abtf:6,3", "--chunk", "16")
+    zarr.open_array(src, path=RADIANCE, mode="r+")[0, 4, 20, 3] = np.nan
+    result = btf("fit", src, tmp_path / "fit.zarr", "--quiet")
+    assert result.code == 1
+    assert "variable 'radiance' has 3 NaN or Inf values in view 0, y 16:32, x 0:16" in result.err
+    assert not (tmp_path / "fit.zarr").exists()
 
 
 def test_fit_refuses_lights_that_are_not_a_grid(tmp_path, btf):
