@@ -7,6 +7,7 @@ import platform
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 
@@ -39,6 +40,26 @@ def measure(argv: list[str]) -> Measurement:
 def best_of(repeat: int, argv: list[str]) -> Measurement:
     """The fastest of ``repeat`` runs (with the peak memory of that run)."""
     return min((measure(argv) for _ in range(max(1, repeat))), key=lambda m: m.seconds)
+
+
+def fastest(repeat: int, fn) -> tuple[float, object]:
+    """The shortest wall time of ``repeat`` calls of ``fn`` in this process, and its result."""
+    best, result = float("inf"), None
+    for _ in range(max(1, repeat)):
+        start = time.perf_counter()
+        result = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def in_threads(threads: int, fn, parts) -> None:
+    """``fn(part)`` for every part, on ``threads`` threads (1: in this thread)."""
+    if threads == 1:
+        for p in parts:
+            fn(p)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(fn, parts))
 
 
 def machine() -> dict:

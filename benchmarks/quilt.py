@@ -25,13 +25,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import best_of, machine, measure
+from benchmarks.harness import best_of, fastest, in_threads, machine, measure
 
 SUITE = "quilt"
 SAMPLING = "abtf:6,4"
@@ -53,15 +52,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "is kept (default 3); independent per-layer plans run once")
 
 
-def _best(repeat: int, fn) -> tuple[float, object]:
-    best, result = np.inf, None
-    for _ in range(max(1, repeat)):
-        start = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - start)
-    return best, result
-
-
 def _main_source(tile) -> np.ndarray:
     """Per output texel, the sample texel with the largest weight."""
     from tasks.canvas import TERMS
@@ -69,15 +59,6 @@ def _main_source(tile) -> np.ndarray:
     index = tile.index.reshape(-1, TERMS)
     weight = tile.weight.reshape(-1, TERMS)
     return index[np.arange(index.shape[0]), np.argmax(weight, axis=1)]
-
-
-def _in_threads(threads: int, fn, parts) -> None:
-    if threads == 1:
-        for p in parts:
-            fn(p)
-        return
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(fn, parts))
 
 
 def _planning(store: Path, args, session) -> tuple[dict, object, object]:
@@ -91,7 +72,7 @@ def _planning(store: Path, args, session) -> tuple[dict, object, object]:
     step = args.block - args.overlap
     params = QuiltParams(args.block, args.overlap, args.candidates, 1,
                          tuple((n // step) * step for n in sample))
-    seconds, plan = _best(args.repeat, lambda: plan_tiles(maps.reference, params, seed=0))
+    seconds, plan = fastest(args.repeat, lambda: plan_tiles(maps.reference, params, seed=0))
     layers = open_layers(store)[RADIANCE].data[view].compute()
     main = None
     disagree, start = [], time.perf_counter()
@@ -130,8 +111,8 @@ def _application(plan, layers: np.ndarray, args) -> dict:
     rows = {}
     for threads in (1, 2):
         parts = halves if threads == 2 else [slice(None)]
-        t_apply, _ = _best(args.repeat, partial(_in_threads, threads, prescribed, parts))
-        t_copy, _ = _best(args.repeat, partial(_in_threads, threads, copied, parts))
+        t_apply, _ = fastest(args.repeat, partial(in_threads, threads, prescribed, parts))
+        t_copy, _ = fastest(args.repeat, partial(in_threads, threads, copied, parts))
         rows[threads] = {"apply_gbps": nbytes / t_apply / 1e9,
                          "copy_gbps": nbytes / t_copy / 1e9, "ratio": t_copy / t_apply}
     return {"bytes": nbytes, "nnz_per_row": matrix.nnz / matrix.shape[0], "threads": rows}
@@ -144,7 +125,8 @@ class _Sink:
         pass
 
 
-def _rendering(tileset: Path, args) -> dict:
+def render_throughput(tileset: Path, args) -> dict:
+    """One layer of an ``args.render``-square region rendered lazily, against ``numpy.tile``."""
     import dask
     import dask.array as da
 
@@ -154,7 +136,7 @@ def _rendering(tileset: Path, args) -> dict:
     layer = lazy_layer(tileset, view=0, light=0, size=(size, size), seed=0)
     nbytes = size * size * layer.shape[-1] * 4
     with dask.config.set(scheduler="threads", num_workers=2):
-        t_render, _ = _best(args.repeat, lambda: da.store(layer, _Sink(), lock=False))
+        t_render, _ = fastest(args.repeat, lambda: da.store(layer, _Sink(), lock=False))
     tile = open_tileset(tileset)["radiance"][0, 0, 0]
     block = layer.chunksize[0]
     reps = (-(-block // tile.shape[0]), -(-block // tile.shape[1]), 1)
@@ -163,7 +145,7 @@ def _rendering(tileset: Path, args) -> dict:
     def tiled(_):
         np.ascontiguousarray(np.tile(tile, reps)[:block, :block])
 
-    t_tile, _ = _best(args.repeat, lambda: _in_threads(2, tiled, blocks))
+    t_tile, _ = fastest(args.repeat, lambda: in_threads(2, tiled, blocks))
     return {"size": size, "bytes": nbytes, "block": block, "render_seconds": t_render,
             "render_gbps": nbytes / t_render / 1e9, "tile_seconds": t_tile,
             "tile_gbps": nbytes / t_tile / 1e9, "ratio": t_tile / t_render}
@@ -194,7 +176,7 @@ def run(args: argparse.Namespace) -> dict:
                                       str(args.block), "--overlap", str(args.overlap),
                                       "--candidates", str(args.candidates), "--quiet",
                                       "--overwrite"])
-        rendering = _rendering(tiles, args)
+        rendering = render_throughput(tiles, args)
         region = tmp / "surface.zarr"
         render_cli = measure([btf, "render", str(tiles), str(region), "--light", "0", "--size",
                               f"{args.render},{args.render}", "--quiet"])

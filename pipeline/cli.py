@@ -136,8 +136,9 @@ def _add_bench(sub) -> None:
     from benchmarks import compress as compress_suite
     from benchmarks import generate as generate_suite
     from benchmarks import quilt as quilt_suite
+    from benchmarks import roller as roller_suite
 
-    suites = {s.SUITE: s for s in (generate_suite, compress_suite, quilt_suite)}
+    suites = {s.SUITE: s for s in (generate_suite, compress_suite, quilt_suite, roller_suite)}
     bench = sub.add_parser(
         "bench", formatter_class=_Formatter, help="run a benchmark suite",
         description="Benchmark a stage against a reference measured in the same run, and print "

@@ -291,6 +291,9 @@ def plan_roller(image: np.ndarray, u, v, params: RollerParams) -> RollerPlan:
     if img.ndim == 2:
         img = img[..., None]
     shape = img.shape[:2]
+    if min(math.hypot(*u), math.hypot(*v)) < 2.0:
+        raise ValueError(f"the periodicity vectors {tuple(u)} and {tuple(v)} must be at least "
+                         "2 texels long")
     a, b = params.periods or choose_periods(shape, u, v, params)
     U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
     V = tuple(int(c) for c in np.rint(b * np.asarray(v)))
