@@ -126,7 +126,9 @@ def run(args: argparse.Namespace) -> dict:
 
     btf = str(Path(sys.executable).parent / "btf")
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-roller-"))
-    sizes = [int(s) for s in args.sizes.split(",")]
+    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    if not sizes:
+        raise SystemExit("btf bench roller: --sizes needs at least one size")
     analysis = []
     try:
         with Session(RuntimeOptions(quiet=True)) as session:

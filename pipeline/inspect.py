@@ -336,7 +336,7 @@ def format_report(report: dict[str, Any]) -> str:
     if "fit" in report:
         f = report["fit"]
         err = f["error"] or {}
-        ratio = f["size_ratio"]
+        ratio = f["size_ratio"] or 1.0
         size = (f"{ratio:.2f}x smaller than" if ratio >= 1 else f"{1 / ratio:.2f}x larger than")
         lines.append(f"HLS fit: {f['rotations']} rotations x {f['elevations']} elevations, "
                      f"{f['parameters']} parameters per rotation; {size} the input; error "

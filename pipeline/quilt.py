@@ -6,8 +6,9 @@ the view closest to the normal, one spatial block and block of lights at a time
 
 ``quilt`` plans a tile set on the reference image (:func:`tasks.quilting.plan_tiles`, on the
 client: planning is sequential by nature), stores every tile's prescription, and applies them to
-every layer: one task per (view, block of lights) reads that block of the sample once and writes
-every tile's layers. From a compressed store it applies them to the eigentextures instead and
+every layer: one task per (view, block of lights) reads whole layers of that block, as many at
+a time as a memory budget allows (:data:`pipeline.tileset.APPLY_BUDGET`), and writes every
+tile's layers. From a compressed store it applies them to the eigentextures instead and
 the result is a compressed tile set.
 """
 
@@ -183,16 +184,15 @@ class QuiltStageParams:
 
 def quilt(params: QuiltStageParams, session: Session) -> Path:
     """Plan a tile set on the reference image and apply it to every layer."""
-    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
-                                   view=params.view, session=session)
-    sample = maps.reference.shape[:2]
+    layers = open_layers(params.store)[RADIANCE]
+    sample = (layers.sizes["y"], layers.sizes["x"])
     try:
         qp = params.quilt_params(sample)
         if min(sample) < params.block:
             raise ValueError(f"the sample ({sample[0]} x {sample[1]}) is smaller than a block")
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
-    need = qp.plan_bytes(maps.reference.shape[-1])
+    need = qp.plan_bytes(sample, layers.sizes["channel"])
     available = psutil.virtual_memory().available
     if need > 0.8 * available:
         raise BTFError(f"{params.store}: planning {qp.corners ** 4} tiles of {qp.tile[0]} x "
@@ -202,13 +202,19 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
                 f"texels on the {sample[0]} x {sample[1]} reference image (about "
                 f"{need / 2**20:.0f} MiB)")
-    plan = plan_tiles(maps.reference, qp, seed=params.seed)
+    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
+                                   view=params.view, session=session)
+    try:
+        plan = plan_tiles(maps.reference, qp, seed=params.seed)
+    except ValueError as exc:
+        raise BTFError(f"{params.store}: {exc}") from None
     group = open_group(params.store)
     attrs = {
         "source": "quilt",
         "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
                   "weights": list(parse_weights(params.weights)), "reference_view": view},
         "corner_types": qp.corners,
+        "seed": params.seed,
         "placements": [{"canvas": p.canvas, "window": list(p.window),
                         "source": list(p.source), "flags": list(p.flags)}
                        for p in plan.placements],
@@ -216,8 +222,10 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     }
     index = [t.index.reshape(-1, TERMS) for t in plan.tiles]
     weight = [t.weight.reshape(-1, TERMS) for t in plan.tiles]
+    corners = plan.corners
+    del plan  # the canvases' values and the strips are not needed any more
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
         write_tileset(params.store, tmp, group=group, index=index, weight=weight,
-                      tile_shape=qp.tile, reference=maps.reference, corners=plan.corners,
+                      tile_shape=qp.tile, reference=maps.reference, corners=corners,
                       attrs=attrs, session=session, label="quilt", output=params.out)
     return Path(params.out)

@@ -22,7 +22,7 @@ from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, location, store_aligned
-from pipeline.tileset import lazy_layer, open_tileset
+from pipeline.tileset import lazy_layer, open_tileset, stored_seed
 from tasks.tonemap import exposure, to_uint8, tonemap
 
 SURFACE = "surface"
@@ -95,8 +95,7 @@ def render(params: RenderParams, session: Session) -> Path:
             target = create_surface_store(tmp, layer.shape, channels, chunk=params.chunk, attrs={
                 "source": "render", "tileset": params.store, "light": params.light,
                 "view": params.view, "origin": list(params.origin),
-                "seed": params.seed if params.seed is not None
-                else int(group.attrs.get("seed", 0)),
+                "seed": params.seed if params.seed is not None else stored_seed(group),
                 "provenance": provenance("render", params)})
             session.compute(store_aligned([layer], [target]))
         return Path(params.out)

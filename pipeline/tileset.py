@@ -105,7 +105,12 @@ APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a ti
 
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
                  tile_shape) -> None:
-    """Apply every tile's prescription to a block of lights, a few whole layers at a time."""
+    """Apply every tile's prescription to a block of lights, a few whole layers at a time.
+
+    ``P`` may take any texel of the sample, so a whole layer is the smallest unit read; when
+    fewer layers than a stored chunk holds fit in the budget, that chunk is read (and
+    decompressed) once per group of layers.
+    """
     import zarr
 
     from tasks.prescription import apply
@@ -113,7 +118,7 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     source = zarr.open_array(store, path=RADIANCE, mode="r")
     target = zarr.open_array(out, path=RADIANCE, mode="r+")
     ny, nx, nc = source.shape[-3:]
-    layer = 4 * nc * max(ny * nx, tile_shape[0] * tile_shape[1])
+    layer = 4 * nc * (ny * nx + tile_shape[0] * tile_shape[1])  # a source and a tile layer
     step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
     for l0 in range(light0, light1, step):
         l1 = min(l0 + step, light1)
@@ -123,7 +128,10 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
 
 
 def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
-    """One tile's eigentextures, reading the source's in bands of stored chunk rows."""
+    """One tile's eigentextures, reading the source's in bands of whole stored chunk rows.
+
+    The bands are as many chunk rows as fit in the budget (at least one).
+    """
     import zarr
 
     from tasks.prescription import apply_texel_rows
@@ -133,7 +141,7 @@ def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
     ny, nx, rank = source.shape
     columns = matrix.tocsc()
     result = np.zeros((matrix.shape[0], rank), np.float32)
-    band = source.chunks[0]
+    band = source.chunks[0] * max(1, APPLY_BUDGET // (4 * rank * nx * source.chunks[0]))
     for y0 in range(0, ny, band):
         apply_texel_rows(columns, source[y0 : y0 + band], y0 * nx, result)
     target[tile] = result.reshape(target.shape[1:])
@@ -226,7 +234,9 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
         s = group["S"][:]
         eps = float(group.attrs["transform"]["eps"])
         tiles = np.stack([reconstruct_layers(u, s, v, eps=eps) for v in group["V"]])
-    return tiles if order is None else tiles[order]
+    if order is None or np.array_equal(order, np.arange(len(tiles))):
+        return tiles
+    return tiles[order]
 
 
 def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
@@ -256,6 +266,12 @@ def _lattice_block(tiles, block_info=None, *, origin, seed, hnf, basis, represen
                           basis=basis, representative=representative, seed=seed)
 
 
+def stored_seed(group) -> int:
+    """The placement seed recorded with a tile set (older quilt sets: the planning seed)."""
+    attrs = group.attrs
+    return int(attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0)))
+
+
 def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int],
                origin: tuple[int, int] = (0, 0), seed: int | None = None, chunk: int = 2048):
     """One layer of the surface tiled by a tile set, as a lazy dask array ``(y, x, channel)``.
@@ -275,7 +291,7 @@ def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int]
     if not 0 <= light < nl:
         raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
     if seed is None:
-        seed = int(group.attrs.get("seed", 0))
+        seed = stored_seed(group)
     channels = group["channel"].shape[0]
     lattice = group.attrs.get("placement") == "lattice"
     order = None if lattice else corner_order(path, group["corners"][...],

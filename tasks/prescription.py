@@ -6,7 +6,8 @@ A plan made on the reference image (quilting, the roller) compiles to ``P``, a
 is what makes the transfer identical for all light and view directions; being linear, it applies
 just as well to the eigentextures of a compressed store. Stored as padded rows (an ELL matrix:
 ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
-applied as a scipy CSR matrix.
+applied as a scipy CSR matrix (CSC, whose column slices are cheap, where the sample is read in
+bands).
 """
 
 from __future__ import annotations

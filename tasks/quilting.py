@@ -31,11 +31,12 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
   empty join the inner region, and the loop may run outside the window along them: these are
   the border flags of Fig. 8, which make the cut enclose the empty side instead of cutting
   through it at no cost. The flags of every placement are recorded.
-  The cut never runs along a window pixel whose outside neighbour is filled canvas: there it
-  would leave the patch's outermost row next to canvas pixels with no transition.
+  The cut never runs along a window pixel whose outside neighbour is not free (filled canvas,
+  in the order tiles are filled): there it would leave the patch's outermost row next to
+  canvas pixels with no transition.
 - **Blending** (Fig. 7): the region inside the cut, blurred with a Gaussian of ``sigma = O/4``
-  (with canvas, weight 0, beyond the window's filled sides), is the patch's weight; it is
-  forced to 1 on the inner square and on empty pixels.
+  that sees weight 0 beyond the window (the canvas there, or nothing off the canvas), is the
+  patch's weight; it is forced to 1 on the inner square and on empty pixels.
 """
 
 from __future__ import annotations
@@ -84,10 +85,16 @@ class QuiltParams:
         """Distance between neighbouring windows."""
         return self.block - self.overlap
 
-    def plan_bytes(self, channels: int) -> int:
-        """About how much memory :func:`plan_tiles` holds: every tile's canvas."""
-        per_texel = TERMS * (4 + 4) + 4 * channels + 1  # index, weight, value, filled
-        return self.corners**4 * self.tile[0] * self.tile[1] * per_texel
+    def plan_bytes(self, sample: tuple[int, int], channels: int) -> int:
+        """About how much memory planning and compiling the prescriptions hold at their peak.
+
+        Every tile's canvas (index, weight, value, filled), the candidate search's spectra of
+        the sample (padded by a block), and a CSR matrix per tile (about two terms per texel).
+        """
+        per_texel = TERMS * (4 + 4) + 4 * channels + 1 + 2 * (4 + 4) + 4
+        padded = (sample[0] + self.block) * (sample[1] + self.block)
+        search = padded * (8 * channels + 16 * (1 + channels))
+        return self.corners**4 * self.tile[0] * self.tile[1] * per_texel + search
 
 
 class CandidateSearch:
@@ -150,7 +157,8 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
         cross them.
     outside_free
         ``(B + 2, B + 2)`` ring of positions just outside the window that the cut may use at no
-        cost: next to empty pixels (the border flags). Elsewhere outside is forbidden.
+        cost: next to empty pixels (the border flags) or off the canvas. Elsewhere outside is
+        forbidden, and so is the window pixel next to it.
 
     Returns
     -------
@@ -230,7 +238,7 @@ class Placement:
     flags: tuple[str, ...]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Blend:
     """A patch as it was blended into a canvas: sample indices, values, weights, window."""
 
@@ -321,6 +329,8 @@ class TileSet:
     corners: np.ndarray  # (tiles, 4) corner types: top-left, top-right, bottom-left, bottom-right
     placements: list[Placement]
     sample_shape: tuple[int, int]
+    # the edge strips by ("horizontal" | "vertical", first corner type, last corner type)
+    strips: dict[tuple[str, int, int], Canvas] = field(default_factory=dict)
 
 
 def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
@@ -392,5 +402,7 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
             raise AssertionError("a tile was left with empty pixels")
         tiles.append(canvas)
         corners.append((tl, tr, bl, br))
+    strips = {("horizontal", *k): c for k, c in horizontal.items()}
+    strips.update({("vertical", *k): c for k, (c, _) in vertical.items()})
     return TileSet(tiles, np.array(corners, np.int64), planner.placements,
-                   reference.shape[:2])
+                   reference.shape[:2], strips)

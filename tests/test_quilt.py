@@ -94,6 +94,48 @@ def test_the_boundary_cut_follows_the_cheapest_loop_around_the_kept_square():
     np.testing.assert_array_equal(region, expected)
 
 
+def test_the_cut_never_runs_along_a_window_edge_beside_filled_canvas():
+    b = 12
+    error = np.full((b, b), 10.0)
+    error[0, :] = error[-1, :] = error[:, 0] = error[:, -1] = 0.0  # cheapest: the outermost ring
+    keep = np.zeros((b, b), bool)
+    keep[4:8, 4:8] = True
+    region = boundary_cut(error, keep, outside_free=np.zeros((b + 2, b + 2), bool))
+    assert region[4:8, 4:8].all()
+    assert not (region[0].any() or region[-1].any() or region[:, 0].any()
+                or region[:, -1].any())
+    # next to free positions (empty or off the canvas) the edge may be taken, and is
+    free = np.ones((b + 2, b + 2), bool)
+    free[1:-1, 1:-1] = False
+    assert boundary_cut(error, keep, outside_free=free).all()
+
+
+@pytest.mark.parametrize("steps", [2, 3])
+def test_a_tiles_border_bands_are_exactly_its_edge_strips(steps):
+    # The bands no interior patch reaches (B/2 - O wide) hold the edge strips as planned, in
+    # every row and column: the corner quadrants re-blend the vertical strip's patches over
+    # the horizontal strip only where the horizontal strip is the corner patch alone.
+    block, overlap = 12, 3
+    half, band, step = block // 2, block // 2 - overlap, block - overlap
+    size = step * steps
+    reference = np.random.default_rng(5).random((50, 54, 3))
+    plan = plan_tiles(reference, QuiltParams(block, overlap, 3, 2, (size, size)), seed=2)
+    for tile, (tl, tr, bl, br) in zip(plan.tiles, plan.corners, strict=True):
+        pieces = [
+            (np.s_[:band, :], plan.strips[("horizontal", tl, tr)], np.s_[half : half + band,
+                                                                         half : half + size]),
+            (np.s_[-band:, :], plan.strips[("horizontal", bl, br)], np.s_[half - band : half,
+                                                                          half : half + size]),
+            (np.s_[:, :band], plan.strips[("vertical", tl, bl)], np.s_[half : half + size,
+                                                                       half : half + band]),
+            (np.s_[:, -band:], plan.strips[("vertical", tr, br)], np.s_[half : half + size,
+                                                                        half - band : half]),
+        ]
+        for where, strip, there in pieces:
+            assert np.array_equal(tile.index[where], strip.index[there])
+            assert np.array_equal(tile.weight[where], strip.weight[there])
+
+
 @pytest.mark.parametrize("material", ["fabric", "stone", "tiles"])
 def test_a_quilted_texture_wraps_seamlessly_in_every_layer(tmp_path, btf, samples, material):
     # Pooled over seeds, layers and both wraps: one 48-pixel wrap line may run along an edge of
