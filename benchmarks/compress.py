@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import best_of, machine, measure
+from benchmarks.harness import best_of, btf_executable, generate_store, machine, measure
 
 SUITE = "compress"
 EPS = 1e-3
@@ -58,16 +58,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where generated stores are kept between runs")
 
 
-def _btf() -> str:
-    return str(Path(sys.executable).parent / "btf")
-
-
 def ensure_store(data: Path, material: str, size: int, sampling: str) -> Path:
     """A generated store, made once and reused."""
     path = data / f"{material}-{size}-{sampling.replace(':', '').replace(',', 'x')}.zarr"
     if not (path / "zarr.json").is_file():
-        subprocess.run([_btf(), "generate", str(path), "--material", material, "--size",
-                        str(size), "--sampling", sampling, "--quiet", "--overwrite"], check=True)
+        generate_store(path, material, size, sampling)
     return path
 
 
@@ -173,9 +168,9 @@ def timed_methods(store: Path, args, tmp: Path) -> list[dict]:
     methods = set(args.methods.split(","))
     rows = []
     if "btf" in methods:
-        m = measure([_btf(), "compress", str(store), str(tmp / "two.zarr"), "--rank", str(k),
-                     "--oversample", str(p), "--power-iters", str(q), "--quiet", "--overwrite",
-                     "--workers", "2"])
+        m = measure([btf_executable(), "compress", str(store), str(tmp / "two.zarr"), "--rank",
+                     str(k), "--oversample", str(p), "--power-iters", str(q), "--quiet",
+                     "--overwrite", "--workers", "2"])
         rows.append({"method": "btf compress --workers 2 (dask's thread count)",
                      "reads": q + 1, "passes": q + 1, **m.__dict__})
     for iterator, recompute in [("power", False), ("QR", False), ("QR", True)]:
@@ -232,8 +227,8 @@ def ours_and_bound(store: Path, args, tmp: Path) -> tuple[dict, dict]:
     k, p, q = args.rank, args.oversample, args.power_iters
     ours, parts = [], []
     for _ in range(max(1, args.repeat)):
-        ours.append(measure([_btf(), "compress", str(store), str(tmp / "ours.zarr"), "--rank",
-                             str(k), "--oversample", str(p), "--power-iters", str(q),
+        ours.append(measure([btf_executable(), "compress", str(store), str(tmp / "ours.zarr"),
+                             "--rank", str(k), "--oversample", str(p), "--power-iters", str(q),
                              "--quiet", "--overwrite"]))
         done = subprocess.run(_py(f"from benchmarks.compress import bound_parts; bound_parts("
                                   f"{str(store)!r}, {k}, {p}, 1)"),
@@ -297,7 +292,7 @@ def scaling(args, data: Path, tmp: Path) -> list[dict]:
         n = max(2, round(math.sqrt(gb * 1e9 / (4 * 3 * args.size**2))))
         store = ensure_store(data, args.material, args.size, f"hemi:{n}")
         m_rows, n_cols = matrix_shape(store)
-        m = measure([_btf(), "compress", str(store), str(tmp / "scale.zarr"), "--rank",
+        m = measure([btf_executable(), "compress", str(store), str(tmp / "scale.zarr"), "--rank",
                      str(args.rank), "--oversample", str(args.oversample), "--power-iters",
                      str(args.power_iters), "--quiet", "--overwrite"])
         rows.append({"gigabytes": m_rows * n_cols * 4 / 1e9, "rows": m_rows, "cols": n_cols,

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.harness import best_of, machine, measure
+from benchmarks.harness import best_of, btf_executable, git_revision, machine, measure
 
 SUITE = "generate"
 
@@ -74,7 +73,7 @@ def run(args: argparse.Namespace) -> dict:
 
     s = parse_sampling(args.sampling)
     work = args.size * args.size * s.theta_view.size * s.theta_light.size
-    btf = str(Path(sys.executable).parent / "btf")
+    btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-"))
     rows = []
     try:
@@ -111,8 +110,7 @@ def run(args: argparse.Namespace) -> dict:
             "bytes": work * 3 * 4, "serial_kernels": {"seconds": reference.seconds,
                                                       "peak_rss": reference.peak_rss},
             "runs": rows, "machine": machine(),
-            "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True).stdout.strip()}
+            "git": git_revision()}
 
 
 def report(result: dict) -> str:

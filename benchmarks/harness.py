@@ -9,6 +9,7 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,24 @@ def in_threads(threads: int, fn, parts) -> None:
         return
     with ThreadPoolExecutor(threads) as pool:
         list(pool.map(fn, parts))
+
+
+def btf_executable() -> str:
+    """The ``btf`` console script of the running environment."""
+    return str(Path(sys.executable).parent / "btf")
+
+
+def generate_store(path: Path, material: str, size: int, sampling: str) -> Path:
+    """Generate a store with ``btf generate`` (quietly, replacing what is there)."""
+    subprocess.run([btf_executable(), "generate", str(path), "--material", material, "--size",
+                    str(size), "--sampling", sampling, "--quiet", "--overwrite"], check=True)
+    return path
+
+
+def git_revision() -> str:
+    """Short hash of the checked-out commit (empty outside a git checkout)."""
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
 
 
 def machine() -> dict:

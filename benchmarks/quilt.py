@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -30,7 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import best_of, fastest, in_threads, machine, measure
+from benchmarks.harness import (
+    best_of,
+    btf_executable,
+    fastest,
+    generate_store,
+    git_revision,
+    in_threads,
+    machine,
+    measure,
+)
 
 SUITE = "quilt"
 SAMPLING = "abtf:6,4"
@@ -155,7 +163,7 @@ def run(args: argparse.Namespace) -> dict:
     """Plan, apply and render, with their references, in this run."""
     from pipeline.runtime import RuntimeOptions, Session
 
-    btf = str(Path(sys.executable).parent / "btf")
+    btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
     sizes = [int(s) for s in args.sizes.split(",")]
     planning = []
@@ -163,9 +171,7 @@ def run(args: argparse.Namespace) -> dict:
         with Session(RuntimeOptions(quiet=True)) as session:
             for size in sizes:
                 store = tmp / f"{args.material}-{size}.zarr"
-                subprocess.run([btf, "generate", str(store), "--material", args.material,
-                                "--size", str(size), "--sampling", SAMPLING, "--quiet"],
-                               check=True)
+                generate_store(store, args.material, size, SAMPLING)
                 row, plan, layers = _planning(store, args, session)
                 planning.append(row)
                 print(f"planned {size}^2: {row['plan_seconds']:.2f} s; {row['layers']} layers "
@@ -191,8 +197,7 @@ def run(args: argparse.Namespace) -> dict:
             "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
                           "peak_rss": quilt.peak_rss},
             "rendering": rendering, "machine": machine(),
-            "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True).stdout.strip()}
+            "git": git_revision()}
 
 
 def report(result: dict) -> str:

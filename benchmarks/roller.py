@@ -30,7 +30,14 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import best_of, fastest, machine
+from benchmarks.harness import (
+    best_of,
+    btf_executable,
+    fastest,
+    generate_store,
+    git_revision,
+    machine,
+)
 from benchmarks.quilt import render_throughput
 
 SUITE = "roller"
@@ -124,7 +131,7 @@ def run(args: argparse.Namespace) -> dict:
     """Analyse, tile, render and compare, with their references, in this run."""
     from pipeline.runtime import RuntimeOptions, Session
 
-    btf = str(Path(sys.executable).parent / "btf")
+    btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-roller-"))
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes:
@@ -134,9 +141,7 @@ def run(args: argparse.Namespace) -> dict:
         with Session(RuntimeOptions(quiet=True)) as session:
             for size in sizes:
                 store = tmp / f"{args.material}-{size}.zarr"
-                subprocess.run([btf, "generate", str(store), "--material", args.material,
-                                "--size", str(size), "--sampling", SAMPLING, "--quiet"],
-                               check=True)
+                generate_store(store, args.material, size, SAMPLING)
                 row, _ = _analysis(store, args, session)
                 analysis.append(row)
                 print(f"analysed {size}^2: {row['seconds']:.2f} s (detection "
@@ -155,8 +160,7 @@ def run(args: argparse.Namespace) -> dict:
             "repeat": args.repeat, "analysis": analysis,
             "roller_cli": {"size": sizes[-1], "seconds": cli.seconds, "peak_rss": cli.peak_rss},
             "rendering": rendering, "seams": seams, "machine": machine(),
-            "git": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                  text=True).stdout.strip()}
+            "git": git_revision()}
 
 
 def report(result: dict) -> str:

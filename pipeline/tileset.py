@@ -29,7 +29,7 @@ import numpy as np
 
 from pipeline.errors import BTFError
 from pipeline.store import DIRECTION_COORDS, RADIANCE, Directions, location, open_group
-from tasks.placement import gather, lattice_gather
+from tasks.placement import corner_code, gather, lattice_gather
 
 KINDS = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
@@ -245,8 +245,7 @@ def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
     Every combination of ``types`` corner types must be stored exactly once.
     """
     corners = np.asarray(corners)
-    codes = ((corners[:, 0] * types + corners[:, 1]) * types + corners[:, 2]) * types + corners[
-        :, 3]
+    codes = corner_code(*corners.T, corners=types)
     if (corners.min(initial=0) < 0 or corners.max(initial=0) >= types
             or sorted(codes.tolist()) != list(range(types**4))):
         raise BTFError(f"{path}: variable 'corners' does not hold every combination of "

@@ -29,8 +29,12 @@ def cell_tiles(row0: int, col0: int, ny: int, nx: int, *, seed: int, corners: in
     """
     t = vertex_types(np.arange(row0, row0 + ny + 1), np.arange(col0, col0 + nx + 1),
                      seed=seed, corners=corners)
-    v = corners
-    return ((t[:-1, :-1] * v + t[:-1, 1:]) * v + t[1:, :-1]) * v + t[1:, 1:]
+    return corner_code(t[:-1, :-1], t[:-1, 1:], t[1:, :-1], t[1:, 1:], corners=corners)
+
+
+def corner_code(top_left, top_right, bottom_left, bottom_right, *, corners: int):
+    """Index of the tile with these corner types among all ``corners^4``, lexicographically."""
+    return ((top_left * corners + top_right) * corners + bottom_left) * corners + bottom_right
 
 
 def gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, seed: int,
