@@ -17,7 +17,7 @@ from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store, 
 from pipeline.tileset import lazy_layer
 from tasks.canvas import TERMS
 from tasks.materials import Material
-from tasks.prescription import check, to_csr
+from tasks.prescription import apply, check, to_csr
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut, plan_tiles
 
 PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
@@ -270,6 +270,23 @@ def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, sa
         for light in range(layers.shape[1]):
             expected = (matrix @ layers[0, light].reshape(n, -1)).reshape(24, 24, -1)
             assert np.array_equal(group[RADIANCE][t, 0, light], expected)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_apply_equals_scipys_sparse_product_bit_for_bit(channels):
+    rng = np.random.default_rng(channels)
+    sample, output = (9, 7), (5, 6)
+    index = rng.integers(-1, 63, (30, TERMS))  # -1: unused terms, some rows have none
+    weight = np.where(index >= 0, rng.random(index.shape), 0).astype(np.float32)
+    matrix = to_csr(index, weight, 63)
+    layers = rng.standard_normal((2, 3, *sample, channels)).astype(np.float32)
+    out = apply(matrix, layers, output=output)
+    assert out.shape == (2, 3, *output, channels) and out.dtype == np.float32
+    for v, light in itertools.product(range(2), range(3)):
+        expected = matrix @ layers[v, light].reshape(63, channels)
+        assert np.array_equal(out[v, light].reshape(30, channels), expected)
+    with pytest.raises(ValueError, match="cannot take"):
+        apply(matrix, layers, output=(6, 6))
 
 
 @settings(max_examples=12, deadline=None)
