@@ -112,7 +112,7 @@ def _application(plan, layers: np.ndarray, args) -> dict:
     half = layers.shape[0] // 2
     halves = [slice(0, half), slice(half, None)]  # slices: views, not fancy-indexed copies
     def prescribed(ls):
-        out[ls] = apply(matrix, layers[ls], output=shape)
+        apply(matrix, layers[ls], output=shape, out=out[ls])
 
     def scipy_product(ls):  # the previous implementation: one scipy CSR product per layer
         for i in range(*ls.indices(layers.shape[0])):

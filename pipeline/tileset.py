@@ -123,8 +123,9 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     for l0 in range(light0, light1, step):
         l1 = min(l0 + step, light1)
         layers = source[view, l0:l1]
+        result = np.empty((l1 - l0, *tile_shape, nc), np.float32)  # reused by every tile
         for t, matrix in enumerate(matrices):
-            target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape)
+            target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape, out=result)
 
 
 def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
