@@ -6,18 +6,15 @@ A plan made on the reference image (quilting, the roller) compiles to ``P``, a
 is what makes the transfer identical for all light and view directions; being linear, it applies
 just as well to the eigentextures of a compressed store. Stored as padded rows (an ELL matrix:
 ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
-applied as a scipy CSR matrix, by a compiled row loop over whole layers (:func:`apply`), or as
-CSC, whose column slices are cheap, where the sample is read in bands
+applied as a scipy CSR matrix, by a compiled row loop over whole layers (:func:`apply`, the
+loop in :mod:`tasks.kernels`, imported on first use: numba takes a quarter of a second and
+~100 MB to load), or as CSC, whose column slices are cheap, where the sample is read in bands
 (:func:`apply_texel_rows`).
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-from llvmlite import ir
-from numba import types
-from numba.extending import intrinsic
 from scipy import sparse
 
 
@@ -47,78 +44,6 @@ def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
     return problems
 
 
-AHEAD = 32  # output texels between prefetching a texel's sources and summing them
-
-
-@intrinsic
-def _prefetch(typingctx, address):
-    """Ask the CPU to bring the cache line at ``address`` (an integer) into cache.
-
-    LLVM's ``llvm.prefetch`` (read, high locality, data cache): a hint, which never faults.
-    """
-    if not isinstance(address, types.Integer):
-        return None
-
-    def codegen(context, builder, signature, args):
-        i32 = ir.IntType(32)
-        pointer = ir.IntType(8).as_pointer()
-        prefetch = builder.module.declare_intrinsic(
-            "llvm.prefetch", fnty=ir.FunctionType(ir.VoidType(), [pointer, i32, i32, i32]))
-        builder.call(prefetch, [builder.inttoptr(args[0], pointer), ir.Constant(i32, 0),
-                                ir.Constant(i32, 3), ir.Constant(i32, 1)])
-        return context.get_dummy_value()
-
-    return types.void(types.intp), codegen
-
-
-@numba.njit(nogil=True, cache=False)
-def _product(indptr, indices, data, src, dst):
-    """``dst[l] = P @ src[l]`` for ``(layers, texels, channels)`` arrays, ``P`` as CSR arrays.
-
-    Every output value is summed in float32 from 0 over its row's terms in CSR order, which is
-    what scipy's ``csr_matvecs`` does: the result is scipy's ``P @ src[l]`` bit for bit (the
-    tests check it). The sources of a texel are scattered over the sample, so the loop waits
-    on memory; for three channels (RGB) it works on two layers at once (the same terms, two
-    independent loads) and prefetches the sources of the texel ``AHEAD`` texels on, which
-    together make it about 1.4x faster than a plain loop (``btf bench quilt``).
-    """
-    layers, _, channels = src.shape
-    rows = indptr.size - 1
-    if channels != 3:
-        for layer in range(layers):
-            s, d = src[layer], dst[layer]
-            for r in range(rows):
-                for k in range(channels):
-                    a = np.float32(0)
-                    for j in range(indptr[r], indptr[r + 1]):
-                        a += data[j] * s[indices[j], k]
-                    d[r, k] = a
-        return
-    stride = src.strides[1]
-    for layer in range(0, layers, 2):
-        other = min(layer + 1, layers - 1)  # an odd last layer is computed twice
-        s, t = src[layer], src[other]
-        ds, dt = dst[layer], dst[other]
-        base_s, base_t = s.ctypes.data, t.ctypes.data
-        for r in range(rows):
-            if r + AHEAD < rows:
-                for j in range(indptr[r + AHEAD], min(indptr[r + AHEAD] + 2,
-                                                      indptr[r + AHEAD + 1])):
-                    _prefetch(base_s + stride * indices[j])
-                    _prefetch(base_t + stride * indices[j])
-            a0 = a1 = a2 = b0 = b1 = b2 = np.float32(0)
-            for j in range(indptr[r], indptr[r + 1]):
-                w, c = data[j], indices[j]
-                a0 += w * s[c, 0]
-                a1 += w * s[c, 1]
-                a2 += w * s[c, 2]
-                b0 += w * t[c, 0]
-                b1 += w * t[c, 1]
-                b2 += w * t[c, 2]
-            ds[r, 0], ds[r, 1], ds[r, 2] = a0, a1, a2
-            dt[r, 0], dt[r, 1], dt[r, 2] = b0, b1, b2
-
-
 def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int],
           out: np.ndarray | None = None) -> np.ndarray:
     """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
@@ -126,9 +51,11 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     ``output`` is the ``(y, x)`` shape of a result layer; ``out``, if given, a C-contiguous
     float32 array of the result's shape to write into (reusing one saves the page faults of a
     fresh allocation, which cost as much as the product here). A compiled loop over the output
-    texels of each layer (:func:`_product`, equal to scipy's product bit for bit), which
-    releases the GIL: the pipeline's threads apply prescriptions in parallel.
+    texels of each layer (:func:`tasks.kernels.csr_product`, equal to scipy's product bit for
+    bit), which releases the GIL: the pipeline's threads apply prescriptions in parallel.
     """
+    from tasks.kernels import csr_product
+
     matrix = sparse.csr_matrix(matrix, dtype=np.float32)
     layers = np.ascontiguousarray(layers, np.float32)
     *lead, ny, nx, nc = layers.shape
@@ -141,7 +68,7 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, "
                          f"not {out.dtype} {out.shape}")
-    _product(matrix.indptr, matrix.indices, matrix.data, layers.reshape(-1, ny * nx, nc),
+    csr_product(matrix.indptr, matrix.indices, matrix.data, layers.reshape(-1, ny * nx, nc),
              out.reshape(-1, output[0] * output[1], nc))
     return out
 

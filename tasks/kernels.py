@@ -1,0 +1,87 @@
+"""Compiled loops (numba) for what numpy and scipy do slowly here.
+
+Kept apart from the modules that use them so that importing those does not load numba (a
+quarter of a second and ~100 MB); they import this on first use. Every kernel releases the GIL
+(``nogil``), so the pipeline's threads run them in parallel, and none uses numba's own threads
+(they must not be entered from several dask threads at once) or its on-disk cache.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+AHEAD = 32  # output texels between prefetching a texel's sources and summing them
+
+
+@intrinsic
+def prefetch(typingctx, address):
+    """Ask the CPU to bring the cache line at ``address`` (an integer) into cache.
+
+    LLVM's ``llvm.prefetch`` (read, high locality, data cache): a hint, which never faults.
+    """
+    if not isinstance(address, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        i32 = ir.IntType(32)
+        pointer = ir.IntType(8).as_pointer()
+        llvm_prefetch = builder.module.declare_intrinsic(
+            "llvm.prefetch", fnty=ir.FunctionType(ir.VoidType(), [pointer, i32, i32, i32]))
+        address = builder.inttoptr(args[0], pointer)
+        read, high_locality, data_cache = (ir.Constant(i32, v) for v in (0, 3, 1))
+        builder.call(llvm_prefetch, [address, read, high_locality, data_cache])
+        return context.get_dummy_value()
+
+    return types.void(types.intp), codegen
+
+
+@numba.njit(nogil=True, cache=False)
+def csr_product(indptr, indices, data, src, dst):
+    """``dst[l] = P @ src[l]`` for ``(layers, texels, channels)`` arrays, ``P`` as CSR arrays.
+
+    Every output value is summed in float32 from 0 over its row's terms in CSR order, which is
+    what scipy's ``csr_matvecs`` does: the result is scipy's ``P @ src[l]`` bit for bit (the
+    tests check it). The sources of a texel are scattered over the sample, so the loop waits
+    on memory; for three channels (RGB) it works on two layers at once (the same terms, two
+    independent loads) and prefetches the sources of the texel ``AHEAD`` texels on, which
+    together make it about 1.4x faster than a plain loop (BENCHMARKS.md, quilting).
+    """
+    layers, _, channels = src.shape
+    rows = indptr.size - 1
+    if channels != 3:
+        for layer in range(layers):
+            s, d = src[layer], dst[layer]
+            for r in range(rows):
+                for k in range(channels):
+                    a = np.float32(0)
+                    for j in range(indptr[r], indptr[r + 1]):
+                        a += data[j] * s[indices[j], k]
+                    d[r, k] = a
+        return
+    stride = src.strides[1]
+    for layer in range(0, layers, 2):
+        other = min(layer + 1, layers - 1)  # an odd last layer is computed twice
+        s, t = src[layer], src[other]
+        ds, dt = dst[layer], dst[other]
+        base_s, base_t = s.ctypes.data, t.ctypes.data
+        for r in range(rows):
+            if r + AHEAD < rows:
+                for j in range(indptr[r + AHEAD], min(indptr[r + AHEAD] + 2,
+                                                      indptr[r + AHEAD + 1])):
+                    prefetch(base_s + stride * indices[j])
+                    prefetch(base_t + stride * indices[j])
+            a0 = a1 = a2 = b0 = b1 = b2 = np.float32(0)
+            for j in range(indptr[r], indptr[r + 1]):
+                w, c = data[j], indices[j]
+                a0 += w * s[c, 0]
+                a1 += w * s[c, 1]
+                a2 += w * s[c, 2]
+                b0 += w * t[c, 0]
+                b1 += w * t[c, 1]
+                b2 += w * t[c, 2]
+            ds[r, 0], ds[r, 1], ds[r, 2] = a0, a1, a2
+            dt[r, 0], dt[r, 1], dt[r, 2] = b0, b1, b2
