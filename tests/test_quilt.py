@@ -275,18 +275,22 @@ def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, sa
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_apply_equals_scipys_sparse_product_bit_for_bit(channels):
     rng = np.random.default_rng(channels)
-    sample, output = (9, 7), (5, 6)
-    index = rng.integers(-1, 63, (30, TERMS))  # -1: unused terms, some rows have none
+    sample, output = (9, 7), (8, 9)  # 72 output texels: more than the kernel prefetches ahead
+    index = rng.integers(-1, 63, (72, TERMS))  # -1: unused terms
+    index[5] = -1  # a row with no terms gives 0
     weight = np.where(index >= 0, rng.random(index.shape), 0).astype(np.float32)
     matrix = to_csr(index, weight, 63)
     layers = rng.standard_normal((3, 3, *sample, channels)).astype(np.float32)  # 9: odd
-    out = apply(matrix, layers, output=output)
-    assert out.shape == (3, 3, *output, channels) and out.dtype == np.float32
+    out = np.full((3, 3, *output, channels), np.nan, np.float32)
+    assert apply(matrix, layers, output=output, out=out) is out
     for v, light in itertools.product(range(3), range(3)):
         expected = matrix @ layers[v, light].reshape(63, channels)
-        assert np.array_equal(out[v, light].reshape(30, channels), expected)
+        assert np.array_equal(out[v, light].reshape(72, channels), expected)
+    assert np.array_equal(apply(matrix, layers[:1, :1], output=output), out[:1, :1])
     with pytest.raises(ValueError, match="cannot take"):
         apply(matrix, layers, output=(6, 6))
+    with pytest.raises(ValueError, match="C-contiguous float32"):
+        apply(matrix, layers, output=output, out=out[:, :, ::-1])
 
 
 @settings(max_examples=12, deadline=None)
