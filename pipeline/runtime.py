@@ -108,6 +108,13 @@ class Session:
         """Whether progress and messages are suppressed."""
         return self.options.quiet
 
+    @property
+    def parallelism(self) -> int:
+        """How many tasks run at once: the cluster's worker threads, or the local workers."""
+        if self.client is not None:
+            return max(1, sum(self.client.nthreads().values()))
+        return self.options.workers or os.cpu_count() or 1
+
     def log(self, message: str) -> None:
         """Print a progress message on stderr unless quiet."""
         if not self.options.quiet:

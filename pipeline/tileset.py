@@ -128,10 +128,12 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
             target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape, out=result)
 
 
-def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
-    """One tile's eigentextures, reading the source's in bands of whole stored chunk rows.
+def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -> None:
+    """Some tiles' eigentextures, reading the source's once, in bands of whole chunk rows.
 
-    The bands are as many chunk rows as fit in the budget (at least one).
+    The bands are as many chunk rows as fit in the budget (at least one); every band serves all
+    the task's tiles, whose results (within the budget too, see :func:`_tile_groups`) are held
+    until the last band.
     """
     import zarr
 
@@ -140,12 +142,25 @@ def _apply_eigentextures(store: str, out: str, tile: int, matrix) -> None:
     source = zarr.open_array(store, path="V", mode="r")
     target = zarr.open_array(out, path="V", mode="r+")
     ny, nx, rank = source.shape
-    columns = matrix.tocsc()
-    result = np.zeros((matrix.shape[0], rank), np.float32)
+    columns = [matrices[t].tocsc() for t in tiles]
+    results = [np.zeros((c.shape[0], rank), np.float32) for c in columns]
     band = source.chunks[0] * max(1, APPLY_BUDGET // (4 * rank * nx * source.chunks[0]))
     for y0 in range(0, ny, band):
-        apply_texel_rows(columns, source[y0 : y0 + band], y0 * nx, result)
-    target[tile] = result.reshape(target.shape[1:])
+        texels = source[y0 : y0 + band]
+        for matrix, result in zip(columns, results, strict=True):
+            apply_texel_rows(matrix, texels, y0 * nx, result)
+    for t, result in zip(tiles, results, strict=True):
+        target[t] = result.reshape(target.shape[1:])
+
+
+def _tile_groups(tiles: int, tile_bytes: int, parallelism: int) -> list[range]:
+    """Tiles grouped for :func:`_apply_eigentextures`: each group reads the eigentextures once.
+
+    As many tiles per group as their results fit in the budget, but no fewer groups than tasks
+    can run at once (nor more than tiles).
+    """
+    size = max(1, min(APPLY_BUDGET // max(1, tile_bytes), -(-tiles // parallelism)))
+    return [range(t, min(t + size, tiles)) for t in range(0, tiles, size)]
 
 
 def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
@@ -189,8 +204,10 @@ def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
     if compressed:
         out["U"][...] = group["U"][...]
         out["S"][...] = group["S"][...]
-        writes = [dask.delayed(_apply_eigentextures)(location(store), location(tmp), t, m)
-                  for t, m in enumerate(matrices)]
+        tile_bytes = 4 * tile_shape[0] * tile_shape[1] * group["S"].shape[0]
+        writes = [dask.delayed(_apply_eigentextures)(location(store), location(tmp), tiles,
+                                                     shared)
+                  for tiles in _tile_groups(len(matrices), tile_bytes, session.parallelism)]
     else:
         nv, nl = d.theta_view.size, d.theta_light.size
         block = group[RADIANCE].chunks[1]
@@ -198,7 +215,8 @@ def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
                                              min(l0 + block, nl), shared, tile_shape)
                   for v in range(nv) for l0 in range(0, nl, block)]
     session.log(f"{label}: applying {len(matrices)} prescription(s) to "
-                f"{'the eigentextures' if compressed else f'{len(writes)} blocks of layers'}"
+                f"{'the eigentextures in ' if compressed else ''}{len(writes)} "
+                f"{'group(s) of tiles' if compressed else 'blocks of layers'}"
                 f" -> {output}")
     session.compute(*writes)
 

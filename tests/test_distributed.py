@@ -88,3 +88,26 @@ def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster):
     b = zarr.open_group(local, mode="r")
     for name in ("radiance", "height", "albedo"):
         assert np.array_equal(a[name][:], b[name][:]), name
+
+
+@pytest.mark.distributed
+def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster):
+    src = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "48",
+                         "--sampling", "abtf:4,2", "--seed", "3")
+    compressed = tmp_path / "c.zarr"
+    done = subprocess.run([BIN / "btf", "compress", src, compressed, "--rank", "4", "--quiet"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for store, values in ((src, "radiance"), (compressed, "V")):
+        outs = []
+        for scheduler in (cluster, "threads"):
+            out = tmp_path / f"{Path(store).stem}-{len(outs)}.zarr"
+            done = subprocess.run(
+                [BIN / "btf", "quilt", store, out, "--block", "16", "--overlap", "4",
+                 "--candidates", "4", "--corners", "2", "--size", "24,24", "--seed", "5",
+                 "--scheduler", scheduler, "--quiet"], capture_output=True, text=True,
+                timeout=300)
+            assert done.returncode == 0, done.stderr
+            outs.append(zarr.open_group(out, mode="r"))
+        for name in (values, "prescription_index", "prescription_weight"):
+            assert np.array_equal(outs[0][name][:], outs[1][name][:]), (store, name)

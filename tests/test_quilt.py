@@ -426,15 +426,26 @@ def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
 def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples):
     assert btf("compress", samples["stone"], tmp_path / "c.zarr", "--rank", "6",
                "--quiet").code == 0
-    group = _quilt(btf, tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24")
+    group = _quilt(btf, tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
+                   "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 6 and 4
     assert group.attrs["btf_kind"] == "compressed-tileset"
     v = zarr.open_array(tmp_path / "c.zarr", path="V")[:]
     n = v.shape[0] * v.shape[1]
-    matrix = to_csr(group["prescription_index"][0], group["prescription_weight"][0], n)
-    assert np.allclose(group["V"][0], (matrix @ v.reshape(n, -1)).reshape(24, 24, -1),
-                       atol=1e-6)
+    for t in range(16):
+        matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
+        assert np.allclose(group["V"][t], (matrix @ v.reshape(n, -1)).reshape(24, 24, -1),
+                           atol=1e-6)
     surface = lazy_layer(tmp_path / "q.zarr", view=0, light=2, size=(50, 60)).compute()
     assert surface.shape == (50, 60, 3) and np.isfinite(surface).all() and surface.min() >= 0
+
+
+def test_eigentexture_tasks_share_reads_within_the_budget_and_keep_every_core_busy():
+    from pipeline.tileset import APPLY_BUDGET, _tile_groups
+
+    assert _tile_groups(16, 1000, 3) == [range(0, 6), range(6, 12), range(12, 16)]
+    assert _tile_groups(16, APPLY_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
+    assert _tile_groups(3, 2 * APPLY_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert _tile_groups(1, 1000, 8) == [range(0, 1)]
 
 
 @pytest.mark.parametrize(("args", "message"), [
