@@ -8,9 +8,10 @@ All in one run, on generated ABTFs with 24 lights (``abtf:6,4``, one view):
   would do; how much those independent plans disagree (share of output texels whose main source
   texel differs from layer 0's plan) shows why that gives inconsistent layers;
 - **application**: the 512^2 plan's prescription applied to the 24 layers in memory
-  (:func:`tasks.prescription.apply`), with one thread and with two threads splitting the layers
-  as the pipeline's tasks do, in GB/s of output, next to ``numpy.copyto`` of the same bytes with
-  the same threads (and scipy's CSR product per layer, the previous implementation); and
+  (:func:`tasks.prescription.apply`), with one thread and with two threads each taking half of
+  the layers (the pipeline's tasks each take a block of lights), in GB/s of output, next to
+  ``numpy.copyto`` of the same bytes with the same threads (and scipy's CSR product per layer,
+  the previous implementation); and
   ``btf quilt`` end to end (fresh process: wall time and peak RSS);
 - **rendering**: one layer of a large surface from the tile set, computed block by block with
   dask's threads and dropped (:func:`pipeline.tileset.lazy_layer`), against ``numpy.tile`` of

@@ -110,9 +110,14 @@ class Session:
 
     @property
     def parallelism(self) -> int:
-        """How many tasks run at once: the cluster's worker threads, or the local workers."""
+        """How many tasks run at once: the cluster's worker threads, or the local workers.
+
+        A cluster with no workers yet (adaptive) counts as the local machine's cores.
+        """
         if self.client is not None:
-            return max(1, sum(self.client.nthreads().values()))
+            return sum(self.client.nthreads().values()) or os.cpu_count() or 1
+        if self.options.scheduler == "synchronous":
+            return 1
         return self.options.workers or os.cpu_count() or 1
 
     def log(self, message: str) -> None:

@@ -101,6 +101,9 @@ def open_layers(path: str | Path):
 
 
 APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
+# A compressed source's task holds a band of its eigentextures and its tiles' results: half each.
+BAND_BUDGET = APPLY_BUDGET // 2
+RESULT_BUDGET = APPLY_BUDGET // 2
 
 
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
@@ -131,9 +134,9 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
 def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -> None:
     """Some tiles' eigentextures, reading the source's once, in bands of whole chunk rows.
 
-    The bands are as many chunk rows as fit in the budget (at least one); every band serves all
-    the task's tiles, whose results (within the budget too, see :func:`_tile_groups`) are held
-    until the last band.
+    The bands are as many chunk rows as fit in :data:`BAND_BUDGET` (at least one); every band
+    serves all the task's tiles, whose results and CSC matrices (within :data:`RESULT_BUDGET`,
+    see :func:`_tile_groups`) are held until the last band.
     """
     import zarr
 
@@ -144,7 +147,7 @@ def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -
     ny, nx, rank = source.shape
     columns = [matrices[t].tocsc() for t in tiles]
     results = [np.zeros((c.shape[0], rank), np.float32) for c in columns]
-    band = source.chunks[0] * max(1, APPLY_BUDGET // (4 * rank * nx * source.chunks[0]))
+    band = source.chunks[0] * max(1, BAND_BUDGET // (4 * rank * nx * source.chunks[0]))
     for y0 in range(0, ny, band):
         texels = source[y0 : y0 + band]
         for matrix, result in zip(columns, results, strict=True):
@@ -154,13 +157,15 @@ def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -
 
 
 def _tile_groups(tiles: int, tile_bytes: int, parallelism: int) -> list[range]:
-    """Tiles grouped for :func:`_apply_eigentextures`: each group reads the eigentextures once.
+    """Tiles split evenly into groups for :func:`_apply_eigentextures`, each reading V once.
 
-    As many tiles per group as their results fit in the budget, but no fewer groups than tasks
-    can run at once (nor more than tiles).
+    As few groups as keep every one of ``parallelism`` tasks busy (one per tile at most) and
+    fit each group's ``tile_bytes`` per tile in :data:`RESULT_BUDGET`.
     """
-    size = max(1, min(APPLY_BUDGET // max(1, tile_bytes), -(-tiles // parallelism)))
-    return [range(t, min(t + size, tiles)) for t in range(0, tiles, size)]
+    per_group = max(1, RESULT_BUDGET // max(1, tile_bytes))
+    groups = max(min(tiles, parallelism), -(-tiles // per_group))
+    return [range(int(g[0]), int(g[-1]) + 1)
+            for g in np.array_split(np.arange(tiles), groups)]
 
 
 def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
@@ -204,7 +209,9 @@ def write_tileset(store: str, tmp, *, group, index: Sequence[np.ndarray],
     if compressed:
         out["U"][...] = group["U"][...]
         out["S"][...] = group["S"][...]
-        tile_bytes = 4 * tile_shape[0] * tile_shape[1] * group["S"].shape[0]
+        texels, terms = tile_shape[0] * tile_shape[1], index[0].shape[-1]
+        # a result, and a CSC matrix (values and row indices per term, a pointer per column)
+        tile_bytes = 4 * texels * group["S"].shape[0] + 8 * texels * terms + 4 * (samples + 1)
         writes = [dask.delayed(_apply_eigentextures)(location(store), location(tmp), tiles,
                                                      shared)
                   for tiles in _tile_groups(len(matrices), tile_bytes, session.parallelism)]

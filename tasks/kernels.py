@@ -40,48 +40,76 @@ def prefetch(typingctx, address):
 
 
 @numba.njit(nogil=True, cache=False)
+def _any_channels(indptr, indices, data, s, d):
+    """``d = P @ s`` for one layer of any number of channels: a plain loop."""
+    for r in range(indptr.size - 1):
+        for k in range(s.shape[1]):
+            a = np.float32(0)
+            for j in range(indptr[r], indptr[r + 1]):
+                a += data[j] * s[indices[j], k]
+            d[r, k] = a
+
+
+@numba.njit(nogil=True, cache=False)
+def _rgb(indptr, indices, data, s, d):
+    """``d = P @ s`` for one RGB layer, prefetching sources ``AHEAD`` texels on."""
+    rows, stride, base = indptr.size - 1, s.strides[0], s.ctypes.data
+    for r in range(rows):
+        if r + AHEAD < rows:
+            for j in range(indptr[r + AHEAD], min(indptr[r + AHEAD] + 2, indptr[r + AHEAD + 1])):
+                prefetch(base + stride * indices[j])
+        a0 = a1 = a2 = np.float32(0)
+        for j in range(indptr[r], indptr[r + 1]):
+            w, c = data[j], indices[j]
+            a0 += w * s[c, 0]
+            a1 += w * s[c, 1]
+            a2 += w * s[c, 2]
+        d[r, 0], d[r, 1], d[r, 2] = a0, a1, a2
+
+
+@numba.njit(nogil=True, cache=False)
+def _rgb_pair(indptr, indices, data, s, t, ds, dt):
+    """``ds = P @ s`` and ``dt = P @ t`` for two RGB layers in one pass over ``P``."""
+    rows, stride = indptr.size - 1, s.strides[0]
+    base_s, base_t = s.ctypes.data, t.ctypes.data
+    for r in range(rows):
+        if r + AHEAD < rows:
+            for j in range(indptr[r + AHEAD], min(indptr[r + AHEAD] + 2, indptr[r + AHEAD + 1])):
+                prefetch(base_s + stride * indices[j])
+                prefetch(base_t + stride * indices[j])
+        a0 = a1 = a2 = b0 = b1 = b2 = np.float32(0)
+        for j in range(indptr[r], indptr[r + 1]):
+            w, c = data[j], indices[j]
+            a0 += w * s[c, 0]
+            a1 += w * s[c, 1]
+            a2 += w * s[c, 2]
+            b0 += w * t[c, 0]
+            b1 += w * t[c, 1]
+            b2 += w * t[c, 2]
+        ds[r, 0], ds[r, 1], ds[r, 2] = a0, a1, a2
+        dt[r, 0], dt[r, 1], dt[r, 2] = b0, b1, b2
+
+
+@numba.njit(nogil=True, cache=False)
 def csr_product(indptr, indices, data, src, dst):
     """``dst[l] = P @ src[l]`` for ``(layers, texels, channels)`` arrays, ``P`` as CSR arrays.
 
-    Every output value is summed in float32 from 0 over its row's terms in CSR order, which is
-    what scipy's ``csr_matvecs`` does: the result is scipy's ``P @ src[l]`` bit for bit (the
-    tests check it). The sources of a texel are scattered over the sample, so the loop waits
-    on memory; for three channels (RGB) it works on two layers at once (the same terms, two
-    independent loads) and prefetches the sources of the texel ``AHEAD`` texels on, which
-    together make it about 1.4x faster than a plain loop (BENCHMARKS.md, quilting).
+    Every output value is summed in float32 from 0 over its row's terms in CSR order, with a
+    separate multiply and add, which is what scipy's ``csr_matvecs`` does for a float32 CSR
+    matrix on x86-64 (whose wheels do not fuse them): the result is scipy's ``P @ src[l]`` bit
+    for bit there (the tests check it). The sources of a texel are scattered over the sample, so
+    the loop waits on memory; for three channels (RGB) it works on two layers at once (the same
+    terms, two independent loads) and prefetches the sources of the texel ``AHEAD`` texels on,
+    which together make it about 1.4x faster than a plain loop (BENCHMARKS.md, quilting).
+    numba compiles it once per process for every combination of argument types it meets.
     """
-    layers, _, channels = src.shape
-    rows = indptr.size - 1
+    layers, channels = src.shape[0], src.shape[2]
     if channels != 3:
         for layer in range(layers):
-            s, d = src[layer], dst[layer]
-            for r in range(rows):
-                for k in range(channels):
-                    a = np.float32(0)
-                    for j in range(indptr[r], indptr[r + 1]):
-                        a += data[j] * s[indices[j], k]
-                    d[r, k] = a
+            _any_channels(indptr, indices, data, src[layer], dst[layer])
         return
-    stride = src.strides[1]
-    for layer in range(0, layers, 2):
-        other = min(layer + 1, layers - 1)  # an odd last layer is computed twice
-        s, t = src[layer], src[other]
-        ds, dt = dst[layer], dst[other]
-        base_s, base_t = s.ctypes.data, t.ctypes.data
-        for r in range(rows):
-            if r + AHEAD < rows:
-                for j in range(indptr[r + AHEAD], min(indptr[r + AHEAD] + 2,
-                                                      indptr[r + AHEAD + 1])):
-                    prefetch(base_s + stride * indices[j])
-                    prefetch(base_t + stride * indices[j])
-            a0 = a1 = a2 = b0 = b1 = b2 = np.float32(0)
-            for j in range(indptr[r], indptr[r + 1]):
-                w, c = data[j], indices[j]
-                a0 += w * s[c, 0]
-                a1 += w * s[c, 1]
-                a2 += w * s[c, 2]
-                b0 += w * t[c, 0]
-                b1 += w * t[c, 1]
-                b2 += w * t[c, 2]
-            ds[r, 0], ds[r, 1], ds[r, 2] = a0, a1, a2
-            dt[r, 0], dt[r, 1], dt[r, 2] = b0, b1, b2
+    for layer in range(0, layers - 1, 2):
+        _rgb_pair(indptr, indices, data, src[layer], src[layer + 1], dst[layer],
+                  dst[layer + 1])
+    if layers % 2:
+        _rgb(indptr, indices, data, src[layers - 1], dst[layers - 1])

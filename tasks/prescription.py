@@ -51,8 +51,9 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     ``output`` is the ``(y, x)`` shape of a result layer; ``out``, if given, a C-contiguous
     float32 array of the result's shape to write into (reusing one saves the page faults of a
     fresh allocation, which cost as much as the product here). A compiled loop over the output
-    texels of each layer (:func:`tasks.kernels.csr_product`, equal to scipy's product bit for
-    bit), which releases the GIL: the pipeline's threads apply prescriptions in parallel.
+    texels of each layer (:func:`tasks.kernels.csr_product`), which releases the GIL: the
+    pipeline's threads apply prescriptions in parallel. The weights are taken as float32 (as
+    stored); the result equals scipy's ``P @ layer`` for that float32 CSR matrix bit for bit.
     """
     from tasks.kernels import csr_product
 
@@ -68,6 +69,8 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, "
                          f"not {out.dtype} {out.shape}")
+    elif np.shares_memory(out, layers):
+        raise ValueError("out must not overlap the layers it is computed from")
     csr_product(matrix.indptr, matrix.indices, matrix.data, layers.reshape(-1, ny * nx, nc),
              out.reshape(-1, output[0] * output[1], nc))
     return out

@@ -260,7 +260,8 @@ def test_no_two_neighbouring_output_pixels_join_two_patches_without_a_blend(smoo
 
 def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, samples,
                                                               monkeypatch):
-    monkeypatch.setattr("pipeline.tileset.APPLY_BUDGET", 1)  # one layer at a time
+    # three layers at a time: the kernel's two-layer pass and its one-layer tail
+    monkeypatch.setattr("pipeline.tileset.APPLY_BUDGET", 3 * 4 * 3 * (72 * 72 + 24 * 24))
     sample = samples["fabric"]
     group = _quilt(btf, sample, tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
     layers = open_radiance(sample)[RADIANCE].values
@@ -291,6 +292,11 @@ def test_apply_equals_scipys_sparse_product_bit_for_bit(channels):
         apply(matrix, layers, output=(6, 6))
     with pytest.raises(ValueError, match="C-contiguous float32"):
         apply(matrix, layers, output=output, out=out[:, :, ::-1])
+    memory = np.zeros(out.size, np.float32)  # layers and out in the same memory
+    inside = memory[: layers.size].reshape(layers.shape)
+    inside[...] = layers
+    with pytest.raises(ValueError, match="must not overlap"):
+        apply(matrix, inside, output=output, out=memory.reshape(out.shape))
 
 
 @settings(max_examples=12, deadline=None)
@@ -423,14 +429,19 @@ def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
                        atol=1e-6)
 
 
-def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples):
+def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples,
+                                                                 monkeypatch):
     assert btf("compress", samples["stone"], tmp_path / "c.zarr", "--rank", "6",
                "--quiet").code == 0
+    monkeypatch.setattr("pipeline.tileset.BAND_BUDGET", 1)  # V read one chunk row at a time
     group = _quilt(btf, tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
-                   "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 6 and 4
+                   "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 5 and 5
     assert group.attrs["btf_kind"] == "compressed-tileset"
-    v = zarr.open_array(tmp_path / "c.zarr", path="V")[:]
+    v = zarr.open_array(tmp_path / "c.zarr", path="V")
+    assert v.chunks[0] < v.shape[0]  # several bands
+    v = v[:]
     n = v.shape[0] * v.shape[1]
+    assert group["V"].shape[0] == 16
     for t in range(16):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
         assert np.allclose(group["V"][t], (matrix @ v.reshape(n, -1)).reshape(24, 24, -1),
@@ -440,11 +451,12 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
 
 
 def test_eigentexture_tasks_share_reads_within_the_budget_and_keep_every_core_busy():
-    from pipeline.tileset import APPLY_BUDGET, _tile_groups
+    from pipeline.tileset import RESULT_BUDGET, _tile_groups
 
-    assert _tile_groups(16, 1000, 3) == [range(0, 6), range(6, 12), range(12, 16)]
-    assert _tile_groups(16, APPLY_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
-    assert _tile_groups(3, 2 * APPLY_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert _tile_groups(16, 1000, 3) == [range(0, 6), range(6, 11), range(11, 16)]
+    assert [len(g) for g in _tile_groups(16, 1000, 5)] == [4, 3, 3, 3, 3]
+    assert _tile_groups(16, RESULT_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
+    assert _tile_groups(3, 2 * RESULT_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
     assert _tile_groups(1, 1000, 8) == [range(0, 1)]
 
 
