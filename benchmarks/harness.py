@@ -63,6 +63,14 @@ def in_threads(threads: int, fn, parts) -> None:
         list(pool.map(fn, parts))
 
 
+def parse_sizes(text: str, suite: str) -> list[int]:
+    """The sample sizes of a ``--sizes`` option (``"256,512"``); at least one."""
+    values = [int(s) for s in text.split(",") if s.strip()]
+    if not values:
+        raise SystemExit(f"btf bench {suite}: --sizes needs at least one size")
+    return values
+
+
 def btf_executable() -> str:
     """The ``btf`` console script of the running environment."""
     return str(Path(sys.executable).parent / "btf")

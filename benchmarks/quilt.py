@@ -40,6 +40,7 @@ from benchmarks.harness import (
     in_threads,
     machine,
     measure,
+    parse_sizes,
 )
 
 SUITE = "quilt"
@@ -174,7 +175,7 @@ def run(args: argparse.Namespace) -> dict:
 
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
-    sizes = [int(s) for s in args.sizes.split(",")]
+    sizes = parse_sizes(args.sizes, SUITE)
     planning = []
     try:
         with Session(RuntimeOptions(quiet=True)) as session:

@@ -37,6 +37,7 @@ from benchmarks.harness import (
     generate_store,
     git_revision,
     machine,
+    parse_sizes,
 )
 from benchmarks.quilt import render_throughput
 
@@ -133,9 +134,7 @@ def run(args: argparse.Namespace) -> dict:
 
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-roller-"))
-    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
-    if not sizes:
-        raise SystemExit("btf bench roller: --sizes needs at least one size")
+    sizes = parse_sizes(args.sizes, SUITE)
     analysis = []
     try:
         with Session(RuntimeOptions(quiet=True)) as session:

@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.atomic import atomic_output
 from pipeline.compressed import create_compressed_store
 from pipeline.errors import BTFError
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, check_radiance, location, open_group, read_directions
@@ -93,8 +93,7 @@ class CompressParams:
             raise ParamError("power_iters", f"must be non-negative, got {self.power_iters}")
         if not self.eps > 0:
             raise ParamError("eps", f"must be positive (it keeps log finite), got {self.eps}")
-        if not 0 <= self.seed < 2**63:
-            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        check_seed(self.seed)
         if self.passes != "auto":
             if not self.passes.isdigit() or int(self.passes) < 1:
                 raise ParamError("passes", f"must be auto or a positive integer, got "

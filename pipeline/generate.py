@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import (
@@ -79,8 +79,7 @@ class GenerateParams:
             raise ParamError("size", "is required (unless --albedo gives the size)")
         if self.size is not None and not 8 <= self.size <= 1 << 20:
             raise ParamError("size", f"must be between 8 and 1048576 texels, got {self.size}")
-        if not 0 <= self.seed < 2**63:
-            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        check_seed(self.seed)
         if self.albedo is not None and self.seed != 0:
             raise ParamError("seed", "has no effect with --albedo (a photo has no randomness)")
         try:

@@ -29,6 +29,12 @@ class ParamError(ValueError):
         self.message = message
 
 
+def check_seed(seed: int | None) -> None:
+    """Refuse a seed outside what numpy's generators take (``None``: nothing to check)."""
+    if seed is not None and not 0 <= seed < 2**63:
+        raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {seed}")
+
+
 def option(
     default: Any = MISSING,
     *,

@@ -23,7 +23,7 @@ import psutil
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.images import write_exr
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, Directions, open_group
@@ -161,8 +161,7 @@ class QuiltStageParams:
         check_weights(self.weights)
         if self.size is not None and len(self.size) not in (1, 2):
             raise ParamError("size", f"expected H,W or N, got {self.size}")
-        if not 0 <= self.seed < 2**63:
-            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        check_seed(self.seed)
         try:  # the planner's own checks; its messages start with the parameter's name
             self.quilt_params((max(self.block, 1) * 64,) * 2)
         except ValueError as exc:

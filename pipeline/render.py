@@ -18,7 +18,7 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.images import write_exr, write_png
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, location, store_aligned
@@ -54,8 +54,7 @@ class RenderParams:
         suffix = Path(self.out).suffix.lower()
         if suffix not in (".exr", ".png", ".zarr"):
             raise ParamError("out", f"must end in .exr, .png or .zarr, got {self.out!r}")
-        if self.seed is not None and not 0 <= self.seed < 2**63:
-            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        check_seed(self.seed)
         if self.chunk < 16:
             raise ParamError("chunk", f"must be at least 16, got {self.chunk}")
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.runtime import Session
 from pipeline.store import RADIANCE, Directions, open_group
@@ -63,8 +63,7 @@ class RollerStageParams:
             raise ParamError("out", "is required (unless --detect-only)")
         if self.json and not self.detect_only:
             raise ParamError("json", "only goes with --detect-only")
-        if not 0 <= self.seed < 2**63:
-            raise ParamError("seed", f"must be between 0 and 2**63 - 1, got {self.seed}")
+        check_seed(self.seed)
         if self.periods is not None and len(self.periods) != 2:
             raise ParamError("periods", f"expected A,B, got {self.periods}")
         try:
