@@ -47,7 +47,16 @@ class RuntimeOptions:
 
 
 def limit_blas() -> None:
-    """Use one BLAS thread in this process (dask workers: parallelism comes from tasks)."""
+    """Use one BLAS thread in this process (dask workers: parallelism comes from tasks).
+
+    threadpoolctl limits only the BLAS libraries already loaded, and a fresh worker process
+    may not have loaded numpy yet (a spawned ``processes`` worker under pytest had not: its
+    products then ran on two threads and differed in the last bits). So numpy is loaded first,
+    and the environment tells libraries loaded later (scipy's own OpenBLAS) the same.
+    """
+    for name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ[name] = "1"
+    import numpy  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")

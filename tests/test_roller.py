@@ -16,6 +16,7 @@ from pipeline.tileset import lazy_layer
 from tasks.lattice import detect_lattice
 from tasks.placement import lattice_cells
 from tasks.prescription import check, to_csr
+from tasks.svd import reconstruct_layers
 
 ROT = np.radians(30.0)
 LATTICES = {  # (u, v) as (dy, dx)
@@ -251,11 +252,19 @@ def test_the_roller_on_a_compressed_store_gives_a_compressed_tile_set(btf, store
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
         assert np.allclose(group["V"][t], (matrix @ v.reshape(n, -1)).reshape(
             group["V"].shape[1:]), atol=1e-6)
-    size = (120, 150)
-    compressed = lazy_layer(tmp_path / "t.zarr", view=0, light=3, size=size).compute()
-    direct = lazy_layer(tmp_path / "p.zarr", view=0, light=3, size=size).compute()
-    # what is left is the rank-8 compression error (and log-domain blending at the cuts)
-    assert np.abs(compressed - direct).mean() < 0.05 * np.abs(direct).mean()
+    # Each compressed tile is its prescription applied to the measured layer, up to the rank-8
+    # compression error (and log-domain blending at the cuts). The two plans need not pick the
+    # same tile origin on this exactly periodic material (ties), so the comparison is with the
+    # compressed plan applied to the radiance itself.
+    layer = zarr.open_array(stores["tiles"], path=RADIANCE)[0, 3]
+    eps = group.attrs["transform"]["eps"]
+    for t in range(2):
+        matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
+        direct = (matrix @ layer.reshape(n, -1)).reshape(*group["V"].shape[1:3], -1)
+        tile = reconstruct_layers(group["U"][0, 3], group["S"][:], group["V"][t], eps=eps)
+        assert np.abs(tile - direct).mean() < 0.05 * np.abs(direct).mean()
+    rendered = lazy_layer(tmp_path / "t.zarr", view=0, light=3, size=(120, 150)).compute()
+    assert np.isfinite(rendered).all() and rendered.shape == (120, 150, 3)
 
 
 def test_btf_bench_roller_reports_its_tables():
