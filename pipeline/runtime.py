@@ -19,7 +19,16 @@ import dask
 
 LOCAL_SCHEDULERS = ("synchronous", "threads", "processes")
 CONNECT_TIMEOUT = "10s"  # how long to wait for a tcp:// scheduler (it may still be starting)
-PROGRESS_AFTER = 0.5  # seconds of work before a local progress bar appears
+PROGRESS_AFTER = 0.5  # seconds of work before a progress bar appears (default)
+
+
+def progress_after() -> float:
+    """Seconds of work before a progress bar appears: dask config ``btf.progress-after``.
+
+    Set it like any dask option, e.g. ``DASK_BTF__PROGRESS_AFTER=0`` for a bar on every
+    compute (the cluster tests do, to see the bar on short jobs).
+    """
+    return float(dask.config.get("btf.progress-after", PROGRESS_AFTER))
 
 
 def check_scheduler(text: str) -> str:
@@ -225,16 +234,34 @@ class Session:
         futures = self.client.compute(list(collections))
         try:
             if not self.options.quiet:
-                from distributed import progress
-
-                with contextlib.redirect_stdout(sys.stderr):
-                    progress(futures, notebook=False)
-                    print(file=sys.stderr)
+                self._cluster_progress(futures)
             return tuple(self.client.gather(futures))
         except BaseException:
             self.client.cancel(futures, force=True)
             self._wait_until_idle()
             raise
+
+    def _cluster_progress(self, futures) -> None:
+        """A text progress bar on stderr until ``futures`` finish (or one fails).
+
+        As on the local schedulers, it appears only after :func:`progress_after` seconds. The
+        bar is told this session's scheduler: the client is not the process's default one
+        (``distributed.progress`` looks for that and fails without it).
+        """
+        from distributed.diagnostics.progressbar import TextProgressBar
+
+        deadline = time.monotonic() + progress_after()
+        while not all(f.done() for f in futures):  # (distributed.wait needs a default client)
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+        else:
+            return
+        with contextlib.redirect_stdout(sys.stderr):
+            try:
+                TextProgressBar(futures, scheduler=self.client.scheduler.address)
+            finally:  # end the bar's line, also when interrupted
+                print(file=sys.stderr)
 
     def _wait_until_idle(self, timeout: float = 120.0) -> None:
         """Wait (bounded) until no worker is executing a task any more."""
@@ -252,4 +279,4 @@ class Session:
             return contextlib.nullcontext()
         from dask.diagnostics import ProgressBar
 
-        return ProgressBar(minimum=PROGRESS_AFTER, out=sys.stderr)
+        return ProgressBar(minimum=progress_after(), out=sys.stderr)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import dask
 import pytest
 
 from pipeline.stages import STAGES
@@ -46,11 +47,11 @@ def test_bad_scheduler_and_workers_are_usage_errors(btf, tmp_path):
     assert btf("inspect", tmp_path, "--workers", "0").code == 2
 
 
-def test_progress_is_shown_unless_quiet(btf, tmp_path, monkeypatch):
-    monkeypatch.setattr("pipeline.runtime.PROGRESS_AFTER", 0.0)
+def test_progress_is_shown_unless_quiet(btf, tmp_path):
     args = ("generate", tmp_path / "a.zarr", "--material", "wood", "--size", "64",
             "--sampling", "abtf:16,4", "--chunk", "16", "--dir-chunk", "1")
-    loud = btf(*args, "--scheduler", "synchronous", "--workers", "1")
+    with dask.config.set({"btf.progress-after": 0}):
+        loud = btf(*args, "--scheduler", "synchronous", "--workers", "1")
     assert loud.code == 0 and "generate: 1 x 64 layers" in loud.err
     assert "100% Completed" in loud.err
     quiet = btf(*args[:1], tmp_path / "b.zarr", *args[2:], "--quiet")

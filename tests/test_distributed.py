@@ -6,6 +6,8 @@ directory than the runner, as on a cluster) serve ``btf run`` started as a separ
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -16,7 +18,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import generate_store
+from helpers import generate_store, no_partial_outputs
 
 BIN = Path(sys.executable).parent
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
@@ -42,8 +44,10 @@ def cluster(tmp_path):
     elsewhere = tmp_path / "worker-home"
     elsewhere.mkdir()
     logs = (tmp_path / "scheduler.log").open("w"), (tmp_path / "worker.log").open("w")
+    # without a dashboard the scheduler still serves /metrics: on any free port, not 8787
     procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port",
-                               str(port), "--no-dashboard"], stdout=logs[0], stderr=logs[0])]
+                               str(port), "--no-dashboard", "--dashboard-address", ":0"],
+                              stdout=logs[0], stderr=logs[0])]
     try:
         deadline = time.monotonic() + 30
         while True:
@@ -72,12 +76,29 @@ def cluster(tmp_path):
             log.close()
 
 
+def _btf(*args, **kwargs) -> subprocess.CompletedProcess:
+    """``btf ARGS`` as a process, with a progress bar on every compute unless --quiet."""
+    return subprocess.run([BIN / "btf", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env=LOUD, **kwargs)
+
+
+LOUD = {**os.environ, "DASK_BTF__PROGRESS_AFTER": "0"}
+
+
+def _shows_progress(stderr: str) -> bool:
+    return "% Completed" in stderr and "Traceback" not in stderr
+
+
 @pytest.mark.distributed
-def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster):
-    run = subprocess.run([BIN / "btf", "run", DEMO, "--scheduler", cluster, "--set",
-                          "generate.size=40", "--quiet"], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=300)
+@pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
+def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
+    run = _btf("run", DEMO, "--scheduler", cluster, "--set", "generate.size=40",
+               *(["--quiet"] if quiet else []), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
+    if quiet:
+        assert run.stderr == ""
+    else:  # the stages' messages and a bar per compute, as on the local schedulers
+        assert "[1/4] generate" in run.stderr and _shows_progress(run.stderr), run.stderr
     out = tmp_path / "out" / "demo"
     assert (out / "contact_sheet.png").is_file() and len(list((out / "layers").glob("*.png")))
     # the cluster's store is the one a local synchronous run makes
@@ -112,3 +133,51 @@ def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster
             outs.append(zarr.open_group(out, mode="r"))
         for name in (values, "prescription_index", "prescription_weight"):
             assert np.array_equal(outs[0][name][:], outs[1][name][:]), (store, name)
+
+
+@pytest.mark.distributed
+def test_a_subcommand_on_the_cluster_shows_progress_and_reports_a_failing_task(tmp_path,
+                                                                               cluster):
+    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "64",
+                         "--sampling", "abtf:8,2", "--seed", "3")
+    done = _btf("compress", src, tmp_path / "c.zarr", "--rank", "4", "--scheduler", cluster)
+    assert done.returncode == 0 and _shows_progress(done.stderr), done.stderr
+    assert "compress: pass 3/3 (projection" in done.stderr
+    # a chunk that does not decode fails its task on a worker: one clear error, no output
+    chunk = next(p for p in sorted((src / "radiance" / "c").rglob("*")) if p.is_file())
+    chunk.write_bytes(b"not a blosc frame")
+    failed = _btf("compress", src, tmp_path / "bad.zarr", "--rank", "4", "--scheduler", cluster)
+    assert failed.returncode == 1, failed.stderr
+    assert "btf compress: error:" in failed.stderr and "is unreadable" in failed.stderr
+    assert "Traceback" not in failed.stderr and no_partial_outputs(tmp_path / "bad.zarr")
+
+
+def _idle(address: str) -> bool:
+    from distributed import Client
+
+    with Client(address, timeout="20s") as client:
+        busy = client.run(lambda dask_worker: len(dask_worker.state.executing))
+    return not any(busy.values())
+
+
+@pytest.mark.distributed
+def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
+    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "256",
+                         "--sampling", "abtf:12,4", "--seed", "3")
+    out = tmp_path / "c.zarr"
+    with subprocess.Popen([BIN / "btf", "compress", src, out, "--rank", "8", "--scheduler",
+                           cluster], stderr=subprocess.PIPE, text=True, env=LOUD) as proc:
+        seen = ""
+        while "pass 1/3" not in seen:  # interrupt once the first pass runs on the workers
+            line = proc.stderr.readline()
+            assert line, seen
+            seen += line
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        seen += proc.stderr.read()
+        assert proc.wait(timeout=120) == 130, seen
+    assert "btf compress: interrupted" in seen and "Traceback" not in seen, seen
+    assert no_partial_outputs(out)
+    assert _idle(cluster)  # the running tasks were waited for: nothing writes any more
+    again = _btf("compress", src, out, "--rank", "8", "--scheduler", cluster, "--quiet")
+    assert again.returncode == 0 and again.stderr == "", again.stderr
