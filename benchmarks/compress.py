@@ -79,7 +79,7 @@ def dask_matrix(store: str):
     import dask.array as da
     import zarr
 
-    from pipeline.store import aligned_chunks
+    from pipeline.graphs.blocks import aligned_chunks
 
     z = zarr.open_array(store, path="radiance", mode="r")
     a = da.log(da.from_zarr(z, chunks=aligned_chunks(z)) + np.float32(EPS))
@@ -119,7 +119,7 @@ def read_pass(store: str) -> None:
     import dask.array as da
     import zarr
 
-    from pipeline.store import aligned_chunks
+    from pipeline.graphs.blocks import aligned_chunks
 
     z = zarr.open_array(store, path="radiance", mode="r")
     blocks = da.from_zarr(z, chunks=aligned_chunks(z))
@@ -135,7 +135,7 @@ def products_pass(store: str, rank: int, oversample: int, kind: str) -> None:
     import zarr
     from threadpoolctl import threadpool_limits
 
-    from pipeline.compress import plan_row_blocks
+    from pipeline.graphs.row_passes import plan_row_blocks
     from tasks.svd import frobenius2, power_step, project
 
     z = zarr.open_array(store, path="radiance", mode="r")
@@ -201,7 +201,7 @@ def bound_parts(store: str, rank: int, oversample: int, repeat: int) -> None:
     import threadpoolctl  # noqa: F401
     import zarr  # noqa: F401
 
-    import pipeline.compress  # noqa: F401
+    import pipeline.stages.compress  # noqa: F401
 
     def best(fn, *a):
         times = []

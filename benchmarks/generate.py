@@ -38,7 +38,8 @@ def kernel_reference(material: str, size: int, sampling: str) -> float:
     """Seconds to render the store's blocks serially with the bare kernels (no dask, no zarr)."""
     import numpy as np
 
-    from pipeline.store import TASK_TEXELS, Layout
+    from pipeline.graphs.blocks import TASK_TEXELS
+    from pipeline.stores.radiance import Layout
     from tasks.materials import Material
     from tasks.sampling import parse_sampling
     from tasks.shading import ShadingModel, render_block

@@ -14,7 +14,7 @@ All in one run, on generated ABTFs with 24 lights (``abtf:6,4``, one view):
   the previous implementation); and
   ``btf quilt`` end to end (fresh process: wall time and peak RSS);
 - **rendering**: one layer of a large surface from the tile set, computed block by block with
-  dask's threads and dropped (:func:`pipeline.tileset.lazy_layer`), against ``numpy.tile`` of
+  dask's threads and dropped (:func:`pipeline.graphs.surface.lazy_layer`), against ``numpy.tile`` of
   one tile into blocks of the same size and threads; and ``btf render`` of that region into a
   zarr array end to end (wall time and peak RSS: bounded by the block size).
 """
@@ -73,9 +73,9 @@ def _main_source(tile) -> np.ndarray:
 
 
 def _planning(store: Path, args, session) -> tuple[dict, object, object]:
-    from pipeline.quilt import compute_reference
-    from pipeline.store import RADIANCE
-    from pipeline.tileset import open_layers
+    from pipeline.stages.reference import compute_reference
+    from pipeline.stores import open_layers
+    from pipeline.stores.base import RADIANCE
     from tasks.quilting import QuiltParams, plan_tiles
 
     maps, view = compute_reference(store, weights=(1.0, 0.5, 0.5), view=None, session=session)
@@ -148,7 +148,8 @@ def render_throughput(tileset: Path, args) -> dict:
     import dask
     import dask.array as da
 
-    from pipeline.tileset import lazy_layer, open_tileset
+    from pipeline.graphs.surface import lazy_layer
+    from pipeline.stores.tileset import open_tileset
 
     size = args.render
     layer = lazy_layer(tileset, view=0, light=0, size=(size, size), seed=0)
@@ -171,7 +172,7 @@ def render_throughput(tileset: Path, args) -> dict:
 
 def run(args: argparse.Namespace) -> dict:
     """Plan, apply and render, with their references, in this run."""
-    from pipeline.runtime import RuntimeOptions, Session
+    from pipeline.session import RuntimeOptions, Session
 
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))

@@ -3,13 +3,13 @@
 All in one run, on generated ``tiles`` ABTFs (a periodic material) with 24 lights
 (``abtf:6,4``, one view):
 
-- **analysis**: lattice detection (:func:`tasks.lattice.detect_lattice`) and the double
+- **analysis**: lattice detection (:func:`tasks.periodicity.detect_lattice`) and the double
   toroidal tile (:func:`tasks.roller.plan_roller`, default periods and band) on the
   perpendicularly lit layer of a 256^2 and a 512^2 sample, as ``btf roller`` does; next to
   quilting's plan (:func:`tasks.quilting.plan_tiles`, block 32, overlap 8, K = 5) of a
   periodic tile on the same image, for scale;
 - **synthesis**: one layer of a large region rendered lazily from the roller tile set of the
-  last sample (:func:`pipeline.tileset.lazy_layer`: hash of the lattice cell, slice copies),
+  last sample (:func:`pipeline.graphs.surface.lazy_layer`: hash of the lattice cell, slice copies),
   against ``numpy.tile`` of one tile into blocks of the same size and threads
   (:func:`benchmarks.quilt.render_throughput`), and ``btf roller`` end to end;
 - **seams**: on that sample, the mean absolute difference between neighbouring texels that lie
@@ -61,8 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _analysis(store: Path, args, session) -> tuple[dict, np.ndarray]:
-    from pipeline.roller import analysis_image
-    from tasks.lattice import detect_lattice
+    from pipeline.stages.roller import analysis_image
+    from tasks.periodicity import detect_lattice
     from tasks.quilting import QuiltParams, plan_tiles
     from tasks.reference import luminance
     from tasks.roller import RollerParams, plan_roller
@@ -102,8 +102,9 @@ def _across(img: np.ndarray, cells: np.ndarray) -> float:
 def _seams(store: Path, roller: Path, quilt: Path) -> dict:
     import zarr
 
-    from pipeline.store import RADIANCE, open_radiance
-    from pipeline.tileset import lazy_layer
+    from pipeline.graphs.surface import lazy_layer
+    from pipeline.stores.base import RADIANCE
+    from pipeline.stores.radiance import open_radiance
     from tasks.placement import lattice_cells
 
     n = SEAM_REGION
@@ -130,7 +131,7 @@ def _seams(store: Path, roller: Path, quilt: Path) -> dict:
 
 def run(args: argparse.Namespace) -> dict:
     """Analyse, tile, render and compare, with their references, in this run."""
-    from pipeline.runtime import RuntimeOptions, Session
+    from pipeline.session import RuntimeOptions, Session
 
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-roller-"))

@@ -2,7 +2,7 @@
 
 Stages write into a hidden sibling (``.NAME.partial-XXXX``) and rename it into place when they
 finish. A failure or an interrupt removes the partial output (stages wait for their running
-tasks first, see :meth:`pipeline.runtime.Session.compute`). An existing output is replaced only
+tasks first, see :meth:`pipeline.session.Session.compute`). An existing output is replaced only
 with ``overwrite``, only once the new one is complete, and only if it is the same kind of thing
 (file or folder) and, for a folder, something btf wrote: a store with btf metadata or a folder of
 exported layers. A good output is never lost: if the final swap fails, it is put back.

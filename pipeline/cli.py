@@ -11,7 +11,7 @@ from pathlib import Path
 from pipeline import __version__
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, add_arguments, from_namespace
-from pipeline.runtime import LOCAL_SCHEDULERS, RuntimeOptions, Session, check_scheduler
+from pipeline.session import LOCAL_SCHEDULERS, RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES, Stage
 
 EPILOG = """\
@@ -128,51 +128,54 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--check", action="store_true",
                      help="validate the config and print its commands without running them")
     run.set_defaults(handler=_run_config)
-    _add_bench(sub)
+    _add_plugins(sub)
     return parser
 
 
-def _add_bench(sub) -> None:
-    from benchmarks import compress as compress_suite
-    from benchmarks import generate as generate_suite
-    from benchmarks import quilt as quilt_suite
-    from benchmarks import roller as roller_suite
-
-    suites = {s.SUITE: s for s in (generate_suite, compress_suite, quilt_suite, roller_suite)}
-    bench = sub.add_parser(
-        "bench", formatter_class=_Formatter, help="run a benchmark suite",
-        description="Benchmark a stage against a reference measured in the same run, and print "
-                    "a Markdown table for BENCHMARKS.md (and JSON with --json FILE).")
-    inner = bench.add_subparsers(dest="suite", metavar="SUITE", required=True)
-    for name, suite in suites.items():
-        p = inner.add_parser(name, help=(suite.__doc__ or "").splitlines()[0],
-                             description=suite.__doc__, formatter_class=_Formatter)
-        suite.add_arguments(p)
-        p.add_argument("--json", metavar="FILE", help="also write the raw figures as JSON")
-        p.set_defaults(handler=partial(_run_bench, suite))
+PLUGINS = "btf.commands"  # entry point group of commands other packages add (btf bench)
 
 
-def _run_bench(suite, args: argparse.Namespace) -> int:
-    from benchmarks.harness import to_json
+def _plugins() -> dict:
+    """Commands added through entry points, by name (not imported until one runs)."""
+    from importlib.metadata import entry_points
 
-    result = suite.run(args)
-    if args.json:
-        Path(args.json).write_text(to_json(result) + "\n")
-    print(suite.report(result))
-    return 0
+    return {ep.name: ep for ep in entry_points(group=PLUGINS)}
+
+
+def _summary(module: str) -> str:
+    """The first line of a module's docstring, read from its source without importing it."""
+    import ast
+    from importlib.util import find_spec
+
+    spec = find_spec(module)
+    if spec is None or spec.origin is None:
+        return ""
+    doc = ast.get_docstring(ast.parse(Path(spec.origin).read_text())) or ""
+    line = doc.splitlines()[0].rstrip(".") if doc else ""
+    return line[:1].lower() + line[1:]
+
+
+def _add_plugins(sub) -> None:
+    for name, ep in sorted(_plugins().items()):
+        sub.add_parser(name, add_help=False, help=_summary(ep.module))
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``btf`` console script; returns the exit status."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    plugin = _plugins().get(argv[0]) if argv else None
+    if plugin is not None:  # a command with its own parser, options and help
+        command, handler = argv[0], partial(plugin.load(), argv[1:])
+    else:
+        args = build_parser().parse_args(argv)
+        command, handler = args.command, partial(args.handler, args)
     try:
-        return args.handler(args)
+        return handler()
     except BTFError as exc:
-        print(f"btf {args.command}: error: {exc}", file=sys.stderr)
+        print(f"btf {command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"btf {args.command}: interrupted", file=sys.stderr)
+        print(f"btf {command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into a program that stopped reading (e.g. head)
         sys.stderr.close()

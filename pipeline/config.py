@@ -31,7 +31,7 @@ import yaml
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, from_mapping, paths
 from pipeline.provenance import up_to_date
-from pipeline.runtime import RuntimeOptions, Session, check_scheduler
+from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
 
 TOP_KEYS = ("description", "scheduler", "workers", "stages")

@@ -17,16 +17,14 @@ import typing
 from collections.abc import Mapping
 from typing import Any
 
+from tasks.errors import InvalidParameter
+
 MISSING = dataclasses.MISSING
 
 
-class ParamError(ValueError):
-    """A parameter value that is not allowed; ``name`` is the offending field."""
-
-    def __init__(self, name: str, message: str):
-        super().__init__(message)
-        self.name = name
-        self.message = message
+# A parameter value that is not allowed; ``name`` is the offending field. The same class as
+# the kernels' parameter errors, so a planner's refusal keeps the name of its parameter.
+ParamError = InvalidParameter
 
 
 def check_seed(seed: int | None) -> None:

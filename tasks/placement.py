@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from tasks.hashing import hash_coords
+from tasks.lattice import hermite_bands, lattice_cells
 
 
 def vertex_types(rows: np.ndarray, cols: np.ndarray, *, seed: int, corners: int) -> np.ndarray:
@@ -58,36 +59,6 @@ def gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, seed: int,
     return out
 
 
-def _bands(y0: int, x0: int, ny: int, nx: int, hnf):
-    """The stored-tile slices of a region: ``(out_rows, out_cols, rows, cols)`` per piece."""
-    h, w, s = hnf
-    for k in range(y0 // h, (y0 + ny - 1) // h + 1):
-        ya, yb = max(y0, k * h), min(y0 + ny, (k + 1) * h)
-        shifted = x0 - k * s
-        for j in range(shifted // w, (shifted + nx - 1) // w + 1):
-            xa, xb = max(shifted, j * w), min(shifted + nx, (j + 1) * w)
-            yield (slice(ya - y0, yb - y0), slice(xa - shifted, xb - shifted),
-                   slice(ya - k * h, yb - k * h), slice(xa - j * w, xb - j * w))
-
-
-def lattice_cells(y0: int, x0: int, ny: int, nx: int, *, hnf, basis, representative
-                  ) -> np.ndarray:
-    """Lattice cell ``(i, j)`` of every texel of a region tiled by cut tiles ``(ny, nx, 2)``.
-
-    Texel ``p`` is stored texel ``q`` (Hermite layout, see :func:`lattice_gather`) and lies in
-    the cell ``(i, j)`` with ``p = i U + j V + representative[q]``.
-    """
-    from tasks.roller import lattice_coordinates
-
-    out = np.empty((ny, nx, 2), np.int64)
-    for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
-        yy, xx = np.mgrid[y0 + orows.start : y0 + orows.stop, x0 + ocols.start : x0 + ocols.stop]
-        cell, _ = lattice_coordinates(np.stack([yy, xx], -1) - representative[rows, cols],
-                                      *basis)
-        out[orows, ocols] = cell
-    return out
-
-
 def lattice_gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, hnf,
                    basis=None, representative=None, seed: int = 0) -> np.ndarray:
     """Pixels of the surface covered by tiles stored in Hermite normal form (the roller).
@@ -101,12 +72,12 @@ def lattice_gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, hnf
     n = tiles.shape[0]
     out = np.empty((ny, nx, *tiles.shape[3:]), tiles.dtype)
     if n == 1:
-        for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
+        for orows, ocols, rows, cols in hermite_bands(y0, x0, ny, nx, hnf):
             out[orows, ocols] = tiles[0, rows, cols]
         return out
     cells = lattice_cells(y0, x0, ny, nx, hnf=hnf, basis=basis, representative=representative)
     pick = (hash_coords(cells[..., 0], cells[..., 1], seed=seed) % np.uint64(n)).astype(np.int64)
-    for orows, ocols, rows, cols in _bands(y0, x0, ny, nx, hnf):
+    for orows, ocols, rows, cols in hermite_bands(y0, x0, ny, nx, hnf):
         out[orows, ocols] = tiles[pick[orows, ocols], np.arange(rows.start, rows.stop)[:, None],
                                   np.arange(cols.start, cols.stop)[None, :]]
     return out

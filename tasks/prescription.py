@@ -7,7 +7,7 @@ is what makes the transfer identical for all light and view directions; being li
 just as well to the eigentextures of a compressed store. Stored as padded rows (an ELL matrix:
 ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
 applied as a scipy CSR matrix, by a compiled row loop over whole layers (:func:`apply`, the
-loop in :mod:`tasks.kernels`, imported on first use: numba takes a quarter of a second and
+loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a quarter of a second and
 ~100 MB to load), or as CSC, whose column slices are cheap, where the sample is read in bands
 (:func:`apply_texel_rows`).
 """
@@ -51,11 +51,11 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     ``output`` is the ``(y, x)`` shape of a result layer; ``out``, if given, a C-contiguous
     float32 array of the result's shape to write into (reusing one saves the page faults of a
     fresh allocation, which cost as much as the product here). A compiled loop over the output
-    texels of each layer (:func:`tasks.kernels.csr_product`), which releases the GIL: the
+    texels of each layer (:func:`tasks.csr_kernel.csr_product`), which releases the GIL: the
     pipeline's threads apply prescriptions in parallel. The weights are taken as float32 (as
     stored); the result equals scipy's ``P @ layer`` for that float32 CSR matrix bit for bit.
     """
-    from tasks.kernels import csr_product
+    from tasks.csr_kernel import csr_product
 
     matrix = sparse.csr_matrix(matrix, dtype=np.float32)
     layers = np.ascontiguousarray(layers, np.float32)

@@ -51,6 +51,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from tasks.canvas import TERMS, Canvas
+from tasks.errors import InvalidParameter
 
 SIDES = ("left", "top", "right", "bottom")
 
@@ -66,19 +67,22 @@ class QuiltParams:
     tile: tuple[int, int] = (256, 256)
 
     def __post_init__(self):
+        def refuse(name: str, message: str):
+            raise InvalidParameter(name, message)
+
         if self.block < 4 or self.block % 2:
-            raise ValueError(f"block must be an even number of at least 4, got {self.block}")
+            refuse("block", f"block must be an even number of at least 4, got {self.block}")
         if not 2 <= self.overlap < self.block // 2:  # a cut needs a row off the window's edge
-            raise ValueError(f"overlap must be between 2 and block/2 - 1, got {self.overlap}")
+            refuse("overlap", f"overlap must be between 2 and block/2 - 1, got {self.overlap}")
         if self.candidates < 1:
-            raise ValueError(f"candidates must be at least 1, got {self.candidates}")
+            refuse("candidates", f"candidates must be at least 1, got {self.candidates}")
         if self.corners < 1:
-            raise ValueError(f"corners must be at least 1, got {self.corners}")
+            refuse("corners", f"corners must be at least 1, got {self.corners}")
         for n in self.tile:
             if n < 2 * self.step or n % self.step:
-                raise ValueError(f"tile size {self.tile} must be a multiple of block - overlap "
-                                 f"= {self.step}, at least twice it (one step leaves no room "
-                                 f"for edge patches)")
+                refuse("tile", f"tile size {self.tile} must be a multiple of block - overlap "
+                               f"= {self.step}, at least twice it (one step leaves no room "
+                               f"for edge patches)")
 
     @property
     def step(self) -> int:

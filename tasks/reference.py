@@ -29,7 +29,8 @@ import numpy as np
 LOW_EXPONENT = 1.0
 HIGH_EXPONENT = 16.0
 SUMS = ("diffuse_r", "diffuse_g", "diffuse_b", "count",
-        "low_x", "low_y", "low_z", "low_w", "high_x", "high_y", "high_z", "high_w")
+        "low_x", "low_y", "low_z", "low_w", "high_x", "high_y", "high_z", "high_w", "peak")
+_PEAK = SUMS.index("peak")
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -40,7 +41,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
-def light_sums(layers: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def light_sums(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
     """Per-texel sums over a block of light directions (the chunk step).
 
     Parameters
@@ -52,13 +53,12 @@ def light_sums(layers: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.n
 
     Returns
     -------
-    sums : numpy.ndarray
-        ``(y, x, len(SUMS))`` float64: radiance sums (RGB), the layer count, and for each
-        exponent the weighted sums of light vectors and of weights. Weights are
-        ``(I / max_lights I)^k`` with the maximum taken over *this block's* lights; blocks are
-        combined by :func:`combine_light_sums`, which rescales them to a common maximum.
-    peak : numpy.ndarray
-        ``(y, x)`` float32: that per-texel maximum luminance of the block.
+    numpy.ndarray
+        ``(y, x, len(SUMS))`` float64: radiance sums (RGB), the layer count, for each exponent
+        the weighted sums of light vectors and of weights, and the per-texel maximum luminance
+        ``peak``. Weights are ``(I / peak)^k`` with the maximum taken over *this block's*
+        lights; blocks are combined by :func:`combine_light_sums`, which rescales them to a
+        common maximum.
     """
     layers = np.asarray(layers, np.float32)
     nl, ny, nx, nc = layers.shape
@@ -73,25 +73,27 @@ def light_sums(layers: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.n
         w = rel.astype(np.float64) ** k
         out[..., base : base + 3] = np.einsum("lyx,lc->yxc", w, lights)
         out[..., base + 3] = w.sum(axis=0)
-    return out, peak
+    out[..., _PEAK] = peak
+    return out
 
 
-def combine_light_sums(parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Combine :func:`light_sums` of several light blocks into the sums over all lights.
+def combine_light_sums(parts: np.ndarray) -> np.ndarray:
+    """Combine :func:`light_sums` of light blocks stacked on the first axis ``(k, y, x, n)``.
 
     Each block's weights were relative to its own per-texel maximum; they are rescaled to the
     maximum over all blocks (``w * (m_block / m_all)^k``) before adding, so the result equals
-    the sums computed over all lights at once.
+    the sums computed over all lights at once. The result is itself such a sum (with the common
+    maximum as ``peak``), so combining is associative: partial combines may be combined again.
     """
-    peaks = np.stack([p for _, p in parts])
+    parts = np.asarray(parts, np.float64)
+    peaks = parts[..., _PEAK]
     top = peaks.max(axis=0)
-    total = np.zeros_like(parts[0][0])
-    for sums, peak in parts:
-        ratio = np.where(top > 0, peak / np.where(top > 0, top, 1.0), 0.0).astype(np.float64)
-        scaled = sums.copy()
-        scaled[..., 4:8] *= (ratio**LOW_EXPONENT)[..., None]
-        scaled[..., 8:12] *= (ratio**HIGH_EXPONENT)[..., None]
-        total += scaled
+    ratio = np.where(top > 0, peaks / np.where(top > 0, top, 1.0), 0.0)
+    scaled = parts.copy()
+    scaled[..., 4:8] *= (ratio**LOW_EXPONENT)[..., None]
+    scaled[..., 8:12] *= (ratio**HIGH_EXPONENT)[..., None]
+    total = scaled.sum(axis=0)
+    total[..., _PEAK] = top
     return total
 
 

@@ -1,6 +1,6 @@
 """Double toroidal tiles on a (possibly sheared) lattice: the generalized roller (paper 004).
 
-Given the periodicity vectors ``u``, ``v`` (:mod:`tasks.lattice`), the tile is spanned by
+Given the periodicity vectors ``u``, ``v`` (:mod:`tasks.periodicity`), the tile is spanned by
 ``U = a u`` and ``V = b v`` rounded to whole pixels, so it repeats by exact integer shifts.
 Choices where the paper is not specific:
 
@@ -46,6 +46,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.special import erfc
 
+from tasks.errors import InvalidParameter
+from tasks.lattice import hermite, lattice_cells, lattice_coordinates
 from tasks.prescription import to_csr
 
 TERMS = 8
@@ -63,17 +65,20 @@ class RollerParams:
     ramp: int = 4
 
     def __post_init__(self):
+        def refuse(name: str, message: str):
+            raise InvalidParameter(name, message)
+
         if self.tiles < 1:
-            raise ValueError(f"tiles must be at least 1, got {self.tiles}")
+            refuse("tiles", f"tiles must be at least 1, got {self.tiles}")
         if self.periods is not None and min(self.periods) < 1:
-            raise ValueError(f"periods must be at least 1, got {self.periods}")
+            refuse("periods", f"periods must be at least 1, got {self.periods}")
         if self.band < 1:
-            raise ValueError(f"band must be at least 1, got {self.band}")
+            refuse("band", f"band must be at least 1, got {self.band}")
         if not 0.25 <= self.sigma <= 8:
-            raise ValueError(f"sigma must be between 0.25 and 8, got {self.sigma}")
+            refuse("sigma", f"sigma must be between 0.25 and 8, got {self.sigma}")
         if self.border < 3 * self.sigma or self.ramp < 1:
-            raise ValueError(f"border must be at least 3 sigma = {3 * self.sigma:g} (the "
-                             f"blend across a cut stays inside it) and ramp at least 1")
+            refuse("border", f"border must be at least 3 sigma = {3 * self.sigma:g} (the blend "
+                             "across a cut stays inside it) and ramp at least 1")
 
 
 @dataclass
@@ -101,50 +106,6 @@ class RollerPlan:
     def area(self) -> int:
         """Texels per tile (the lattice's determinant)."""
         return self.hnf[0] * self.hnf[1]
-
-
-def hermite(U, V) -> tuple[int, int, int]:
-    """``(h, w, s)``: the lattice spanned by ``U``, ``V`` has the basis ``(h, s)``, ``(0, w)``."""
-    uy, ux = (int(c) for c in U)
-    vy, vx = (int(c) for c in V)
-    det = uy * vx - ux * vy
-    if det == 0:
-        raise ValueError(f"U = {U} and V = {V} are parallel")
-    g, p, q = _egcd(uy, vy)
-    if g == 0:  # both horizontal: impossible with det != 0
-        raise ValueError(f"U = {U} and V = {V} do not span the plane")
-    h = abs(g)
-    sx = p * ux + q * vx
-    if g < 0:
-        sx = -sx
-    w = abs(det) // h
-    return h, w, sx % w
-
-
-def _egcd(a: int, b: int) -> tuple[int, int, int]:
-    """``(g, p, q)`` with ``p a + q b = g = gcd(a, b)``."""
-    if b == 0:
-        return (a, 1, 0)
-    g, p, q = _egcd(b, a % b)
-    return g, q, p - (a // b) * q
-
-
-def lattice_coordinates(points: np.ndarray, U, V) -> tuple[np.ndarray, np.ndarray]:
-    """Integer part and fraction of ``points`` (``(..., 2)`` int) in the basis ``U``, ``V``.
-
-    Exact integer arithmetic: ``points = floor_a U + floor_b V + (frac_a U + frac_b V)``.
-    """
-    uy, ux = U
-    vy, vx = V
-    det = uy * vx - ux * vy
-    y, x = points[..., 0].astype(np.int64), points[..., 1].astype(np.int64)
-    num_a = vx * y - vy * x
-    num_b = -ux * y + uy * x
-    if det < 0:
-        num_a, num_b, det = -num_a, -num_b, -det
-    ia, ib = np.floor_divide(num_a, det), np.floor_divide(num_b, det)
-    return np.stack([ia, ib], -1), np.stack([(num_a - ia * det) / det,
-                                             (num_b - ib * det) / det], -1)
 
 
 def _extent(U, V, margin_s: float, margin_t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -367,8 +328,6 @@ def _edge_distance(representative: np.ndarray, U, V, hnf) -> np.ndarray:
 
     That is the Euclidean distance to the nearest texel with a 4-neighbour in another cell.
     """
-    from tasks.placement import lattice_cells
-
     rep = representative.reshape(-1, 2)
     lo, hi = rep.min(axis=0) - 2, rep.max(axis=0) + 3
     cells = lattice_cells(int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1]),

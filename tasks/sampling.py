@@ -125,6 +125,14 @@ def parse_sampling(spec: str) -> Sampling:
     raise ValueError(f"unknown sampling {spec!r}; use {SAMPLING_HELP}")
 
 
+def canonical_direction(theta: float, phi: float) -> tuple[float, float]:
+    """A direction in canonical form: phi in [0, 360), and 0 straight above (theta 0).
+
+    Two (theta, phi) pairs name the same direction exactly when their canonical forms agree.
+    """
+    return theta, (phi % 360.0 if theta > 0 else 0.0)
+
+
 def direction_vectors(theta_deg: np.ndarray, phi_deg: np.ndarray) -> np.ndarray:
     """Unit vectors ``(x, y, z)`` of directions given in degrees, shape ``(n, 3)``."""
     t = np.radians(np.asarray(theta_deg, np.float64))

@@ -39,7 +39,7 @@ SMALL_TASKS = 16  # texels per side of a task block in tests: small stores, many
 @pytest.fixture
 def small_tasks(monkeypatch):
     """Task blocks of 16 texels, so that small test stores still span many blocks."""
-    monkeypatch.setattr("pipeline.store.TASK_TEXELS", SMALL_TASKS)
+    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", SMALL_TASKS)
 
 
 @pytest.fixture(scope="session")
@@ -47,7 +47,7 @@ def small_abtf(tmp_path_factory) -> Path:
     """A 48 x 48 wood ABTF, 6 rotations x 3 elevations, in shards, many task blocks."""
     path = tmp_path_factory.mktemp("stores") / "wood.zarr"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("pipeline.store.TASK_TEXELS", SMALL_TASKS)
+        mp.setattr("pipeline.graphs.blocks.TASK_TEXELS", SMALL_TASKS)
         return generate_store(path, "--material", "wood", "--size", "48", "--sampling",
                               "abtf:6,3", "--chunk", "8", "--shard", "16", "--dir-chunk", "4",
                               "--seed", "3")
@@ -58,7 +58,7 @@ def small_btf(tmp_path_factory) -> Path:
     """A 32 x 32 fabric BTF with 3 views x 3 lights (oblique views: parallax)."""
     path = tmp_path_factory.mktemp("stores") / "fabric.zarr"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("pipeline.store.TASK_TEXELS", SMALL_TASKS)
+        mp.setattr("pipeline.graphs.blocks.TASK_TEXELS", SMALL_TASKS)
         return generate_store(path, "--material", "fabric", "--size", "32", "--sampling",
                               "hemi:3", "--chunk", "8", "--dir-chunk", "2")
 

@@ -59,7 +59,7 @@ def test_progress_is_shown_unless_quiet(btf, tmp_path):
 
 
 def test_an_unreachable_cluster_is_a_clear_error(btf, tmp_path, monkeypatch):
-    monkeypatch.setattr("pipeline.runtime.CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("pipeline.session.CONNECT_TIMEOUT", "1s")
     result = btf("generate", tmp_path / "a.zarr", "--material", "wood", "--size", "16",
                  "--scheduler", "tcp://127.0.0.1:9", "--quiet")
     assert result.code == 1 and "cannot reach the dask scheduler at tcp://127.0.0.1:9" in result.err

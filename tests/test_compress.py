@@ -10,9 +10,10 @@ import zarr
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipeline.compress import ROW_BLOCK_BYTES, plan_row_blocks
-from pipeline.compressed import open_compressed
-from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store, open_radiance
+from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks
+from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.compressed import open_compressed
+from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
 from tasks.svd import log_rows, log_transform, matrix_rows
 
 EPS = 1e-3
@@ -167,7 +168,7 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(tmp_path, bt
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, scheduler,
                                                                  request, monkeypatch):
-    monkeypatch.setattr("pipeline.compress.MIN_ROW_BLOCKS", 5)
+    monkeypatch.setattr("pipeline.graphs.row_passes.MIN_ROW_BLOCKS", 5)
     a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
     reference = _compress(btf, store, tmp_path / "ref.zarr", "--rank", "6", "--scheduler",
@@ -370,7 +371,7 @@ def test_verify_measures_the_log_domain_error(tmp_path, btf):
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_one_pass_and_verify_are_identical_on_every_scheduler(tmp_path, btf, scheduler,
                                                                request, monkeypatch):
-    monkeypatch.setattr("pipeline.compress.MIN_ROW_BLOCKS", 5)
+    monkeypatch.setattr("pipeline.graphs.row_passes.MIN_ROW_BLOCKS", 5)
     store = store_from_log_matrix(tmp_path / "s.zarr",
                                   spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE)
     args = ("--rank", "6", "--passes", "1", "--verify")
@@ -388,7 +389,7 @@ def test_one_pass_and_verify_are_identical_on_every_scheduler(tmp_path, btf, sch
 def test_tasks_run_with_one_blas_thread(scheduler, request):
     import dask
 
-    from pipeline.runtime import RuntimeOptions, Session
+    from pipeline.session import RuntimeOptions, Session
 
     def blas_threads():
         from threadpoolctl import threadpool_info

@@ -9,10 +9,11 @@ import pytest
 import zarr
 
 from helpers import generate_store, no_partial_outputs
-from pipeline.generate import GenerateParams, generate
 from pipeline.images import write_exr, write_png
-from pipeline.runtime import RuntimeOptions, Session
-from pipeline.store import RADIANCE, open_radiance
+from pipeline.session import RuntimeOptions, Session
+from pipeline.stages.generate import GenerateParams, generate
+from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import open_radiance
 
 SMALL = ("--material", "stone", "--size", "40", "--sampling", "hemi:3", "--chunk", "8",
          "--shard", "16", "--dir-chunk", "2", "--seed", "11")
@@ -61,7 +62,7 @@ def test_a_local_cluster_gives_the_identical_store(tmp_path, local_cluster, smal
 
 def test_the_tiling_and_chunking_do_not_change_the_values(tmp_path, monkeypatch):
     one_block = generate_store(tmp_path / "a.zarr", *SMALL)  # a single 40 x 40 task block
-    monkeypatch.setattr("pipeline.store.TASK_TEXELS", 8)
+    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 8)
     many = generate_store(tmp_path / "b.zarr", *SMALL[:-8], "--chunk", "8", "--shard", "0",
                           "--dir-chunk", "3", "--seed", "11")  # 25 blocks of 8 x 8 texels
     a, b = _arrays(one_block), _arrays(many)
@@ -127,7 +128,7 @@ def test_existing_output_is_kept_unless_overwrite(tmp_path, btf):
 
 
 def _flaky_render(monkeypatch, fail_at: int) -> dict:
-    import pipeline.generate as gen
+    import pipeline.stages.generate as gen
 
     calls = {"n": 0}
     real = gen.render_block
@@ -227,7 +228,7 @@ def test_a_photo_renders_the_same_in_one_block_or_many(tmp_path, monkeypatch):
     write_exr(photo, pixels, ("R", "G", "B"))
     args = ("--albedo", photo, "--sampling", "hemi:3", "--chunk", "8")
     one = generate_store(tmp_path / "one.zarr", *map(str, args))
-    monkeypatch.setattr("pipeline.store.TASK_TEXELS", 8)
+    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 8)
     many = generate_store(tmp_path / "many.zarr", *map(str, args))
     a, b = _arrays(one), _arrays(many)
     for name in VARIABLES:

@@ -12,7 +12,8 @@ import zarr
 
 from helpers import no_partial_outputs
 from pipeline.images import read_image, write_exr, write_png
-from pipeline.store import RADIANCE, open_radiance
+from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import open_radiance
 
 
 def _store_values(path):
@@ -254,8 +255,8 @@ def test_a_failed_ingest_keeps_the_previous_good_store(tmp_path, btf):
 def test_export_splits_blocks_that_exceed_the_memory_budget(tmp_path, btf, small_abtf,
                                                             monkeypatch):
     layer = 48 * 48 * 3 * 4
-    monkeypatch.setattr("pipeline.export.TASK_BUDGET", 3 * layer)  # 3 layers per task
-    import pipeline.export as export
+    monkeypatch.setattr("pipeline.stages.export.TASK_BUDGET", 3 * layer)  # 3 layers per task
+    import pipeline.stages.export as export
 
     calls = []
     real = export._export_block

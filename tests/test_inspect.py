@@ -12,7 +12,8 @@ import zarr
 
 from helpers import no_partial_outputs
 from pipeline.images import read_image
-from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store
+from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.radiance import Layout, create_radiance_store
 
 
 def test_metadata_report_describes_the_store(btf, small_abtf):

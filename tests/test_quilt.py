@@ -13,8 +13,9 @@ from scipy import ndimage
 
 from helpers import generate_store
 from pipeline.errors import BTFError
-from pipeline.store import RADIANCE, Directions, Layout, create_radiance_store, open_radiance
-from pipeline.tileset import lazy_layer
+from pipeline.graphs.surface import lazy_layer
+from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
 from tasks.canvas import TERMS
 from tasks.materials import Material
 from tasks.prescription import apply, check, to_csr
@@ -261,7 +262,8 @@ def test_no_two_neighbouring_output_pixels_join_two_patches_without_a_blend(smoo
 def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, samples,
                                                               monkeypatch):
     # three layers at a time: the kernel's two-layer pass and its one-layer tail
-    monkeypatch.setattr("pipeline.tileset.APPLY_BUDGET", 3 * 4 * 3 * (72 * 72 + 24 * 24))
+    monkeypatch.setattr("pipeline.graphs.prescriptions.APPLY_BUDGET",
+                        3 * 4 * 3 * (72 * 72 + 24 * 24))
     sample = samples["fabric"]
     group = _quilt(btf, sample, tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
     layers = open_radiance(sample)[RADIANCE].values
@@ -396,8 +398,8 @@ def test_rendering_one_layer_reads_no_other_layer(tmp_path, btf, samples, monkey
 def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
     path = generate_store(tmp_path / "leather.zarr", "--material", "leather", "--size", "96",
                           "--sampling", "abtf:12,6", "--seed", "1")
-    from pipeline.quilt import compute_reference
-    from pipeline.runtime import RuntimeOptions, Session
+    from pipeline.session import RuntimeOptions, Session
+    from pipeline.stages.reference import compute_reference
 
     with Session(RuntimeOptions(quiet=True)) as session:
         maps, view = compute_reference(path, weights=(1, 0.5, 0.5), view=None, session=session)
@@ -433,7 +435,8 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
                                                                  monkeypatch):
     assert btf("compress", samples["stone"], tmp_path / "c.zarr", "--rank", "6",
                "--quiet").code == 0
-    monkeypatch.setattr("pipeline.tileset.BAND_BUDGET", 1)  # V read one chunk row at a time
+    # V read one chunk row at a time
+    monkeypatch.setattr("pipeline.graphs.prescriptions.BAND_BUDGET", 1)
     group = _quilt(btf, tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
                    "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 5 and 5
     assert group.attrs["btf_kind"] == "compressed-tileset"
@@ -451,13 +454,13 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
 
 
 def test_eigentexture_tasks_share_reads_within_the_budget_and_keep_every_core_busy():
-    from pipeline.tileset import RESULT_BUDGET, _tile_groups
+    from pipeline.graphs.prescriptions import RESULT_BUDGET, tile_groups
 
-    assert _tile_groups(16, 1000, 3) == [range(0, 6), range(6, 11), range(11, 16)]
-    assert [len(g) for g in _tile_groups(16, 1000, 5)] == [4, 3, 3, 3, 3]
-    assert _tile_groups(16, RESULT_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
-    assert _tile_groups(3, 2 * RESULT_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
-    assert _tile_groups(1, 1000, 8) == [range(0, 1)]
+    assert tile_groups(16, 1000, 3) == [range(0, 6), range(6, 11), range(11, 16)]
+    assert [len(g) for g in tile_groups(16, 1000, 5)] == [4, 3, 3, 3, 3]
+    assert tile_groups(16, RESULT_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
+    assert tile_groups(3, 2 * RESULT_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert tile_groups(1, 1000, 8) == [range(0, 1)]
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -503,7 +506,7 @@ def _lambertian_abtf(path, rotations=6, elevations=8, size=24):
 
 def test_the_hls_fit_of_a_diffuse_material_is_close_and_rebuilds_from_its_parameters(
         tmp_path, btf):
-    from pipeline.fit import open_fitted
+    from pipeline.stores.fitted import open_fitted
     from tasks.hls import rebuild
 
     src = _lambertian_abtf(tmp_path / "d.zarr")
@@ -525,7 +528,7 @@ def test_the_hls_fit_of_a_diffuse_material_is_close_and_rebuilds_from_its_parame
 def test_the_hls_fit_of_a_generated_material_reports_its_error(tmp_path, btf):
     import json
 
-    from pipeline.fit import open_fitted
+    from pipeline.stores.fitted import open_fitted
 
     src = generate_store(tmp_path / "l.zarr", "--material", "leather", "--size", "32",
                          "--sampling", "abtf:4,8")
@@ -558,6 +561,25 @@ def test_fit_refuses_lights_that_are_not_a_grid(tmp_path, btf):
     result = btf("fit", src, tmp_path / "fit.zarr", "--quiet")
     assert result.code == 1 and "not a grid of" in result.err
     with pytest.raises(BTFError):
-        from pipeline.fit import open_fitted
+        from pipeline.stores.fitted import open_fitted
 
         open_fitted(src)
+
+
+def test_light_sums_of_blocks_combine_to_the_sums_over_all_lights():
+    from tasks.reference import combine_light_sums, light_sums
+    from tasks.sampling import direction_vectors, parse_sampling
+
+    s = parse_sampling("abtf:6,3")
+    lights = direction_vectors(s.theta_light, s.phi_light)
+    layers = np.random.default_rng(2).gamma(0.5, 1.0, (len(lights), 9, 11, 3)).astype(np.float32)
+    whole = light_sums(layers, lights)
+    for cuts in ([5, 9], [1, 2, 17]):
+        parts = np.stack([light_sums(layers[a:b], lights[a:b])
+                          for a, b in zip([0, *cuts], [*cuts, len(lights)], strict=True)])
+        # equal up to the float32 rounding of the luminance each block is weighted by
+        assert np.allclose(combine_light_sums(parts), whole, rtol=1e-6, atol=1e-6)
+        # associative: combining partial combinations gives the same
+        twice = combine_light_sums(np.stack([combine_light_sums(parts[:2]),
+                                             combine_light_sums(parts[2:])]))
+        assert np.allclose(twice, whole, rtol=1e-6, atol=1e-6)

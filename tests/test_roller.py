@@ -10,10 +10,11 @@ import zarr
 from scipy import ndimage
 
 from helpers import generate_store, no_partial_outputs
+from pipeline.graphs.surface import lazy_layer
 from pipeline.images import write_exr
-from pipeline.store import RADIANCE, open_radiance
-from pipeline.tileset import lazy_layer
-from tasks.lattice import detect_lattice
+from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import open_radiance
+from tasks.periodicity import detect_lattice
 from tasks.placement import lattice_cells
 from tasks.prescription import check, to_csr
 from tasks.svd import reconstruct_layers

@@ -14,15 +14,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline.errors import BTFError
-from pipeline.store import (
-    RADIANCE,
-    Directions,
-    Layout,
-    aligned_chunks,
-    create_radiance_store,
-    open_radiance,
-    store_aligned,
-)
+from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
 
 DIRS = Directions(np.array([0.0, 30.0]), np.array([0.0, 90.0]), np.arange(5.0) * 10,
                   np.arange(5.0) * 45)
@@ -70,7 +64,7 @@ def test_created_store_opens_with_xarray_as_the_contract_says(tmp_path):
 @pytest.fixture
 def shard_sized_tasks(monkeypatch):
     """Tasks of exactly one shard: the most concurrent writers a store can have."""
-    monkeypatch.setattr("pipeline.store.TASK_TEXELS", 16)
+    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 16)
 
 
 def test_open_radiance_reads_whole_write_units(tmp_path, shard_sized_tasks):

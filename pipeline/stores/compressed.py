@@ -1,13 +1,13 @@
-"""Compressed stores: ``U``, ``S``, ``V`` of a BTF matrix, and radiance rebuilt on demand.
+"""Compressed stores (``btf_kind: compressed``): ``U``, ``S``, ``V`` and radiance on demand.
 
-A compressed store (made by ``btf compress``) is a zarr v3 group holding
+A compressed store (made by ``btf compress``) holds
 
 - ``U``: float32, dims ``(view, light, channel, component)``: the eigen-ABRDFs;
 - ``S``: float32, dims ``(component,)``: singular values, decreasing;
 - ``V``: float32, dims ``(y, x, component)``: the eigentextures, chunked in spatial tiles;
-- the direction coordinates and ``channel`` labels of the radiance store it came from;
-- attrs ``btf_kind = "compressed"``, the range reduction (``log(radiance + eps)``), the SVD's
-  parameters, its measured error and the provenance.
+- the direction coordinates and ``channel`` labels of the radiance it describes;
+- attrs: the range reduction (``transform``: ``log(radiance + eps)``), the SVD's parameters,
+  its measured error and the provenance.
 
 :func:`open_compressed` gives a Dataset whose ``radiance`` is a lazy dask array with the dims,
 coordinates and chunking of a radiance store. Each of its blocks is
@@ -23,17 +23,26 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BTFError
-from pipeline.store import (
+from pipeline.stores.base import (
     DIRECTION_COORDS,
     RADIANCE,
+    RADIANCE_DIMS,
     Directions,
+    StoreKind,
+    add_array,
+    check_coordinates,
+    check_variables,
+    create_store,
     location,
     open_group,
+    read_channels,
     read_directions,
+    sampling_lines,
+    sampling_summary,
 )
 from tasks.svd import reconstruct_layers
 
-KIND = "compressed"
+NAME = "compressed"
 FACTOR_DIMS = {"U": ("view", "light", "channel", "component"), "S": ("component",),
                "V": ("y", "x", "component")}
 
@@ -42,58 +51,31 @@ def create_compressed_store(path: str | Path, *, directions: Directions,
                             channels: tuple[str, ...], ny: int, nx: int, rank: int,
                             chunk: int, dir_chunk: int, attrs: dict[str, Any]):
     """Create an empty compressed store with its coordinates; returns the zarr group."""
-    import zarr
-    from zarr.codecs import BloscCodec
-
-    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
-    group.attrs.update({**attrs, "btf_kind": KIND})
-    nv, nl, nc = directions.theta_view.size, directions.theta_light.size, len(channels)
-    compressors = BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
-    shapes = {"U": (nv, nl, nc, rank), "S": (rank,), "V": (ny, nx, rank)}
-    chunks = {"U": (1, min(dir_chunk, nl), nc, rank), "S": (rank,),
-              "V": (min(chunk, ny), min(chunk, nx), rank)}
-    for name, dims in FACTOR_DIMS.items():
-        group.create_array(name, shape=shapes[name], chunks=chunks[name], dtype="float32",
-                           dimension_names=dims, compressors=compressors, fill_value=np.nan)
-    group["U"].attrs["long_name"] = "eigen-ABRDFs"
-    group["V"].attrs["long_name"] = "eigentextures"
-    group["S"].attrs["long_name"] = "singular values"
-    group["U"].attrs["coordinates"] = " ".join(DIRECTION_COORDS)
-    for name, dim in DIRECTION_COORDS.items():
-        coord = group.create_array(name, shape=(getattr(directions, name).size,),
-                                   dtype="float64", dimension_names=(dim,), compressors=None)
-        coord[:] = getattr(directions, name)
-        coord.attrs["units"] = "degree"
-    labels = group.create_array("channel", shape=(nc,), dtype=str,
-                                dimension_names=("channel",), compressors=None)
-    labels[:] = np.array(channels)
+    group = create_store(path, kind=NAME, attrs=attrs, directions=directions, channels=channels)
+    nv, nl, nc = directions.views, directions.lights, len(channels)
+    add_array(group, "U", shape=(nv, nl, nc, rank), dims=FACTOR_DIMS["U"],
+              chunks=(1, min(dir_chunk, nl), nc, rank),
+              attrs={"long_name": "eigen-ABRDFs", "coordinates": " ".join(DIRECTION_COORDS)})
+    add_array(group, "S", shape=(rank,), dims=FACTOR_DIMS["S"], chunks=(rank,),
+              attrs={"long_name": "singular values"})
+    add_array(group, "V", shape=(ny, nx, rank), dims=FACTOR_DIMS["V"],
+              chunks=(min(chunk, ny), min(chunk, nx), rank),
+              attrs={"long_name": "eigentextures"})
     return group
 
 
 def check_compressed(group, path: str | Path) -> None:
     """Raise :class:`BTFError` naming what is wrong if ``group`` is not a compressed store."""
-    if group.attrs.get("btf_kind") != KIND:
+    if group.attrs.get("btf_kind") != NAME:
         raise BTFError(f"{path}: not a compressed store (btf_kind is "
                        f"{group.attrs.get('btf_kind')!r}; make one with btf compress)")
-    names = set(group.array_keys())
-    for name, dims in FACTOR_DIMS.items():
-        if name not in names:
-            raise BTFError(f"{path}: variable {name!r} is missing")
-        if tuple(group[name].metadata.dimension_names or ()) != dims:
-            raise BTFError(f"{path}: variable {name!r} has dims "
-                           f"{group[name].metadata.dimension_names}, expected {dims}")
+    check_variables(group, path, FACTOR_DIMS)
     if "transform" not in group.attrs or "eps" not in group.attrs["transform"]:
         raise BTFError(f"{path}: attrs lack the range reduction ('transform' with 'eps')")
     u, s, v = (group[n].shape for n in ("U", "S", "V"))
     if not u[-1] == s[0] == v[-1]:
         raise BTFError(f"{path}: U, S and V disagree on the rank: {u[-1]}, {s[0]}, {v[-1]}")
-    sizes = {"view": u[0], "light": u[1], "channel": u[2]}
-    for name, dim in {**DIRECTION_COORDS, "channel": "channel"}.items():
-        if name not in names:
-            raise BTFError(f"{path}: coordinate {name!r} is missing")
-        if group[name].shape != (sizes[dim],):
-            raise BTFError(f"{path}: coordinate {name!r} has shape {group[name].shape}, but U "
-                           f"has {sizes[dim]} {dim}(s)")
+    check_coordinates(group, path, {"view": u[0], "light": u[1], "channel": u[2]}, "U")
 
 
 def _rebuild(u, s, v, *, eps: float) -> np.ndarray:
@@ -139,10 +121,63 @@ def open_compressed(path: str | Path, *, rank: int | None = None):
     radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], eps=eps)
     d = read_directions(group)
     coords = {name: (dim, getattr(d, name)) for name, dim in DIRECTION_COORDS.items()}
-    coords["channel"] = ("channel", [str(c) for c in group["channel"][:]])
+    coords["channel"] = ("channel", list(read_channels(group)))
     attrs = {**group.attrs, "rank_used": rank}
-    data = {RADIANCE: (("view", "light", "y", "x", "channel"), radiance,
+    data = {RADIANCE: (RADIANCE_DIMS, radiance,
                        {"rank_used": rank, "eps": eps, "error": attrs.get("error"),
                         "long_name": "radiance rebuilt as exp(U S V^T) - eps"})}
     data.update({name: (FACTOR_DIMS[name], factors[name]) for name in FACTOR_DIMS})
     return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def total_energy(group, s: np.ndarray) -> float:
+    """``||A||_F^2`` of the compressed matrix (from the stored error), else ``sum S^2``."""
+    norm = (group.attrs.get("error") or {}).get("frobenius_norm")
+    return float(norm) ** 2 if norm else max(float(np.sum(s**2)), 1e-300)
+
+
+def _summary(group) -> dict[str, Any]:
+    s = np.asarray(group["S"][:], np.float64)
+    energy = np.cumsum(s**2) / total_energy(group, s)
+    nv, nl, ny, nx, nc = group.attrs.get("source_shape", [0] * 5)
+    rank = int(s.size)
+    original = nv * nl * ny * nx * nc * 4
+    factors = (nv * nl * nc + ny * nx + 1) * rank * 4
+    stored = sum(int(group[n].nbytes_stored()) for n in ("U", "S", "V"))
+    return {
+        "sampling": sampling_summary(group),
+        "compression": {
+            "rank": rank,
+            "singular_values": s.tolist(),
+            "energy_captured": {str(k): float(energy[k - 1]) for k in
+                                sorted({1, 2, 4, 8, 16, 32, 64, 128, 256, rank}) if k <= rank},
+            "error": group.attrs.get("error"),
+            "svd": group.attrs.get("svd"),
+            "transform": group.attrs.get("transform"),
+            "original_bytes": original,
+            "factor_bytes": factors,
+            "ratio": original / factors if factors else None,
+            "ratio_on_disk": original / stored if stored else None,
+        },
+    }
+
+
+def _lines(summary: dict[str, Any]) -> list[str]:
+    c = summary["compression"]
+    s = c["singular_values"]
+    err = c["error"] or {}
+    lines = sampling_lines(summary["sampling"])
+    lines.append(f"compression: rank {c['rank']}, {c['ratio']:.1f}x smaller than the float32 "
+                 f"radiance ({c['ratio_on_disk']:.1f}x on disk)")
+    lines.append(f"  singular values {s[0]:.4g} ... {s[-1]:.4g}; share of ||A||^2 captured: "
+                 + ", ".join(f"{k}: {v:.6f}" for k, v in c["energy_captured"].items()))
+    if "log_relative_frobenius" in err:
+        lines.append(f"  relative error (log domain): {err['log_relative_frobenius']:.4g}"
+                     + (f"; average ABRDF RMSE (linear): {err['abrdf_rmse']:.4g}"
+                        if "abrdf_rmse" in err else ""))
+    if c["svd"]:
+        lines.append("  " + ", ".join(f"{k}={v}" for k, v in c["svd"].items()))
+    return lines
+
+
+KIND = StoreKind((NAME,), check_compressed, _summary, _lines, open_compressed)

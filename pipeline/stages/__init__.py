@@ -1,4 +1,9 @@
-"""The stages a run config or the command line can call, by name."""
+"""The stages a run config or the command line can call, by name: one module per subcommand.
+
+Each module holds its parameters (a frozen dataclass, :mod:`pipeline.params`) and one function
+that opens the inputs, builds its graph (:mod:`pipeline.graphs`) with kernels of :mod:`tasks`,
+computes it on the session and writes the output store (:mod:`pipeline.stores`).
+"""
 
 from __future__ import annotations
 
@@ -6,16 +11,20 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.compress import CompressParams, compress
-from pipeline.export import ExportParams, PreviewParams, export, preview
-from pipeline.fit import FitParams, fit
-from pipeline.generate import GenerateParams, generate
-from pipeline.ingest import IngestParams, ingest
-from pipeline.inspect import InspectParams, inspect
-from pipeline.quilt import QuiltStageParams, ReferenceParams, quilt, reference
-from pipeline.reconstruct import ReconstructParams, reconstruct
-from pipeline.render import RenderParams, render
-from pipeline.roller import RollerStageParams, roller
+from pipeline.stages import (
+    compress,
+    export,
+    fit,
+    generate,
+    ingest,
+    inspect,
+    preview,
+    quilt,
+    reconstruct,
+    reference,
+    render,
+    roller,
+)
 
 
 @dataclass(frozen=True)
@@ -33,27 +42,27 @@ class Stage:
 STAGES: dict[str, Stage] = {
     stage.name: stage
     for stage in (
-        Stage("generate", GenerateParams, generate,
+        Stage("generate", generate.GenerateParams, generate.generate,
               "render a procedural BTF with ground truth into a store",
               "Render a procedural material (or a photo with --albedo) under a direction "
               "sampling, tile by tile, straight into a radiance store. The store also holds "
               "the ground-truth height, albedo, roughness and specular fields. The same "
               "arguments give a bit-identical store on every scheduler.", makes_store=True),
-        Stage("ingest", IngestParams, ingest,
+        Stage("ingest", ingest.IngestParams, ingest.ingest,
               "read a folder of EXR/PNG layers into a store",
               "Read EXR or PNG layers into a radiance store. Directions come from a manifest "
               "CSV (file,theta_light,phi_light,theta_view,phi_view; SRC/manifest.csv is used "
               "when present) or from UTIA names tl{theta}_pl{phi}_tv{theta}_pv{phi}.exr. "
               "Images are streamed a block of directions at a time.", makes_store=True),
-        Stage("export", ExportParams, export,
+        Stage("export", export.ExportParams, export.export,
               "write layers of a store as EXR or PNG files",
               "Write the selected layers as EXR (exact float32, or --half) or tone-mapped PNG, "
               "named by their directions, with a manifest.csv that btf ingest reads back."),
-        Stage("preview", PreviewParams, preview,
+        Stage("preview", preview.PreviewParams, preview.preview,
               "draw a contact sheet of a spread of directions",
               "Draw a contact sheet of layers spread over the directions (farthest-point "
               "sampling), labelled with their angles, all with one exposure."),
-        Stage("compress", CompressParams, compress,
+        Stage("compress", compress.CompressParams, compress.compress,
               "out-of-core randomized SVD of a store into U, S, V",
               "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
               "channel textures, columns: texels) as U S V^T with a randomized SVD that streams "
@@ -62,18 +71,18 @@ STAGES: dict[str, Stage] = {
               "identity (or, for one pass, an error sketch); --verify adds a pass for the "
               "average ABRDF RMSE in linear radiance. Memory: a few row blocks and sketches.",
               makes_store=True),
-        Stage("reconstruct", ReconstructParams, reconstruct,
+        Stage("reconstruct", reconstruct.ReconstructParams, reconstruct.reconstruct,
               "rebuild chosen layers, region and rank from a compressed store",
               "Rebuild exactly the requested layers (--light, --view), texel region (--region) "
               "and rank (--rank) as exp(U S V^T) - eps, reading only the U chunks and V tiles "
               "they need, into a radiance store or EXR files (--format exr)."),
-        Stage("reference", ReferenceParams, reference,
+        Stage("reference", reference.ReferenceParams, reference.reference,
               "write the reference image that guides quilting (paper 003, 2.2)",
               "Compute, from all layers of the view closest to the normal, the diffuse map, "
               "a normal map from the strongest response per texel, the height map integrated "
               "from it (Frankot-Chellappa), a reflectance map from two normal estimates with "
               "different exponents, and their weighted combination; write them as one EXR."),
-        Stage("quilt", QuiltStageParams, quilt,
+        Stage("quilt", quilt.QuiltStageParams, quilt.quilt,
               "plan a seamless tile set on the reference image and apply it to every layer",
               "Periodic image quilting planned on the reference image (paper 003: corners, "
               "edges, interior; K best candidates by masked SSD; cyclic minimum-error boundary "
@@ -81,7 +90,7 @@ STAGES: dict[str, Stage] = {
               "tiles; V=1: one periodic texture). The plan compiles to one sparse "
               "prescription per tile, stored, and applied identically to every layer (or to "
               "the eigentextures of a compressed store).", makes_store=True),
-        Stage("roller", RollerStageParams, roller,
+        Stage("roller", roller.RollerStageParams, roller.roller,
               "detect the periodicity lattice and build double toroidal tiles (paper 004)",
               "Detect the two periodicity vectors u, v (any direction) of the perpendicularly "
               "lit layer from its Fourier spectrum and autocorrelation (--detect-only prints "
@@ -91,19 +100,19 @@ STAGES: dict[str, Stage] = {
               "(--tiles), and apply it to every layer (or to the eigentextures of a "
               "compressed store). btf render lays the tiles on surfaces of any size.",
               makes_store=True),
-        Stage("render", RenderParams, render,
+        Stage("render", render.RenderParams, render.render,
               "render one layer of a surface of any size from a tile set",
               "Render one layer (--light, --view) of an unbounded surface covered by a tile "
               "set, over a region of any size (--size, --origin): each tile is chosen by a hash "
               "of its lattice position and --seed so corners always match, and only that layer "
               "of the tile set is read. EXR, tone-mapped PNG, or .zarr written block by block."),
-        Stage("fit", FitParams, fit,
+        Stage("fit", fit.FitParams, fit.fit,
               "fit an ABTF in HLS: constant hue/saturation, lightness per rotation",
               "HLS fitting (paper 003, 2.5): per texel, hue and saturation constant over the "
               "lights and lightness fitted, for every light rotation, by six parameters over "
               "elevation. Reports the fit error (RMSE and maximum, linear RGB) and the size "
               "ratio; the fitted store rebuilds radiance lazily.", makes_store=True),
-        Stage("inspect", InspectParams, inspect,
+        Stage("inspect", inspect.InspectParams, inspect.inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "
               "codecs, bytes in memory and on disk, direction sampling and provenance. --scan "

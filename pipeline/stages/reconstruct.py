@@ -1,34 +1,28 @@
 """``btf reconstruct``: exactly the layers, region and rank asked for, from a compressed store.
 
-The selection is made on the lazy radiance of :func:`pipeline.compressed.open_compressed`, so
+The selection is made on the lazy radiance of :func:`pipeline.stores.compressed.open_compressed`, so
 only the ``U`` chunks and ``V`` tiles it touches are read. The result is a radiance store (the
 default) or one EXR per layer with a manifest, as ``btf export`` writes them.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.atomic import atomic_output
-from pipeline.compressed import open_compressed
 from pipeline.errors import BTFError
-from pipeline.export import layer_indices, layer_name
+from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.images import write_exr
+from pipeline.layer_files import layer_name, write_manifest
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
-from pipeline.runtime import Session
-from pipeline.store import (
-    RADIANCE,
-    Directions,
-    Layout,
-    aligned_chunks,
-    create_radiance_store,
-    store_aligned,
-)
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, Directions, layer_indices
+from pipeline.stores.compressed import open_compressed
+from pipeline.stores.radiance import Layout, create_radiance_store
 
 
 def parse_region(text: str) -> tuple[slice, slice]:
@@ -117,10 +111,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                                  d.phi_view[v]))
                     writes.append(dask.delayed(_write_layer)(sel.data[v, li], str(tmp / name),
                                                              channels))
-            with (tmp / "manifest.csv").open("w", newline="") as f:
-                out = csv.writer(f)
-                out.writerow(["file", "theta_light", "phi_light", "theta_view", "phi_view"])
-                out.writerows([r[0], *(repr(float(a)) for a in r[1:])] for r in rows)
+            write_manifest(tmp, rows)
             session.compute(*writes)
         else:
             attrs = {"btf_kind": d.kind, "source": "reconstruct",

@@ -1,7 +1,7 @@
-"""Compiled loops (numba) for what numpy and scipy do slowly here.
+"""The compiled sparse row loop (numba) that applies prescriptions, ``P @ layer``.
 
-Kept apart from the modules that use them so that importing those does not load numba (a
-quarter of a second and ~100 MB); they import this on first use. Every kernel releases the GIL
+Kept apart from :mod:`tasks.prescription`, which imports it on first use, so that importing
+that does not load numba (a quarter of a second and ~100 MB). Every loop releases the GIL
 (``nogil``), so the pipeline's threads run them in parallel, and none uses numba's own threads
 (they must not be entered from several dask threads at once) or its on-disk cache.
 """

@@ -4,28 +4,25 @@ Tiles are placed by a hash of their lattice coordinates and the seed
 (:mod:`tasks.placement`), so any region of the unbounded surface can be rendered on its own and
 regions that overlap agree. Only the requested layer of the tile set is read. Output: EXR (the
 region in memory), PNG (tone-mapped preview) or a zarr store written block by block, for regions
-too large to hold (``btf_kind: surface``: ``radiance`` ``(y, x, channel)``, ``channel`` labels,
-and attrs naming the tile set, layer, origin, seed and provenance).
+too large to hold (a surface store, :mod:`pipeline.stores.surface`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from pipeline.atomic import atomic_output
+from pipeline.graphs.blocks import store_aligned
+from pipeline.graphs.surface import lazy_layer
 from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
-from pipeline.runtime import Session
-from pipeline.store import RADIANCE, location, store_aligned
-from pipeline.tileset import lazy_layer, open_tileset, stored_seed
+from pipeline.session import Session
+from pipeline.stores.base import read_channels, read_directions
+from pipeline.stores.surface import create_surface_store
+from pipeline.stores.tileset import open_tileset, stored_seed
 from tasks.tonemap import exposure, to_uint8, tonemap
-
-SURFACE = "surface"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,43 +56,25 @@ class RenderParams:
             raise ParamError("chunk", f"must be at least 16, got {self.chunk}")
 
 
-def create_surface_store(path, shape: tuple[int, int, int], channels: tuple[str, ...], *,
-                         chunk: int, attrs: dict[str, Any]):
-    """Create an empty surface store and return its ``radiance`` array.
-
-    ``btf_kind: surface``: ``radiance`` ``(y, x, channel)`` of one layer, ``channel`` labels.
-    """
-    import zarr
-
-    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
-    group.attrs.update({**attrs, "btf_kind": SURFACE})
-    h, w, nc = shape
-    radiance = group.create_array(RADIANCE, shape=shape, dtype="float32",
-                                  chunks=(min(chunk, h), min(chunk, w), nc),
-                                  dimension_names=("y", "x", "channel"))
-    labels = group.create_array("channel", shape=(nc,), dtype=str,
-                                dimension_names=("channel",), compressors=None)
-    labels[:] = np.array(channels)
-    return radiance
-
-
 def render(params: RenderParams, session: Session) -> Path:
     """Render the requested region of one layer."""
     group = open_tileset(params.store)
     h, w = params.size[0], params.size[-1]
     layer = lazy_layer(params.store, view=params.view, light=params.light, size=(h, w),
                        origin=tuple(params.origin), seed=params.seed, chunk=params.chunk)
-    channels = tuple(str(c) for c in group["channel"][:])
+    channels = read_channels(group)
     suffix = Path(params.out).suffix.lower()
     session.log(f"render: light {params.light}, view {params.view}, {h} x {w} texels at "
                 f"{tuple(params.origin)} -> {params.out}")
     if suffix == ".zarr":
         with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-            target = create_surface_store(tmp, layer.shape, channels, chunk=params.chunk, attrs={
-                "source": "render", "tileset": params.store, "light": params.light,
-                "view": params.view, "origin": list(params.origin),
-                "seed": params.seed if params.seed is not None else stored_seed(group),
-                "provenance": provenance("render", params)})
+            attrs = {"source": "render", "tileset": params.store, "light": params.light,
+                     "view": params.view, "origin": list(params.origin),
+                     "seed": params.seed if params.seed is not None else stored_seed(group),
+                     "provenance": provenance("render", params)}
+            target = create_surface_store(
+                tmp, layer.shape, channels, chunk=params.chunk, attrs=attrs,
+                directions=read_directions(group).select([params.view], [params.light]))
             session.compute(store_aligned([layer], [target]))
         return Path(params.out)
     (pixels,) = session.compute(layer)

@@ -1,7 +1,7 @@
 """``btf generate``: a procedural BTF with ground truth, rendered tile-parallel into a store.
 
 The graph has two kinds of task. For every spatial task block (whole chunks, about 512 texels a
-side, :func:`pipeline.store.task_block`), one task computes the material fields of the block
+side, :func:`pipeline.graphs.blocks.task_block`), one task computes the material fields of the block
 plus a halo wide enough for every shadow and parallax ray. Procedural fields are defined
 everywhere, so the halo holds true values; a photo's fields are computed once, written to the
 store's ground-truth arrays, and read back by each block with the photo mirrored at its
@@ -21,20 +21,12 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
-from pipeline.runtime import Session
-from pipeline.store import (
-    RADIANCE,
-    TRUTH_DIMS,
-    Directions,
-    Layout,
-    aligned_chunks,
-    blocks,
-    create_radiance_store,
-    location,
-    store_aligned,
-)
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, Directions, location
+from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
 from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
 from tasks.sampling import SAMPLING_HELP, parse_sampling
 from tasks.shading import ShadingModel, render_block
@@ -95,9 +87,14 @@ class GenerateParams:
         return Layout(chunk=self.chunk, dir_chunk=self.dir_chunk, shard=self.shard)
 
 
+def _block(chunks: tuple[int, ...], i: int) -> tuple[int, int]:
+    """Start and size of block ``i`` of one axis of dask chunks."""
+    return int(sum(chunks[:i])), int(chunks[i])
+
+
 def _material_window(block_info=None, *, material: Material, halo: int, ych, xch):
     i, j = block_info[None]["chunk-location"][:2]
-    (y0, ny), (x0, nx) = blocks(ych)[i], blocks(xch)[j]
+    (y0, ny), (x0, nx) = _block(ych, i), _block(xch, j)
     return material.fields(y0 - halo, x0 - halo, ny + 2 * halo, nx + 2 * halo).pack()
 
 
@@ -109,7 +106,7 @@ def _stored_window(block_info=None, *, store: str, halo: int, ych, xch):
     import zarr
 
     i, j = block_info[None]["chunk-location"][:2]
-    (y0, ny), (x0, nx) = blocks(ych)[i], blocks(xch)[j]
+    (y0, ny), (x0, nx) = _block(ych, i), _block(xch, j)
     group = zarr.open_group(store, mode="r")
     height, width = group["height"].shape
     ya, yb = max(0, y0 - halo), min(height, y0 + ny + halo)

@@ -1,12 +1,12 @@
 """``btf roller``: periodicity detection and double toroidal tiles (paper 004).
 
-The lattice is detected on one grey-scale image (:mod:`tasks.lattice`): the perpendicularly
+The lattice is detected on one grey-scale image (:mod:`tasks.periodicity`): the perpendicularly
 lit layer (the light and view closest to the normal; ``--image reference`` uses quilting's
 reference image instead). The tiles are planned on the same image in colour
 (:mod:`tasks.roller`), and their prescriptions are applied to every layer, or to the
 eigentextures of a compressed store, by the machinery quilting uses
-(:func:`pipeline.tileset.write_tileset`). The result is a tile set that ``btf render`` lays on
-surfaces of any size with pure gathers.
+(:func:`pipeline.graphs.prescriptions.write_tileset`). The result is a tile set that
+``btf render`` lays on surfaces of any size with pure gathers.
 """
 
 from __future__ import annotations
@@ -18,14 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
+from pipeline.graphs.prescriptions import write_tileset
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
-from pipeline.runtime import Session
-from pipeline.store import RADIANCE, Directions, open_group
-from pipeline.tileset import open_layers, write_tileset
-from tasks.lattice import Lattice, detect_lattice
+from pipeline.session import Session
+from pipeline.stages.reference import compute_reference
+from pipeline.stores import open_layers
+from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.tileset import TileSet
+from tasks.periodicity import Lattice, detect_lattice
 from tasks.reference import luminance
 from tasks.roller import RollerParams, plan_roller
 
@@ -66,10 +68,7 @@ class RollerStageParams:
         check_seed(self.seed)
         if self.periods is not None and len(self.periods) != 2:
             raise ParamError("periods", f"expected A,B, got {self.periods}")
-        try:
-            self.roller_params()
-        except ValueError as exc:
-            raise ParamError(str(exc).split()[0], str(exc)) from None
+        self.roller_params()  # the planner's own checks (ParamError naming the option)
 
     def roller_params(self) -> RollerParams:
         """The planner's parameters."""
@@ -79,8 +78,6 @@ class RollerStageParams:
 def analysis_image(path: str, image: str, session: Session) -> tuple[np.ndarray, str]:
     """The colour image the roller analyses, and a description of it."""
     if image == "reference":
-        from pipeline.quilt import compute_reference
-
         maps, view = compute_reference(path, weights=(1.0, 0.5, 0.5), view=None,
                                        session=session)
         return maps.reference.astype(np.float64), f"the reference image of view {view}"
@@ -136,7 +133,6 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
     session.log(f"roller: {params.tiles} tile(s) spanned by U = {plan.U}, V = {plan.V} "
                 f"({plan.periods[0]} x {plan.periods[1]} periods, {plan.area} texels, stored "
                 f"{h} x {w}) at {plan.origin}")
-    group = open_group(params.store)
     attrs = {
         "source": "roller",
         "placement": "lattice",
@@ -150,11 +146,9 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
         "seed": params.seed,
         "provenance": provenance("roller", params),
     }
-    reference = image.astype(np.float32)
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-        write_tileset(params.store, tmp, group=group, index=plan.index, weight=plan.weight,
-                      tile_shape=plan.tile_shape, reference=reference,
-                      corners=np.zeros((params.tiles, 4), np.int64), attrs=attrs,
-                      session=session, label="roller", output=params.out,
-                      arrays={"representative": plan.representative.astype(np.int64)})
-    return Path(params.out)
+    tiles = TileSet(index=list(plan.index), weight=list(plan.weight),
+                    tile_shape=plan.tile_shape, reference=image.astype(np.float32),
+                    corners=np.zeros((params.tiles, 4), np.int64), attrs=attrs,
+                    representative=plan.representative.astype(np.int64))
+    return write_tileset(tiles, params.out, source=params.store, session=session,
+                         label="roller", overwrite=params.overwrite)

@@ -16,32 +16,23 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import re
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
+from pipeline.layer_files import MANIFEST, MANIFEST_COLUMNS, UTIA_NAME
 from pipeline.params import option
 from pipeline.provenance import provenance
-from pipeline.runtime import Session
-from pipeline.store import (
-    RADIANCE,
-    Directions,
-    Layout,
-    aligned_chunks,
-    create_radiance_store,
-    location,
-    store_aligned,
-)
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, Directions, location
+from pipeline.stores.radiance import Layout, create_radiance_store
+from tasks.sampling import canonical_direction
 
-MANIFEST_COLUMNS = ("file", "theta_light", "phi_light", "theta_view", "phi_view")
 STAGING = "_staging"  # scratch array inside the partial store, removed before it is published
-_NUMBER = r"(-?\d+(?:\.\d+)?)"
-UTIA_NAME = re.compile(rf"tl{_NUMBER}_pl{_NUMBER}_tv{_NUMBER}_pv{_NUMBER}\.(exr|png)",
-                       re.IGNORECASE)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,11 +80,6 @@ def _angle(text: str, where: str, column: str) -> float:
     if column.startswith("theta") and not 0 <= value <= 90:
         raise BTFError(f"{where}: {column} {value:g} is outside 0-90 degrees (the hemisphere)")
     return value
-
-
-def _direction(theta: float, phi: float) -> tuple[float, float]:
-    """A direction in canonical form: phi in [0, 360), and 0 straight above (theta 0)."""
-    return theta, (phi % 360.0 if theta > 0 else 0.0)
 
 
 def _from_manifest(src: Path, manifest: Path) -> list[Entry]:
@@ -147,14 +133,14 @@ def find_layers(src: str | Path, manifest: str | Path | None = None
     src = Path(src)
     if not src.is_dir():
         raise BTFError(f"{src}: not a folder")
-    if manifest is None and (src / "manifest.csv").is_file():
-        manifest = src / "manifest.csv"
+    if manifest is None and (src / MANIFEST).is_file():
+        manifest = src / MANIFEST
     entries = _from_manifest(src, Path(manifest)) if manifest else _from_names(src)
     if not entries:
         raise BTFError(f"{src}: no .exr or .png images found")
     seen: dict[tuple[float, ...], Entry] = {}
     for e in entries:
-        key = (*_direction(*e.angles[:2]), *_direction(*e.angles[2:]))
+        key = (*canonical_direction(*e.angles[:2]), *canonical_direction(*e.angles[2:]))
         if key in seen:
             raise BTFError(f"{e.origin}: {e.path.name} has the same directions as "
                            f"{seen[key].path.name} (light {key[0]:g}/{key[1]:g}, "

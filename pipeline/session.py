@@ -15,8 +15,6 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
-import dask
-
 LOCAL_SCHEDULERS = ("synchronous", "threads", "processes")
 CONNECT_TIMEOUT = "10s"  # how long to wait for a tcp:// scheduler (it may still be starting)
 PROGRESS_AFTER = 0.5  # seconds of work before a progress bar appears (default)
@@ -28,6 +26,8 @@ def progress_after() -> float:
     Set it like any dask option, e.g. ``DASK_BTF__PROGRESS_AFTER=0`` for a bar on every
     compute (the cluster tests do, to see the bar on short jobs).
     """
+    import dask
+
     return float(dask.config.get("btf.progress-after", PROGRESS_AFTER))
 
 
@@ -155,6 +155,8 @@ class Session:
         before the error propagates, so that no late write lands in an output that the caller
         is about to remove.
         """
+        import dask
+
         if self.client is not None:
             return self._compute_distributed(collections)
         settings: dict[str, Any] = {"scheduler": self.options.scheduler}
@@ -224,10 +226,10 @@ class Session:
         On a cluster it is sent to every worker once; locally it is a graph literal (threads
         share it; the ``processes`` scheduler pickles it for each task).
         """
-        if self.client is not None:
-            return self.client.scatter(value, broadcast=True, hash=False)
         import dask
 
+        if self.client is not None:
+            return self.client.scatter(value, broadcast=True, hash=False)
         return dask.delayed(value, pure=False)
 
     def _compute_distributed(self, collections) -> tuple:

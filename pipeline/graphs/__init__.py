@@ -1,0 +1,7 @@
+"""Reusable dask graph builders: block geometry, reductions, applying prescriptions, surfaces.
+
+A builder works out chunks, halos and seeds and maps a kernel of :mod:`tasks` over them, and
+returns the graph for a stage to compute on its :class:`pipeline.session.Session`. The one
+exception is :func:`pipeline.graphs.prescriptions.write_tileset`, the write both tile-set
+stages end with.
+"""

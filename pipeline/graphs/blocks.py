@@ -1,0 +1,66 @@
+"""The blocks tasks read and write: whole write units, about :data:`TASK_TEXELS` a side.
+
+Tasks read and write blocks made of whole write units (the shard of a sharded array, else the
+chunk), so no two tasks ever write the same file. Writing sharded arrays from many workers is
+only safe shard by shard: two tasks writing parts of one shard both rewrite the whole shard
+file, and one of them loses (measured here with zarr 3.1.6: a quarter to a half of the data
+lost, silently). :func:`store_aligned` therefore refuses dask chunks that split a write unit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+TASK_TEXELS = 512  # texels per side of the block one task reads or writes
+
+
+def write_unit(array) -> tuple[int, ...]:
+    """The block shape that can be written independently: the shard, or else the chunk."""
+    return tuple(array.shards or array.chunks)
+
+
+def task_block(array) -> tuple[int, ...]:
+    """The block one task reads or writes: whole write units, ~TASK_TEXELS per spatial side."""
+    dims = array.metadata.dimension_names or (None,) * array.ndim
+    return tuple(unit * max(1, TASK_TEXELS // unit) if dim in ("y", "x") else unit
+                 for unit, dim in zip(write_unit(array), dims, strict=True))
+
+
+def aligned_chunks(array) -> tuple[tuple[int, ...], ...]:
+    """Dask chunks that cover ``array`` in task blocks (see :func:`task_block`)."""
+    from dask.array.core import normalize_chunks
+
+    return normalize_chunks(task_block(array), array.shape)
+
+
+def block_regions(array) -> list[tuple[slice, ...]]:
+    """The regions of ``array`` in task blocks (see :func:`task_block`), in C order."""
+    from dask.array.core import slices_from_chunks
+
+    return slices_from_chunks(aligned_chunks(array))
+
+
+def read_chunks(group, name: str) -> dict[str, int]:
+    """Dask chunk size per dimension for reading variable ``name``: its task blocks."""
+    array = group[name]
+    dims = array.metadata.dimension_names or ()
+    return dict(zip(dims, task_block(array), strict=True))
+
+
+def store_aligned(sources: list, targets: list):
+    """A delayed write of dask arrays into zarr arrays, refused unless aligned to write units.
+
+    Every dask chunk boundary must fall on a shard boundary (or chunk boundary for unsharded
+    arrays), so no two tasks ever write into the same shard or chunk.
+    """
+    import dask.array as da
+
+    for source, target in zip(sources, targets, strict=True):
+        for dim, (chunks, unit) in enumerate(zip(source.chunks, write_unit(target), strict=True)):
+            edges = np.cumsum(chunks)[:-1]
+            if np.any(edges % unit):
+                raise ValueError(
+                    f"dask chunks {chunks} of axis {dim} split write units of {unit} in "
+                    f"{target.path!r}: concurrent writes would lose data"
+                )
+    return da.store(sources, targets, lock=False, compute=False)

@@ -1,0 +1,92 @@
+"""Reductions over stores with dask's own machinery (``dask.array.reduction`` and friends).
+
+- :func:`read_array`: a zarr variable as a dask array of task blocks whose read errors name the
+  store, variable and block;
+- :func:`statistics`: counts of NaN, Inf and negative values and the finite minimum, maximum
+  and sum of an array, all from one read of each block;
+- :func:`light_sums`: the per-texel sums over all lights of one view that the reference image
+  is made from (:func:`tasks.reference.light_sums`), combined over light blocks by a tree.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.graphs.blocks import aligned_chunks
+from pipeline.stores.base import location
+from tasks.reference import SUMS, combine_light_sums
+from tasks.reference import light_sums as block_light_sums
+
+
+def _read_region(block_info=None, *, store: str, variable: str) -> np.ndarray:
+    import zarr
+
+    region = tuple(slice(a, b) for a, b in block_info[None]["array-location"])
+    try:
+        return zarr.open_array(store, path=variable, mode="r")[region]
+    except Exception as exc:  # re-raised with the block's key, whatever the codec raised
+        where = ", ".join(f"{r.start}:{r.stop}" for r in region)
+        raise BTFError(f"{store}: variable {variable!r}, block [{where}] is unreadable: "
+                       f"{type(exc).__name__}: {exc}") from None
+
+
+def read_array(path: str | Path, name: str):
+    """Variable ``name`` of a store as a dask array of task blocks (one read per block)."""
+    import dask.array as da
+    import zarr
+
+    store = location(path)
+    array = zarr.open_array(store, path=name, mode="r")
+    return da.map_blocks(_read_region, chunks=aligned_chunks(array), dtype=array.dtype,
+                         meta=np.empty((0,) * array.ndim, array.dtype), store=store, variable=name)
+
+
+def statistics(x) -> dict:
+    """Lazy counts and extremes of an array, from one read of each block.
+
+    ``nan``, ``inf``, ``negative`` and ``finite`` counts, and the ``min``, ``max`` and ``sum``
+    (float64) of the finite values (``+inf``, ``-inf`` and 0 if there are none).
+    """
+    import dask.array as da
+
+    finite = da.isfinite(x)
+    return {"nan": da.isnan(x).sum(), "inf": da.isinf(x).sum(), "negative": (x < 0).sum(),
+            "finite": finite.sum(), "min": da.where(finite, x, np.inf).min(),
+            "max": da.where(finite, x, -np.inf).max(),
+            "sum": da.where(finite, x, 0).sum(dtype=np.float64)}
+
+
+def _block_sums(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
+    return block_light_sums(layers, lights)[None]
+
+
+def _keep(sums: np.ndarray, axis, keepdims: bool) -> np.ndarray:
+    return sums if keepdims else sums[0]
+
+
+def _combine(parts: np.ndarray, axis, keepdims: bool) -> np.ndarray:
+    out = combine_light_sums(parts)
+    return out[None] if keepdims else out
+
+
+def light_sums(radiance, lights: np.ndarray):
+    """Per-texel sums over all lights, ``(y, x, len(SUMS))`` float64, of one view's radiance.
+
+    ``radiance`` is a dask array ``(light, y, x, channel)``, ``lights`` the unit light vectors
+    ``(light, 3)``. Each block of lights is summed on its own, then the blocks are combined by
+    :func:`tasks.reference.combine_light_sums` (which rescales their weights to a common
+    maximum) in a tree, so any number of lights is reduced in memory bounded by a few blocks.
+    """
+    import dask.array as da
+
+    vectors = da.from_array(np.asarray(lights, np.float64), chunks=(radiance.chunks[0], 3))
+    per_block = da.blockwise(
+        _block_sums, "lyxs", radiance, "lyxc", vectors, "ld", new_axes={"s": len(SUMS)},
+        adjust_chunks={"l": 1}, concatenate=True, dtype=np.float64,
+        meta=np.empty((0,) * 4, np.float64))
+    return da.reduction(per_block, chunk=_keep, combine=_combine,
+                        aggregate=_combine, axis=0, dtype=np.float64, concatenate=True,
+                        meta=np.empty((0,) * 3, np.float64))

@@ -1,0 +1,220 @@
+"""Passes over a radiance store's BTF matrix in row blocks (compression, paper 000, 2.1).
+
+A row block is a few (view, block of lights) units of whole stored light chunks, all texels,
+sized so that a block stays within :data:`ROW_BLOCK_BYTES` (and there are enough blocks to keep
+the workers busy). One task per row block reads its radiance, checks it, range-reduces it and
+returns its share of the pass (:class:`tasks.svd.PassPart`); the shares are summed by a fixed
+tree (:func:`tree_sum`), so the result does not depend on scheduling. Memory is a few row
+blocks plus a few sketches, whatever the size of the store.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.stores.base import RADIANCE
+from tasks.svd import (
+    BlockCheck,
+    PassPart,
+    check_block,
+    combine_parts,
+    frobenius2,
+    log_rows,
+    log_transform,
+    matrix_rows,
+    power_step,
+    project,
+    sketch_rows,
+    verification,
+)
+
+ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
+MIN_ROW_BLOCKS = 8  # split smaller matrices further, so that workers share the work
+FAN_IN = 4  # row-block shares added per reduction task
+
+
+@dataclasses.dataclass(frozen=True)
+class RowBlock:
+    """Consecutive (view, first light, end light) units and their first matrix row."""
+
+    units: tuple[tuple[int, int, int], ...]
+    row0: int
+    rows: int
+
+
+def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *, budget: int | None = None,
+                    minimum: int | None = None) -> list[RowBlock]:
+    """Row blocks of whole stored light chunks, within ``budget`` bytes where possible.
+
+    Defaults: :data:`ROW_BLOCK_BYTES` and at least :data:`MIN_ROW_BLOCKS` blocks.
+    """
+    budget = ROW_BLOCK_BYTES if budget is None else budget
+    minimum = MIN_ROW_BLOCKS if minimum is None else minimum
+    nv, nl, ny, nx, nc = shape
+    units = [(v, l0, min(l0 + dir_chunk, nl)) for v in range(nv) for l0 in range(0, nl, dir_chunk)]
+    unit_bytes = dir_chunk * nc * ny * nx * 4
+    per_block = max(1, min(budget // max(unit_bytes, 1), math.ceil(len(units) / minimum)))
+    blocks, row = [], 0
+    for k in range(0, len(units), per_block):
+        group = tuple(units[k : k + per_block])
+        rows = sum((l1 - l0) * nc for _, l0, l1 in group)
+        blocks.append(RowBlock(group, row, rows))
+        row += rows
+    return blocks
+
+
+def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int, extra: int,
+                    one_pass: bool, workers: int) -> dict[str, int]:
+    """Bytes a compression will hold at its peak, roughly: sketches on the client, blocks in tasks.
+
+    The sketches grow with the texels (texels x (rank + oversampling), float64, a few copies
+    between passes); the tasks hold a row block, its range reduction in place, and a share of
+    the sketch each; a reduction task holds :data:`FAN_IN` shares.
+    """
+    nv, nl, ny, nx, nc = shape
+    m, n, width = nv * nl * nc, ny * nx, rank + extra
+    rows = max(b.rows for b in blocks)
+    if one_pass:
+        s = 2 * width + 1
+        client = 8 * (2 * s * n + m * width + n * width)
+        share = 4 * s * n
+    else:
+        client = 8 * 6 * n * width  # x, the previous iterate, their Krylov basis, QR copies
+        share = 4 * n * width
+    task = 4 * rows * n + share
+    return {"client": client, "task": task, "total": client + workers * task
+            + FAN_IN * 2 * share}
+
+
+def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,
+               clamp: bool = False) -> tuple[np.ndarray, BlockCheck]:
+    """The block's BTF matrix rows (float32), range-reduced if ``eps`` is given.
+
+    With ``check``, also what the radiance holds besides good values (first pass only).
+    """
+    import zarr
+
+    array = zarr.open_array(store, path=RADIANCE, mode="r")
+    nc = array.shape[-1]
+    rows = np.empty((block.rows, array.shape[2] * array.shape[3]), np.float32)
+    found, r = BlockCheck(), 0
+    for v, l0, l1 in block.units:
+        try:
+            layers = array[v : v + 1, l0:l1]
+        except Exception as exc:  # re-raised with the unit's key, whatever the codec raised
+            raise BTFError(f"{store}: variable 'radiance', block [view {v}, lights {l0}:{l1}] "
+                           f"is unreadable: {type(exc).__name__}: {exc}") from None
+        if check:
+            found = found.merge(check_block(layers, (v, l0, 0, 0, 0)))
+        n = (l1 - l0) * nc
+        if eps is None:
+            rows[r : r + n] = matrix_rows(layers)
+        elif not (found.nonfinite or (found.negative and not clamp)):
+            log_rows(layers, rows[r : r + n], eps=eps, clamp=clamp)
+        r += n
+    return rows, found
+
+
+def _transformed(store: str, block: RowBlock, *, eps: float, clamp: bool, first: bool,
+                 norm: bool) -> tuple[np.ndarray | None, BlockCheck, float]:
+    """Range-reduced rows of a block; None if the first pass finds data that must be refused.
+
+    Data is checked in the first pass only (the caller stops after it if anything is wrong).
+    """
+    a, check = _read_rows(store, block, check=first, eps=eps, clamp=clamp)
+    if check.nonfinite or (check.negative and not clamp):
+        return None, check, 0.0
+    return a, check, (frobenius2(a) if norm else 0.0)
+
+
+def _power_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
+                first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=False)
+    w = power_step(a, x) if a is not None else np.zeros_like(x)
+    return PassPart({"w": w}, {}, check, f2)
+
+
+def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
+                  first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
+    z = project(a, x) if a is not None else np.zeros((block.rows, x.shape[1]))
+    return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
+
+
+def _sketch_task(store: str, block: RowBlock, omega, phi, psi_rows, *, eps: float,
+                 clamp: bool, first: bool) -> PassPart:
+    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
+    if a is None:
+        y = np.zeros((block.rows, omega.shape[1]))
+        z = np.zeros((block.rows, phi.shape[1]))
+        w = np.zeros((psi_rows.shape[0], omega.shape[0]), np.float32)
+    else:
+        y, z, w = sketch_rows(a, omega, phi, psi_rows)
+    return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
+
+
+def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float, clamp: bool,
+                 first: bool) -> PassPart:
+    raw, check = _read_rows(store, block, check=first)
+    if clamp:
+        np.maximum(raw, 0.0, out=raw)
+    log_a = log_transform(raw, eps=eps)  # a copy: raw stays linear for eq. (11)
+    linear, log_residual = verification(raw, log_a, u[block.row0 : block.row0 + block.rows], s,
+                                        v, eps=eps)
+    return PassPart({"sse": linear}, {}, check, log_residual)
+
+
+def tree_sum(parts: list) -> Any:
+    """Delayed sum of pass parts by a fixed tree of :data:`FAN_IN` (reproducible order)."""
+    import dask
+
+    level = list(parts)
+    while len(level) > 1:
+        level = [dask.delayed(combine_parts, pure=True)(*level[i : i + FAN_IN])
+                 for i in range(0, len(level), FAN_IN)]
+    return level[0]
+
+
+# the pass kinds of tasks.rsvd, plus the verification pass: (task, arguments sliced by rows)
+_TASKS = {"power": (_power_task, ("x",), ()), "project": (_project_task, ("x",), ()),
+          "sketch": (_sketch_task, ("omega", "phi"), ("psi",)),
+          "verify": (_verify_task, ("u", "s", "v"), ())}
+
+
+def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[str, Any],
+               by_rows: dict[str, np.ndarray], eps: float, clamp: bool, first: bool):
+    """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the row blocks.
+
+    ``shared`` are handles of arrays every task reads whole (sketches, factors); ``by_rows``
+    arrays whose columns follow the matrix rows, each task taking its block's columns.
+    """
+    import dask
+
+    task, whole, sliced = _TASKS[kind]
+    parts = [dask.delayed(task, pure=True)(
+                 store, b, *(shared[name] for name in whole),
+                 *(by_rows[name][:, b.row0 : b.row0 + b.rows] for name in sliced),
+                 eps=eps, clamp=clamp, first=first)
+             for b in blocks]
+    return tree_sum(parts)
+
+
+def raise_on_bad_data(check: BlockCheck, store: str, clamp: bool) -> None:
+    """Raise :class:`BTFError` for NaN/Inf radiance, or negative radiance unless clamped."""
+    dims = ("view", "light", "y", "x", "channel")
+
+    def where(index):
+        return ", ".join(f"{d}={i}" for d, i in zip(dims, index, strict=True))
+
+    if check.nonfinite:
+        raise BTFError(f"{store}: variable 'radiance' has {check.nonfinite} NaN or Inf "
+                       f"value(s), the first at {where(check.first_nonfinite)}")
+    if check.negative and not clamp:
+        raise BTFError(f"{store}: variable 'radiance' has {check.negative} negative value(s), "
+                       f"the first at {where(check.first_negative)}; log(radiance + eps) needs "
+                       "radiance >= 0 (pass --clamp to clamp them to 0)")

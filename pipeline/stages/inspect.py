@@ -1,0 +1,208 @@
+"""``btf inspect``: what a store holds, from its metadata; its values only when asked.
+
+By default only metadata is read (array shapes, chunking, codecs, attrs, bytes on disk from the
+file listing, and the small direction coordinates). ``--scan`` reads every data variable chunk
+by chunk (:mod:`tasks.stats`), ``--plot`` draws the direction sampling on the hemisphere. Stage
+specific summaries come from the store's kind (:data:`pipeline.stores.KINDS`), so a new kind
+of store brings its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.graphs.reductions import read_array, statistics
+from pipeline.params import option
+from pipeline.session import Session
+from pipeline.stores import KINDS, kind_of
+from pipeline.stores.base import DIRECTION_COORDS, open_group, read_directions
+from pipeline.stores.compressed import NAME as COMPRESSED
+from pipeline.stores.compressed import total_energy
+
+
+@dataclasses.dataclass(frozen=True)
+class InspectParams:
+    """Parameters of ``btf inspect``."""
+
+    store: str = option(help="zarr store to describe", positional=True, path="in")
+    json: bool = option(False, help="print one JSON object instead of text")
+    scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
+                                    "and negative counts per variable")
+    plot: str | None = option(None, path="out", metavar="FILE",
+                              help="draw the direction sampling on the hemisphere (a PNG file; "
+                                   "an existing file is replaced)")
+    report: str | None = option(None, path="out", metavar="FILE",
+                                help="also write the JSON report to FILE (an existing file is "
+                                     "replaced)")
+
+
+def _codecs(array) -> list[str]:
+    out = []
+    for codec in (*array.filters, array.serializer, *array.compressors):
+        if codec is None:
+            continue
+        spec = codec.to_dict()
+        config = spec.get("configuration") or {}
+        shown = ", ".join(f"{k}={v}" for k, v in config.items() if k not in ("typesize",
+                                                                             "blocksize"))
+        out.append(f"{spec['name']}({shown})" if shown else spec["name"])
+    return out
+
+
+def _variable(array) -> dict[str, Any]:
+    nbytes = int(np.prod(array.shape)) * array.dtype.itemsize
+    stored = int(array.nbytes_stored())
+    return {
+        "dims": list(array.metadata.dimension_names or ()),
+        "shape": list(array.shape),
+        "dtype": str(array.dtype),
+        "chunks": list(array.chunks),
+        "shards": list(array.shards) if array.shards else None,
+        "codecs": _codecs(array),
+        "bytes": nbytes,
+        "stored_bytes": stored,
+        "ratio": nbytes / stored if stored else None,
+    }
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    """Metadata report of a store (no data is read beyond coordinate arrays)."""
+    group = open_group(path)
+    variables = {name: _variable(group[name]) for name in sorted(group.array_keys())}
+    nbytes = sum(v["bytes"] for v in variables.values())
+    stored = sum(v["stored_bytes"] for v in variables.values())
+    attrs = dict(group.attrs)
+    report = {
+        "path": str(path),
+        "kind": attrs.get("btf_kind", "unknown"),
+        "source": attrs.get("source"),
+        "variables": variables,
+        "total": {"bytes": nbytes, "stored_bytes": stored,
+                  "ratio": nbytes / stored if stored else None},
+        "attrs": attrs,
+    }
+    kind = kind_of(group)
+    if kind is not None:
+        report.update(kind.summary(group))
+    return report
+
+
+def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
+    """Statistics of every numeric array, read once block by block (memory: a few blocks)."""
+    group = open_group(path)
+    names = [n for n in sorted(group.array_keys()) if group[n].dtype.kind in "fiu"
+             and n not in DIRECTION_COORDS]
+    session.log(f"scan: {len(names)} variable(s) of {path}")
+    (lazy,) = session.compute({n: statistics(read_array(path, n)) for n in names})
+    out = {}
+    for name in names:
+        s = {k: float(v) for k, v in lazy[name].items()}
+        has = s["finite"] > 0
+        out[name] = {"count": int(np.prod(group[name].shape)), "nan": int(s["nan"]),
+                     "inf": int(s["inf"]), "negative": int(s["negative"]),
+                     "min": s["min"] if has else None, "max": s["max"] if has else None,
+                     "mean": s["sum"] / s["finite"] if has else None}
+    return out
+
+
+def plot_sampling(path: str | Path, out: str | Path) -> None:
+    """Draw light and view directions on the hemisphere (polar: radius theta, angle phi).
+
+    For a compressed store, a third panel draws the singular values and the energy captured.
+    """
+    from matplotlib.figure import Figure
+
+    group = open_group(path)
+    d = read_directions(group)
+    compressed = group.attrs.get("btf_kind") == COMPRESSED
+    panels = 3 if compressed else 2
+    fig = Figure(figsize=(4.6 * panels, 4.6), layout="constrained")
+    if compressed:
+        s = np.asarray(group["S"][:], np.float64)
+        ax = fig.add_subplot(1, 3, 3)
+        ax.semilogy(np.arange(1, s.size + 1), s, "o-", ms=3, label="singular value")
+        ax.set_xlabel("component")
+        ax.set_ylabel("singular value")
+        twin = ax.twinx()
+        twin.plot(np.arange(1, s.size + 1), np.cumsum(s**2) / total_energy(group, s), "C1-",
+                  label="cumulative energy")
+        twin.set_ylim(0, 1.02)
+        twin.set_ylabel("cumulative energy (fraction of ||A||_F^2)")
+        ax.set_title(f"spectrum (rank {s.size})", fontsize=9)
+    for k, which in enumerate(("light", "view")):
+        ax = fig.add_subplot(1, panels, k + 1, projection="polar")
+        theta, phi = getattr(d, f"theta_{which}"), getattr(d, f"phi_{which}")
+        ax.scatter(np.radians(phi), theta, s=14, c=theta, cmap="viridis", vmin=0, vmax=90)
+        ax.set_ylim(0, 90)
+        ax.set_yticks([15, 30, 45, 60, 75, 90])
+        ax.set_title(f"{len(theta)} {which} directions (radius: theta in degrees)", fontsize=9)
+    fig.suptitle(f"{Path(path).name}: direction sampling")
+    with atomic_output(out, directory=False, overwrite=True) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """Human-readable text of a :func:`describe` (and scan) report."""
+    from dask.utils import format_bytes
+
+    lines = [f"{report['path']}: {report['kind']} store"
+             + (f", made by {report['source']}" if report.get("source") else "")]
+    for name, v in report["variables"].items():
+        dims = ", ".join(f"{d} {n}" for d, n in zip(v["dims"], v["shape"], strict=False))
+        ratio = f" ({v['ratio']:.2f}x)" if v["ratio"] else ""
+        layout = f"chunks {tuple(v['chunks'])}"
+        if v["shards"]:
+            layout += f" in shards {tuple(v['shards'])}"
+        lines.append(f"  {name:<12} {v['dtype']:<8} ({dims})")
+        lines.append(f"  {'':<12} {layout}; {' + '.join(v['codecs'])}; "
+                     f"{format_bytes(v['bytes'])} -> {format_bytes(v['stored_bytes'])} on "
+                     f"disk{ratio}")
+    t = report["total"]
+    ratio = f" (compression {t['ratio']:.2f}x)" if t["ratio"] else ""
+    lines.append(f"  total: {format_bytes(t['bytes'])} in memory, "
+                 f"{format_bytes(t['stored_bytes'])} on disk{ratio}")
+    kind = KINDS.get(report["kind"])
+    if kind is not None:
+        lines += kind.lines(report)
+    attrs = report["attrs"]
+    for key in ("material", "shading"):
+        if key in attrs:
+            lines.append(f"{key}: " + ", ".join(f"{k}={v}" for k, v in attrs[key].items()))
+    if "provenance" in attrs:
+        p = attrs["provenance"]
+        lines.append(f"made by: {p.get('command')} (version {p.get('version')})")
+    if "scan" in report:
+        lines.append("scan:")
+        lines.append(f"  {'variable':<12} {'min':>11} {'max':>11} {'mean':>11} {'NaN':>8} "
+                     f"{'Inf':>6} {'negative':>9}")
+        for name, s in report["scan"].items():
+            def num(x):
+                return f"{x:11.4g}" if x is not None else f"{'-':>11}"
+            lines.append(f"  {name:<12} {num(s['min'])} {num(s['max'])} {num(s['mean'])} "
+                         f"{s['nan']:>8} {s['inf']:>6} {s['negative']:>9}")
+    return "\n".join(lines)
+
+
+def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
+    """Describe a store; print the report (text or JSON) and write the optional files."""
+    report = describe(params.store)
+    if params.scan:
+        report["scan"] = scan(params.store, session)
+    if params.plot:
+        if not set(DIRECTION_COORDS) <= set(open_group(params.store).array_keys()):
+            raise BTFError(f"{params.store}: no direction coordinates to plot")  # not a BTF
+        plot_sampling(params.store, params.plot)
+    text = json.dumps(report, indent=2, default=str)
+    if params.report:
+        with atomic_output(params.report, directory=False, overwrite=True) as tmp:
+            tmp.write_text(text + "\n")
+    print(text if params.json else format_report(report), file=sys.stdout, flush=True)
+    return report

@@ -1,0 +1,218 @@
+"""Tile-set stores (``tileset``, ``compressed-tileset``): quilting's and the roller's tiles.
+
+A tile-set store holds
+
+- ``radiance``: float32 ``(tile, view, light, y, x, channel)``, one chunk per tile and layer, so
+  that rendering one layer reads nothing of the others; or, for a compressed source, ``U`` and
+  ``S`` of the source with eigentextures per tile ``V`` ``(tile, y, x, component)`` (the
+  prescription blends the log-domain eigentextures, so blended texels are weighted geometric
+  means of the radiance they join);
+- ``corners`` ``(tile, corner)``: the corner types (top-left, top-right, bottom-left,
+  bottom-right) of each tile, and ``corner`` labels;
+- ``prescription_index`` / ``prescription_weight`` ``(tile, pixel, term)``: each tile's
+  prescription (:mod:`tasks.prescription`), so it can be applied again to other data;
+- ``reference`` ``(sample_y, sample_x, reference_channel)``: the image it was planned on;
+- the roller's ``representative`` ``(y, x, 2)``: where each stored texel lies in the cut tile;
+- the direction coordinates and ``channel`` labels of the source, and attrs with the planning
+  parameters, seed and placements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.stores.base import (
+    DIRECTION_COORDS,
+    RADIANCE,
+    Directions,
+    StoreKind,
+    add_array,
+    create_store,
+    open_group,
+    read_channels,
+    read_directions,
+    sampling_lines,
+    sampling_summary,
+)
+from tasks.placement import corner_code
+from tasks.prescription import to_csr
+
+NAMES = ("tileset", "compressed-tileset")
+CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
+
+
+def create_tileset_store(path, *, directions: Directions, channels: tuple[str, ...],
+                         tiles: int, tile_shape: tuple[int, int], terms: int,
+                         reference: np.ndarray, attrs: dict[str, Any], rank: int | None = None):
+    """Create an empty tile-set store (``rank``: a compressed one); returns the zarr group."""
+    group = create_store(path, kind=NAMES[rank is not None], attrs=attrs,
+                         directions=directions, channels=channels)
+    ty, tx = tile_shape
+    nv, nl, nc = directions.views, directions.lights, len(channels)
+    if rank is None:
+        add_array(group, RADIANCE, shape=(tiles, nv, nl, ty, tx, nc),
+                  dims=("tile", "view", "light", "y", "x", "channel"),
+                  chunks=(1, 1, 1, ty, tx, nc),
+                  attrs={"coordinates": " ".join(DIRECTION_COORDS)})
+    else:
+        add_array(group, "U", shape=(nv, nl, nc, rank), chunks=(nv, nl, nc, rank),
+                  dims=("view", "light", "channel", "component"))
+        add_array(group, "S", shape=(rank,), dims=("component",), chunks=(rank,))
+        add_array(group, "V", shape=(tiles, ty, tx, rank), chunks=(1, ty, tx, rank),
+                  dims=("tile", "y", "x", "component"))
+    pixels = ty * tx
+    add_array(group, "corners", shape=(tiles, 4), dims=("tile", "corner"), dtype="int64",
+              chunks=(tiles, 4))
+    for name, dtype in (("prescription_index", "int32"), ("prescription_weight", "float32")):
+        add_array(group, name, shape=(tiles, pixels, terms), chunks=(1, pixels, terms),
+                  dims=("tile", "pixel", "term"), dtype=dtype)
+    add_array(group, "reference", shape=reference.shape, chunks=reference.shape,
+              dims=("sample_y", "sample_x", "reference_channel"))[...] = reference
+    names = group.create_array("corner", shape=(4,), dtype=str, dimension_names=("corner",),
+                               compressors=None)
+    names[:] = np.array(CORNERS)
+    return group
+
+
+@dataclass(frozen=True)
+class TileSet:
+    """What a planner made: every tile's prescription and corner types, and its reference.
+
+    ``index`` and ``weight`` hold one ``(pixel, term)`` array per tile (:mod:`tasks.prescription`);
+    ``attrs`` the planner's record for the store; ``representative`` the roller's cut-tile
+    position of every stored texel.
+    """
+
+    index: list[np.ndarray]
+    weight: list[np.ndarray]
+    tile_shape: tuple[int, int]
+    corners: np.ndarray
+    reference: np.ndarray
+    attrs: dict[str, Any]
+    representative: np.ndarray | None = None
+
+    @property
+    def samples(self) -> int:
+        """Texels of the sample the prescriptions take from."""
+        return int(np.prod(self.reference.shape[:2]))
+
+    def matrices(self) -> list:
+        """The tiles' prescriptions as CSR matrices (output texels x sample texels)."""
+        return [to_csr(i, w, self.samples) for i, w in zip(self.index, self.weight, strict=True)]
+
+
+def write_tileset_store(path, tiles: TileSet, *, source: str, source_group):
+    """Create a tile-set store for ``tiles`` planned on ``source``; returns the zarr group.
+
+    Writes everything but the tiles' layers (or eigentextures), which the application graph
+    (:mod:`pipeline.graphs.prescriptions`) fills: the prescriptions, corner types, reference,
+    and for a compressed source its ``U`` and ``S``.
+    """
+    compressed = source_group.attrs.get("btf_kind") == "compressed"
+    attrs = {**tiles.attrs, "source_store": source, "tile_shape": list(tiles.tile_shape),
+             "sample_shape": list(tiles.reference.shape[:2]),
+             "source_btf_kind": source_group.attrs.get("source_btf_kind") if compressed
+             else source_group.attrs.get("btf_kind")}
+    if compressed:
+        attrs["transform"] = source_group.attrs["transform"]
+    out = create_tileset_store(path, directions=read_directions(source_group),
+                               channels=read_channels(source_group), tiles=len(tiles.index),
+                               tile_shape=tiles.tile_shape, terms=tiles.index[0].shape[-1],
+                               reference=tiles.reference, attrs=attrs,
+                               rank=source_group["S"].shape[0] if compressed else None)
+    out["corners"][...] = tiles.corners
+    for t in range(len(tiles.index)):
+        out["prescription_index"][t] = tiles.index[t].astype(np.int32)
+        out["prescription_weight"][t] = tiles.weight[t]
+    if tiles.representative is not None:
+        add_array(out, "representative", shape=tiles.representative.shape,
+                  chunks=tiles.representative.shape, dims=("y", "x", "vector"),
+                  dtype="int64")[...] = tiles.representative
+    if compressed:
+        out["U"][...] = source_group["U"][...]
+        out["S"][...] = source_group["S"][...]
+    return out
+
+
+def check_tileset(group, path: str | Path) -> None:
+    """Raise :class:`BTFError` naming what is wrong if ``group`` is not a tile-set store."""
+    kind = group.attrs.get("btf_kind")
+    if kind not in NAMES:
+        raise BTFError(f"{path}: not a tile-set store (btf_kind is {kind!r}; make one with btf "
+                       "quilt or btf roller)")
+    needed = [RADIANCE] if kind == "tileset" else ["U", "S", "V"]
+    for name in (*needed, "corners", "prescription_index", "prescription_weight"):
+        if name not in group.array_keys():
+            raise BTFError(f"{path}: variable {name!r} is missing")
+
+
+def open_tileset(path: str | Path):
+    """Open a tile-set store (zarr group), checking its kind and variables."""
+    group = open_group(path)
+    check_tileset(group, path)
+    return group
+
+
+def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
+    """Stored tile of each corner combination, in :func:`tasks.placement.cell_tiles` order.
+
+    Every combination of ``types`` corner types must be stored exactly once.
+    """
+    corners = np.asarray(corners)
+    codes = corner_code(*corners.T, corners=types)
+    if (corners.min(initial=0) < 0 or corners.max(initial=0) >= types
+            or sorted(codes.tolist()) != list(range(types**4))):
+        raise BTFError(f"{path}: variable 'corners' does not hold every combination of "
+                       f"{types} corner types exactly once")
+    return np.argsort(codes)
+
+
+def stored_seed(group) -> int:
+    """The placement seed recorded with a tile set (older quilt sets: the planning seed)."""
+    attrs = group.attrs
+    return int(attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0)))
+
+
+def _summary(group) -> dict[str, Any]:
+    attrs = group.attrs
+    source = np.prod(attrs["sample_shape"]) * group["theta_view"].shape[0] * group[
+        "theta_light"].shape[0] * group["channel"].shape[0] * 4
+    tiles = group["corners"].shape[0]
+    return {"sampling": sampling_summary(group),
+            "tileset": {"tiles": tiles, "corner_types": attrs.get("corner_types"),
+                        "tile_shape": attrs.get("tile_shape"),
+                        "sample_shape": attrs.get("sample_shape"),
+                        "lattice": attrs.get("lattice"), "planner": attrs.get("quilt")
+                        or attrs.get("roller"),
+                        "size_vs_source": (tiles * np.prod(attrs["tile_shape"])
+                                           / np.prod(attrs["sample_shape"])),
+                        "source_bytes": int(source)}}
+
+
+def _lines(summary: dict[str, Any]) -> list[str]:
+    t = summary["tileset"]
+    lines = sampling_lines(summary["sampling"])
+    lines.append(f"tile set: {t['tiles']} tile(s) of {t['tile_shape'][0]} x "
+                 f"{t['tile_shape'][1]} texels, {t['corner_types']} corner type(s), from a "
+                 f"{t['sample_shape'][0]} x {t['sample_shape'][1]} sample "
+                 f"({t['size_vs_source']:.2f}x its texels)")
+    lat = t["lattice"]
+    if lat:
+        for name, vec, n, a in zip("uv", (lat["u"], lat["v"]), lat["lengths_px"],
+                                   lat["angles_deg"], strict=True):
+            lines.append(f"  lattice {name} = [{vec[0]:.2f}, {vec[1]:.2f}] ({n:.2f} px at "
+                         f"{a:.1f} deg)")
+        lines.append(f"  confidence {lat['confidence']:.2f}; each tile spans U = {lat['U']}, "
+                     f"V = {lat['V']} ({lat['periods'][0]} x {lat['periods'][1]} periods), "
+                     f"stored as {lat['hnf'][0]} x {lat['hnf'][1]} (Hermite layout, shear "
+                     f"{lat['hnf'][2]})")
+    lines.append(f"  size relative to the sample: 1 : {1 / t['size_vs_source']:.2f}")
+    return lines
+
+
+KIND = StoreKind(NAMES, check_tileset, _summary, _lines)
