@@ -1,10 +1,10 @@
 """``btf inspect``: what a store holds, from its metadata; its values only when asked.
 
 By default only metadata is read (array shapes, chunking, codecs, attrs, bytes on disk from the
-file listing, and the small direction coordinates). ``--scan`` reads every data variable chunk
-by chunk (:mod:`tasks.stats`), ``--plot`` draws the direction sampling on the hemisphere. Stage
-specific summaries come from the store's kind (:data:`pipeline.stores.KINDS`), so a new kind
-of store brings its own.
+file listing, and the small direction coordinates). ``--scan`` reads every data variable block
+by block (:func:`pipeline.graphs.reductions.statistics`), ``--plot`` draws the direction
+sampling on the hemisphere. Stage specific summaries come from the store's kind
+(:data:`pipeline.stores.KINDS`), so a new kind of store brings its own.
 """
 
 from __future__ import annotations
