@@ -27,6 +27,28 @@ MISSING = dataclasses.MISSING
 ParamError = InvalidParameter
 
 
+def parse_region(text: str) -> tuple[slice, slice]:
+    """``"Y0:Y1,X0:X1"`` as two slices (ends exclusive)."""
+    try:
+        ys, xs = (tuple(int(v) for v in part.split(":")) for part in text.split(","))
+        (y0, y1), (x0, x1) = ys, xs
+    except ValueError:
+        raise ValueError(f"expected Y0:Y1,X0:X1 (texel ranges, ends exclusive), got "
+                         f"{text!r}") from None
+    if not (0 <= y0 < y1 and 0 <= x0 < x1):
+        raise ValueError(f"region {text!r} is empty or negative")
+    return slice(y0, y1), slice(x0, x1)
+
+
+def check_region(text: str | None, name: str = "region") -> None:
+    """Raise :class:`ParamError` for a region :func:`parse_region` refuses (None passes)."""
+    if text is not None:
+        try:
+            parse_region(text)
+        except ValueError as exc:
+            raise ParamError(name, str(exc)) from None
+
+
 def check_seed(seed: int | None) -> None:
     """Refuse a seed outside what numpy's generators take (``None``: nothing to check)."""
     if seed is not None and not 0 <= seed < 2**63:
@@ -43,6 +65,7 @@ def option(
     path: str | None = None,
     record: bool = True,
     numbers_as_text: bool = False,
+    key: str | None = None,
 ) -> Any:
     """A dataclass field of stage parameters.
 
@@ -66,10 +89,18 @@ def option(
         change results, such as ``overwrite``, are not).
     numbers_as_text
         A text option whose values may be written as YAML integers (``passes: 1``).
+    key
+        The option's name on the command line and in configs, where the field's name cannot
+        be it (``lambda``, a Python keyword); errors about it must name the key.
     """
     meta = {"help": help, "positional": positional, "choices": choices, "metavar": metavar,
-            "path": path, "record": record, "numbers_as_text": numbers_as_text}
+            "path": path, "record": record, "numbers_as_text": numbers_as_text, "key": key}
     return dataclasses.field(default=default, metadata=meta)
+
+
+def key_of(f: dataclasses.Field) -> str:
+    """The name a parameter field has on the command line (dashed) and in configs."""
+    return f.metadata.get("key") or f.name
 
 
 def _base_type(tp: Any) -> tuple[Any, bool]:
@@ -152,7 +183,7 @@ def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
         For an unknown key (with the closest valid one), a wrong type or a missing key.
     """
     hints = typing.get_type_hints(cls)
-    known = {f.name: f for f in dataclasses.fields(cls)}
+    known = {key_of(f): f for f in dataclasses.fields(cls)}
     for key in mapping:
         if key not in known:
             close = difflib.get_close_matches(str(key), list(known), n=1)
@@ -165,7 +196,7 @@ def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
             if (f.metadata.get("numbers_as_text") and isinstance(value, int)
                     and not isinstance(value, bool)):
                 value = str(value)
-            values[name] = coerce(value, hints[name], name, f.metadata.get("choices"))
+            values[f.name] = coerce(value, hints[f.name], name, f.metadata.get("choices"))
         elif f.default is MISSING:
             raise ParamError(name, "is required")
     return check_paths(cls(**values))
@@ -177,7 +208,7 @@ def to_record(params: Any) -> dict[str, Any]:
     for f in dataclasses.fields(params):
         if f.metadata.get("record", True):
             value = getattr(params, f.name)
-            out[f.name] = list(value) if isinstance(value, tuple) else value
+            out[key_of(f)] = list(value) if isinstance(value, tuple) else value
     return out
 
 
@@ -226,7 +257,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
                 kwargs["required"] = True
             else:
                 kwargs["default"] = f.default
-            parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **kwargs)
+            parser.add_argument("--" + key_of(f).replace("_", "-"), dest=f.name, **kwargs)
 
 
 def from_namespace(cls: type, namespace: argparse.Namespace) -> Any:

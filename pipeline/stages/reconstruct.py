@@ -17,25 +17,12 @@ from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.images import write_exr
 from pipeline.layer_files import layer_name, write_manifest
-from pipeline.params import ParamError, option
+from pipeline.params import ParamError, check_region, option, parse_region
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
 from pipeline.stores.compressed import open_compressed
 from pipeline.stores.radiance import Layout, create_radiance_store
-
-
-def parse_region(text: str) -> tuple[slice, slice]:
-    """``"Y0:Y1,X0:X1"`` as two slices (ends exclusive)."""
-    try:
-        ys, xs = (tuple(int(v) for v in part.split(":")) for part in text.split(","))
-        (y0, y1), (x0, x1) = ys, xs
-    except ValueError:
-        raise ValueError(f"expected Y0:Y1,X0:X1 (texel ranges, ends exclusive), got "
-                         f"{text!r}") from None
-    if not (0 <= y0 < y1 and 0 <= x0 < x1):
-        raise ValueError(f"region {text!r} is empty or negative")
-    return slice(y0, y1), slice(x0, x1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,11 +47,7 @@ class ReconstructParams:
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
-        if self.region is not None:
-            try:
-                parse_region(self.region)
-            except ValueError as exc:
-                raise ParamError("region", str(exc)) from None
+        check_region(self.region)
         if self.rank is not None and self.rank < 1:
             raise ParamError("rank", f"must be at least 1, got {self.rank}")
         Layout(chunk=self.chunk, dir_chunk=self.dir_chunk)

@@ -1,0 +1,88 @@
+"""``btf crop``: a region, and optionally some layers, of a radiance store, as a new store.
+
+A generic cut: a sample of a measurement, the constraint photos of an enlargement, a
+ground-truth region for evaluation. The selection is made on the lazy Dataset
+(:func:`pipeline.stores.radiance.open_radiance`) and written block by block in the output's
+task blocks, so memory is bounded by a few blocks whatever the sizes. Ground-truth fields of a
+generated store (``height``, ``albedo``, ...) are cropped along. The output records where it
+came from (``cropped_from``) and its provenance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.params import check_region, option, parse_region
+from pipeline.provenance import provenance
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, Directions, layer_indices, open_group, read_channels
+from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store, open_radiance
+
+
+@dataclasses.dataclass(frozen=True)
+class CropParams:
+    """Parameters of ``btf crop``."""
+
+    store: str = option(help="radiance store to cut from", positional=True, path="in",
+                        metavar="IN")
+    out: str = option(help="output radiance store (a .zarr directory)", positional=True,
+                      path="out")
+    region: str | None = option(None, metavar="Y0:Y1,X0:X1",
+                                help="texel region, ends exclusive (default: all texels)")
+    light: tuple[int, ...] | None = option(None, metavar="I,..",
+                                           help="light indices to keep (default: all)")
+    view: tuple[int, ...] | None = option(None, metavar="J,..",
+                                          help="view indices to keep (default: all)")
+    chunk: int | None = option(None, help="texels per side of a stored chunk (default: the "
+                                          "input's)")
+    dir_chunk: int | None = option(None, help="light directions per stored chunk (default: "
+                                              "the input's)")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        check_region(self.region)
+        Layout(chunk=self.chunk or 128, dir_chunk=self.dir_chunk or 16)
+
+
+def crop(params: CropParams, session: Session) -> Path:
+    """Write the requested part of a radiance store as a new radiance store."""
+    ds = open_radiance(params.store)
+    group = open_group(params.store)
+    rad = ds[RADIANCE]
+    views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
+    lights = layer_indices(params.light, rad.sizes["light"], "light", params.store)
+    ys, xs = slice(0, rad.sizes["y"]), slice(0, rad.sizes["x"])
+    if params.region is not None:
+        ys, xs = parse_region(params.region)
+        if ys.stop > rad.sizes["y"] or xs.stop > rad.sizes["x"]:
+            raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
+                           f"{rad.sizes['y']} x {rad.sizes['x']} texels of the store")
+    selected = ds.isel(view=views, light=lights, y=ys, x=xs)
+    d = Directions.of(selected)
+    stored = group[RADIANCE]
+    layout = Layout(chunk=params.chunk or stored.chunks[2], dir_chunk=params.dir_chunk or
+                    stored.chunks[1])
+    attrs = {"source": "crop", "provenance": provenance("crop", params),
+             "cropped_from": {"store": params.store, "y": [ys.start, ys.stop],
+                              "x": [xs.start, xs.stop], "views": views, "lights": lights}}
+    for key in ("material", "shading"):
+        if key in group.attrs:
+            attrs[key] = group.attrs[key]
+    if params.light is None and params.view is None and "sampling" in group.attrs:
+        attrs["sampling"] = group.attrs["sampling"]
+    truth = [name for name in TRUTH_DIMS if name in selected.data_vars]
+    ny, nx = selected.sizes["y"], selected.sizes["x"]
+    session.log(f"crop: {d.views} x {d.lights} layers of {ny} x {nx} texels at "
+                f"({ys.start}, {xs.start}) -> {params.out}")
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
+        out = create_radiance_store(tmp, directions=d, ny=ny, nx=nx,
+                                    channels=read_channels(group), layout=layout,
+                                    attrs=attrs, truth=len(truth) == len(TRUTH_DIMS))
+        names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
+        sources = [selected[n].data.rechunk(aligned_chunks(out[n])) for n in names]
+        session.compute(store_aligned(sources, [out[n] for n in names]))
+    return Path(params.out)
