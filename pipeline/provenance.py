@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.params import paths, to_record
+from pipeline.params import key_of, paths, to_record
 
 
 def command_line(stage: str, params: Any) -> str:
@@ -29,9 +29,9 @@ def command_line(stage: str, params: Any) -> str:
         if f.metadata.get("positional"):
             words.append(str(value))
         elif value is True:
-            words.append("--" + f.name.replace("_", "-"))
+            words.append("--" + key_of(f).replace("_", "-"))
         else:
-            words += ["--" + f.name.replace("_", "-"), str(value)]
+            words += ["--" + key_of(f).replace("_", "-"), str(value)]
     return shlex.join(words)
 
 

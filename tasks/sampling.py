@@ -160,3 +160,23 @@ def spread_pairs(theta_view, phi_view, theta_light, phi_light, count: int
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(points - points[nxt], axis=1))
     return [(int(pairs[i, 0]), int(pairs[i, 1])) for i in chosen]
+
+
+def angle_between(theta_a, phi_a, theta_b, phi_b) -> np.ndarray:
+    """Angles in degrees between directions ``a`` and ``b`` (broadcast)."""
+    a = direction_vectors(np.asarray(theta_a), np.asarray(phi_a))
+    b = direction_vectors(np.asarray(theta_b), np.asarray(phi_b))
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+def nearest_layer(view: tuple[float, float], light: tuple[float, float],
+                  views: tuple[np.ndarray, np.ndarray], lights: tuple[np.ndarray, np.ndarray]
+                  ) -> tuple[int, int, float]:
+    """The (view, light) pair of a sampling nearest to a layer's directions.
+
+    Returns the view and light indices and the larger of the two angular distances (degrees).
+    """
+    dv = angle_between(view[0], view[1], *views)
+    dl = angle_between(light[0], light[1], *lights)
+    j, i = int(np.argmin(dv)), int(np.argmin(dl))
+    return j, i, float(max(dv[j], dl[i]))

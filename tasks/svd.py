@@ -370,3 +370,27 @@ def combine_parts(*parts: PassPart) -> PassPart:
 def stacked_rows(pieces: list[tuple[int, np.ndarray]]) -> np.ndarray:
     """Row-block pieces stacked in row order into one matrix."""
     return np.concatenate([p for _, p in sorted(pieces, key=lambda rp: rp[0])], axis=0)
+
+
+def refactor(u: np.ndarray, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                              np.ndarray, np.ndarray]:
+    """``U, S, V`` with orthonormal ``U``, ``V`` and decreasing ``S`` of ``u @ coefficients^T``.
+
+    ``u`` is an orthonormal basis ``(rows, K)`` and ``coefficients`` ``(texels, K)`` the
+    columns of ``S V^T`` in it (the output of BTF enlargement). With the thin SVD
+    ``coefficients = V' diag(s) W^T``: ``U = u W``, ``S = s``, ``V = V'`` (float64). The
+    product, hence every layer, is unchanged; only the factorisation is made canonical.
+    Also returns ``W`` (``K x K``): other coefficients ``c`` in ``u``'s basis are ``c W`` in
+    the new one.
+    """
+    c = np.asarray(coefficients, np.float64)
+    gram = c.T @ c  # K x K: the texels need not be held twice
+    evals, w = np.linalg.eigh(gram)
+    order = np.argsort(evals)[::-1]
+    evals, w = np.maximum(evals[order], 0.0), w[:, order]
+    s = np.sqrt(evals)
+    v = c @ w
+    kept = s > (s[0] * 1e-12 if s.size else 0.0)  # components the coefficients do not use: 0
+    v[:, kept] /= s[kept]
+    v[:, ~kept] = 0.0
+    return np.asarray(u, np.float64) @ w, s, v, w

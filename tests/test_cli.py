@@ -10,6 +10,7 @@ from pathlib import Path
 import dask
 import pytest
 
+from pipeline.params import key_of
 from pipeline.stages import STAGES
 
 
@@ -22,7 +23,7 @@ def test_every_subcommand_explains_every_option(btf, name):
     if name in STAGES:
         for field in dataclasses.fields(STAGES[name].params):
             shown = ((field.metadata["metavar"] or field.name.upper())
-                     if field.metadata["positional"] else "--" + field.name.replace("_", "-"))
+                     if field.metadata["positional"] else "--" + key_of(field).replace("_", "-"))
             assert shown in result.out, shown
         assert STAGES[name].description[:40] in " ".join(result.out.split())
 

@@ -13,6 +13,8 @@ from typing import Any
 
 from pipeline.stages import (
     compress,
+    crop,
+    enlarge,
     export,
     fit,
     generate,
@@ -62,6 +64,13 @@ STAGES: dict[str, Stage] = {
               "draw a contact sheet of a spread of directions",
               "Draw a contact sheet of layers spread over the directions (farthest-point "
               "sampling), labelled with their angles, all with one exposure."),
+        Stage("crop", crop.CropParams, crop.crop,
+              "cut a region and some layers of a radiance store into a new store",
+              "Write a texel region (--region Y0:Y1,X0:X1) and optionally some lights "
+              "(--light) and views (--view) of a radiance store as a new radiance store, "
+              "streamed block by block; ground-truth fields of a generated store are cut "
+              "along. For samples, constraint photos and ground-truth regions.",
+              makes_store=True),
         Stage("compress", compress.CompressParams, compress.compress,
               "out-of-core randomized SVD of a store into U, S, V",
               "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
@@ -76,6 +85,17 @@ STAGES: dict[str, Stage] = {
               "Rebuild exactly the requested layers (--light, --view), texel region (--region) "
               "and rank (--rank) as exp(U S V^T) - eps, reading only the U chunks and V tiles "
               "they need, into a radiance store or EXR files (--format exr)."),
+        Stage("enlarge", enlarge.EnlargeParams, enlarge.enlarge_stage,
+              "a large BTF from a small compressed sample and full-size photos (paper 000)",
+              "Synthesize the eigentextures of a BTF at the size of the constraint photos from "
+              "a compressed sample (its eigen-ABRDFs stay): Texture Optimization guided by the "
+              "photos (multi-level EM, PCA-reduced exact search), statistical synthesis on a "
+              "steerable pyramid, and a per-texel QP that makes the result reproduce the "
+              "photos, alternated until the change is below --tol. Each photo layer is matched "
+              "to the sample's nearest direction; the sample's place in the photos is found "
+              "by normalised cross-correlation unless --sample-origin gives it. The output is "
+              "a compressed store that btf reconstruct, quilt, roller and inspect take.",
+              makes_store=True),
         Stage("reference", reference.ReferenceParams, reference.reference,
               "write the reference image that guides quilting (paper 003, 2.2)",
               "Compute, from all layers of the view closest to the normal, the diffuse map, "

@@ -1,0 +1,335 @@
+"""Enlargement against ground truth: eq. (11) error per phase, baselines and Eref (paper 000).
+
+The experiment of the paper's section 4 (Fig. 3), on generated materials whose ground truth
+``M`` is known: the sample ``S`` is the central half of ``M`` (compressed at ``--rank``), the
+constraint photos ``C`` are layers of ``M`` at full size, in the paper's three sets:
+
+- **top**: the light closest to the normal (one photo);
+- **random**: that and 9 more lights drawn at random (seeded): ten photos;
+- **mean**: the mean colour image (the mean over all lights, eq. 10).
+
+For every material and set, the average ABRDF RMSE of eq. (11), in linear radiance, over the
+texels outside the sample, of (1) Texture Optimization alone, (2) after the first statistical
+synthesis, (3) the result after the QP rounds (``btf enlarge --keep-phases``); next to ``Eref``
+(``M`` itself compressed at the same rank) and baselines measured in the same run:
+
+- **tiling**: ``S`` repeated periodically, aligned with its place in ``M``;
+- **quilt**: ``btf quilt`` of ``S`` (one periodic texture of the target's size, unconstrained);
+- **roller**: ``btf roller`` of ``S`` laid over the target (only where ``S`` is periodic);
+- **lookup**: every target texel takes the ABRDF of the sample texel whose constraint values
+  are nearest (a k-d tree on the log constraint values; no neighbourhoods).
+
+Times per phase come from the enlarged store's attrs. ``--sheet FILE`` draws ground truth,
+result and baselines side by side for a few lights of the first material.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.harness import git_revision, machine
+
+SUITE = "enlarge"
+SAMPLING = "abtf:12,4"
+SETS = ("top", "random", "mean")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the suite."""
+    parser.add_argument("--materials", default="wood,leather,fabric,brick",
+                        help="generated materials; 'brick' is a photo (skimage's brick) used "
+                             "with --albedo")
+    parser.add_argument("--size", type=int, default=256, help="target side (the sample is half)")
+    parser.add_argument("--rank", type=int, default=32)
+    parser.add_argument("--sets", default=",".join(SETS), help="constraint sets: top, random, "
+                                                               "mean")
+    parser.add_argument("--baselines", default="tiling,quilt,roller,lookup")
+    parser.add_argument("--enlarge-options", default="",
+                        help="extra btf enlarge options, e.g. '--lambda 480 --patch 6'")
+    parser.add_argument("--sheet", metavar="PNG", help="contact sheet of the first material")
+    parser.add_argument("--seed", type=int, default=1)
+
+
+def _btf(*args) -> None:
+    from pipeline.cli import main
+
+    code = main([str(a) for a in args] + ["--quiet"])
+    if code != 0:
+        raise RuntimeError(f"btf {' '.join(map(str, args))} failed with status {code}")
+
+
+def _factors(path: Path):
+    import zarr
+
+    g = zarr.open_group(path, mode="r")
+    return (np.asarray(g["U"][...], np.float64), np.asarray(g["S"][...], np.float64),
+            np.asarray(g["V"][...], np.float32), float(g.attrs["transform"]["eps"]), g)
+
+
+def abrdf_error(u: np.ndarray, coefficients: np.ndarray, eps: float, truth: np.ndarray,
+                mask: np.ndarray) -> float:
+    """Eq. (11) over the masked texels: mean of each texel's RMS radiance error (linear).
+
+    ``u`` ``(rows, K)``; ``coefficients`` ``(H, W, K)`` (``S V^T`` per texel); ``truth``
+    ``(H, W, rows)`` linear radiance in the rows' order.
+    """
+    from tasks.svd import reconstruct
+
+    texels = coefficients.reshape(-1, coefficients.shape[-1])[mask.ravel()]
+    rows = truth.reshape(-1, truth.shape[-1])[mask.ravel()]
+    errors = []
+    for k in range(0, len(texels), 16384):
+        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], eps=eps).T
+        errors.append(np.sqrt(np.mean((approx - rows[k : k + 16384]) ** 2, axis=1)))
+    return float(np.mean(np.concatenate(errors)))
+
+
+def truth_rows(path: Path) -> np.ndarray:
+    """``(H, W, rows)`` radiance of a store, rows in BTF-matrix order (view, light, channel)."""
+    import zarr
+
+    rad = zarr.open_array(path, path="radiance", mode="r")[...]
+    nv, nl, h, w, nc = rad.shape
+    return np.moveaxis(rad, (0, 1), (2, 3)).reshape(h, w, nv * nl * nc)
+
+
+def _photo(tmp: Path) -> Path:
+    from skimage import data
+
+    from pipeline.images import write_png
+
+    path = tmp / "brick.png"
+    write_png(path, data.brick())
+    return path
+
+
+def _mean_colour_store(source: Path, out: Path) -> Path:
+    """A one-layer store holding the mean over the lights of view 0 (eq. 10)."""
+    import zarr
+
+    from pipeline.stores.base import Directions
+    from pipeline.stores.radiance import Layout, create_radiance_store
+
+    rad = zarr.open_array(source, path="radiance", mode="r")
+    mean = rad[0].mean(axis=0, dtype=np.float64).astype(np.float32)
+    d = Directions(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+    group = create_radiance_store(out, directions=d, ny=mean.shape[0], nx=mean.shape[1],
+                                  channels=("R", "G", "B"), layout=Layout(),
+                                  attrs={"source": "mean colour of view 0"})
+    group["radiance"][0, 0] = mean
+    return out
+
+
+def lookup_baseline(sample_coef, sample_keys, keys) -> np.ndarray:
+    """Per-texel lookup: each texel takes the sample coefficients whose keys are nearest."""
+    from scipy.spatial import cKDTree
+
+    _, index = cKDTree(sample_keys.reshape(-1, sample_keys.shape[-1])).query(
+        keys.reshape(-1, keys.shape[-1]))
+    flat = sample_coef.reshape(-1, sample_coef.shape[-1])
+    return flat[index].reshape(*keys.shape[:2], -1)
+
+
+def _log_layers(path: Path, eps: float) -> np.ndarray:
+    """All layers of a store in the log domain, ``(H, W, layers * channels)``."""
+    return np.log(truth_rows(path) + eps)
+
+
+def _baselines(names, tmp, sample_svd, size, origin, truth, mask, u, coef_s, eps) -> dict:
+    out = {}
+    h = coef_s.shape[0]
+    if "tiling" in names:
+        reps = -(-size // h) + 1
+        tiled = np.tile(coef_s, (reps, reps, 1))
+        shift = (h - origin[0] % h) % h, (h - origin[1] % h) % h
+        out["tiling"] = abrdf_error(u, tiled[shift[0] : shift[0] + size,
+                                             shift[1] : shift[1] + size], eps, truth, mask)
+    if "quilt" in names:
+        step = 32 - 8
+        tile = -(-size // step) * step
+        _btf("quilt", sample_svd, tmp / "q.zarr", "--size", f"{tile},{tile}", "--seed", "1")
+        uq, sq, _, _, g = _factors(tmp / "q.zarr")
+        coef = np.asarray(g["V"][0], np.float32)[:size, :size] * sq.astype(np.float32)
+        out["quilt"] = abrdf_error(uq.reshape(-1, len(sq)), coef, eps, truth, mask)
+    if "roller" in names:
+        from pipeline.cli import main
+
+        if main(["roller", str(sample_svd), str(tmp / "r.zarr"), "--quiet"]) != 0:
+            out["roller"] = None  # not periodic: the roller refuses
+        else:
+            out["roller"] = _roller_error(tmp / "r.zarr", size, eps, truth, mask)
+    return out
+
+
+def _roller_error(path: Path, size: int, eps: float, truth, mask) -> float:
+    import zarr
+
+    from pipeline.graphs.surface import lazy_layer
+
+    g = zarr.open_group(path, mode="r")
+    nv, nl = g["theta_view"].shape[0], g["theta_light"].shape[0]
+    layers = np.stack([lazy_layer(path, view=v, light=li, size=(size, size)).compute(
+        scheduler="synchronous") for v in range(nv) for li in range(nl)], axis=2)
+    approx = layers.reshape(size, size, -1)
+    err = np.sqrt(np.mean((approx - truth) ** 2, axis=-1))
+    return float(np.mean(err[mask]))
+
+
+def _material(name: str, args, tmp: Path) -> dict:
+    size, half = args.size, args.size // 2
+    origin = ((size - half) // 2, (size - half) // 2)
+    m = tmp / "M.zarr"
+    if name == "brick":
+        _btf("generate", m, "--albedo", _photo(tmp), "--size", size, "--sampling", SAMPLING)
+    else:
+        _btf("generate", m, "--material", name, "--size", size, "--sampling", SAMPLING,
+             "--seed", args.seed)
+    _btf("crop", m, tmp / "S.zarr", "--region",
+         f"{origin[0]}:{origin[0] + half},{origin[1]}:{origin[1] + half}")
+    _btf("compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", args.rank)
+    _btf("compress", m, tmp / "M_svd.zarr", "--rank", args.rank)
+    truth = truth_rows(m)
+    mask = np.ones((size, size), bool)
+    mask[origin[0] : origin[0] + half, origin[1] : origin[1] + half] = False
+    us, ss, vs, eps, sample_group = _factors(tmp / "S_svd.zarr")
+    um, sm, vm, _, _ = _factors(tmp / "M_svd.zarr")
+    rows, rank = us.shape[0] * us.shape[1] * us.shape[2], len(ss)
+    u = us.reshape(rows, rank)
+    coef_s = vs * ss.astype(np.float32)
+    result = {"material": name, "eref": abrdf_error(um.reshape(rows, rank),
+                                                    vm * sm.astype(np.float32), eps, truth,
+                                                    mask)}
+    baselines = [b for b in args.baselines.split(",") if b]
+    result["baselines"] = _baselines(baselines, tmp, tmp / "S_svd.zarr", size, origin, truth,
+                                     mask, u, coef_s, eps)
+    import zarr
+
+    theta = zarr.open_group(m, mode="r")["theta_light"][...]
+    top = int(np.argmin(theta))
+    rng = np.random.default_rng(args.seed)
+    others = rng.choice([i for i in range(len(theta)) if i != top], 9, replace=False)
+    result["sets"] = {}
+    for which in args.sets.split(","):
+        c = tmp / f"C_{which}.zarr"
+        if which == "mean":
+            _mean_colour_store(m, c)
+            extra = ["--mean-colour", "0"]
+        else:
+            lights = [top] if which == "top" else [top, *sorted(int(i) for i in others)]
+            _btf("crop", m, c, "--light", ",".join(map(str, lights)))
+            extra = []
+        out = tmp / f"E_{which}.zarr"
+        start = time.perf_counter()
+        _btf("enlarge", tmp / "S_svd.zarr", c, out, "--keep-phases", *extra,
+             *args.enlarge_options.split())
+        wall = time.perf_counter() - start
+        ue, se, ve, _, g = _factors(out)
+        ue = ue.reshape(rows, rank)
+        info = dict(g.attrs["enlargement"])
+        row = {"to": abrdf_error(ue, np.asarray(g["phase_texture_optimization"][...]), eps,
+                                 truth, mask),
+               "stats": abrdf_error(ue, np.asarray(g["phase_statistics"][...]), eps, truth,
+                                    mask) if "phase_statistics" in g.array_keys() else None,
+               "final": abrdf_error(ue, ve * se.astype(np.float32), eps, truth, mask),
+               "seconds": info["seconds"], "wall": wall, "rounds": info["rounds"],
+               "residual": info["constraint_residual"], "lambda": info["lambda"],
+               "placement": info["placement"]}
+        if "lookup" in baselines:
+            keys = _log_layers(c, eps)
+            sample_keys = keys[origin[0] : origin[0] + half, origin[1] : origin[1] + half]
+            row["lookup"] = abrdf_error(u, lookup_baseline(coef_s, sample_keys, keys), eps,
+                                        truth, mask)
+        result["sets"][which] = row
+        if args.sheet and not getattr(args, "_sheet_done", False) and which == "top":
+            _sheet(args.sheet, name, truth, u, ue, ve * se.astype(np.float32), coef_s, origin,
+                   size, eps, (sample_keys, keys) if "lookup" in baselines else None)
+            args._sheet_done = True
+    del sample_group
+    return result
+
+
+def _sheet(path, name, truth, u, ue, coef, coef_s, origin, size, eps, lookup) -> None:
+    """Ground truth, result, lookup and tiling, for three lights, side by side."""
+    from matplotlib.figure import Figure
+
+    from tasks.svd import reconstruct
+    from tasks.tonemap import exposure, tonemap
+
+    channels = 3
+    lights = truth.shape[-1] // channels
+    picks = [0, lights // 3, 2 * lights // 3]
+    h = coef_s.shape[0]
+    reps = -(-size // h) + 1
+    shift = (h - origin[0] % h) % h, (h - origin[1] % h) % h
+    tiled = np.tile(coef_s, (reps, reps, 1))[shift[0] : shift[0] + size, shift[1] : shift[1] + size]
+    columns = [("ground truth", None, None), ("enlarged", ue, coef), ("tiling", u, tiled)]
+    if lookup is not None:
+        columns.insert(2, ("lookup", u, lookup_baseline(coef_s, *lookup)))
+    fig = Figure(figsize=(2.4 * len(columns), 2.5 * len(picks)), layout="constrained")
+    scale = exposure(truth[::4, ::4])
+    for r, light in enumerate(picks):
+        rows = slice(light * channels, (light + 1) * channels)
+        for c, (title, basis, coefficients) in enumerate(columns):
+            if basis is None:
+                image = truth[..., rows]
+            else:
+                image = reconstruct(basis[rows], np.ones(basis.shape[1]),
+                                    coefficients.reshape(-1, coefficients.shape[-1]),
+                                    eps=eps).T.reshape(size, size, channels)
+            ax = fig.add_subplot(len(picks), len(columns), r * len(columns) + c + 1)
+            ax.imshow(tonemap(image, scale=scale), interpolation="nearest")
+            ax.set_axis_off()
+            if r == 0:
+                ax.set_title(title, fontsize=9)
+    fig.suptitle(f"{name}: sample = central half; one constraint photo (top light)",
+                 fontsize=10)
+    fig.savefig(path, format="png", dpi=80)
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Every material and constraint set (see the module)."""
+    tmp = Path(tempfile.mkdtemp(prefix="btf-bench-enlarge-"))
+    try:
+        materials = []
+        for name in args.materials.split(","):
+            folder = tmp / name
+            folder.mkdir()
+            materials.append(_material(name, args, folder))
+        return {"suite": SUITE, "size": args.size, "sample": args.size // 2, "rank": args.rank,
+                "sampling": SAMPLING, "enlarge_options": args.enlarge_options,
+                "materials": materials, "machine": machine(), "revision": git_revision()}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _num(x) -> str:
+    return "n/a" if x is None else f"{x:.4f}"
+
+
+def report(result: dict) -> str:
+    """Markdown tables for BENCHMARKS.md."""
+    options = f", {result['enlarge_options']}" if result["enlarge_options"] else ""
+    lines = [f"Enlargement of the central {result['sample']}^2 of a {result['size']}^2 "
+             f"ground truth ({result['sampling']}, rank {result['rank']}{options}); "
+             "eq. (11) ABRDF RMSE outside the sample "
+             "(linear radiance; lower is better).", "",
+             "| material | set | (1) TO | (2) + stats | (3) final | Eref | (3)/Eref | lookup | "
+             "tiling | quilt | roller | TO s | stats s | QP s | rounds |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for m in result["materials"]:
+        b = m["baselines"]
+        for which, row in m["sets"].items():
+            s = row["seconds"]
+            lines.append(
+                f"| {m['material']} | {which} | {_num(row['to'])} | {_num(row['stats'])} | "
+                f"{_num(row['final'])} | {_num(m['eref'])} | {row['final'] / m['eref']:.1f} | "
+                f"{_num(row.get('lookup'))} | {_num(b.get('tiling'))} | {_num(b.get('quilt'))} | "
+                f"{_num(b.get('roller'))} | {s['texture_optimization']:.1f} | "
+                f"{s['statistics']:.1f} | {s['qp']:.2f} | {row['rounds']} |")
+    return "\n".join(lines)

@@ -1,0 +1,164 @@
+"""BTF enlargement, paper 000, Algorithm 1: a large BTF from a small full measurement.
+
+Everything happens on eigentexture coefficients: a texel of the sample ``S ~ U_S Sigma_S
+V_S^T`` is the column of ``Sigma_S V_S^T`` (``K`` values), and any texel of the result is
+another such column, so the result is ``U_S`` with new coefficients (the sample's ABRDF basis,
+new texture). Constraint images are in the log domain of the compression, where a photo under
+sample direction row ``i`` of ``U_S`` is the linear function ``U_S[i] x`` of the coefficients.
+
+1. Texture Optimization (:mod:`tasks.texture_optimization`) on the sample's coefficients
+   guided by the constraint images gives ``R``;
+2. until the relative change of a round is below ``tol`` (at most ``rounds`` rounds):
+   statistical synthesis (:mod:`tasks.statistical_synthesis`) of ``R`` gives ``R'``, and the
+   per-texel QP (:mod:`tasks.constrained_blend`) between ``R`` and ``R'`` under ``A x = b``
+   gives the next ``R``;
+3. the result is the last ``R``, which meets the constraints to within the sample's own
+   compression error of the constraint layers (the QP's damping, chosen by the discrepancy
+   principle, see :mod:`tasks.constrained_blend`), or exactly with ``exact`` (the paper's
+   QP; up to nearly dependent rows, and in the least-squares sense for more rows than
+   components). (The paper returns ``R'`` without the constraint channels; at convergence the
+   two agree, and ``R`` is the one that keeps the constraints.)
+
+**Mean-colour constraints** (paper eq. 10, the mean radiance over the lights of one view) are
+not linear in the log domain: ``log(mean_l radiance_l + eps) = logsumexp_l(U_l x) - log L``.
+They are approximated by the linear row ``mean_l U_l`` (the mean of the log radiance) with
+the target lowered by the Jensen gap ``logsumexp - mean``, averaged over the sample's texels
+(:func:`mean_colour_rows`). The gap varies between texels; the spread over the sample is
+reported as the approximation's cost.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tasks.constrained_blend import ConstraintProjector, blend
+from tasks.errors import InvalidParameter
+from tasks.statistical_synthesis import StatisticsParams, statistical_synthesis
+from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
+
+
+@dataclass(frozen=True)
+class EnlargementParams:
+    """Algorithm 1's settings: Texture Optimization, statistics (None: skipped), QP rounds."""
+
+    texture: TextureOptimizationParams = field(default_factory=TextureOptimizationParams)
+    statistics: StatisticsParams | None = field(default_factory=StatisticsParams)
+    rounds: int = 5
+    tol: float = 1e-3
+    alpha: float = 1.0
+    beta: float = 1.0
+    statistics_channels: int | None = None
+    exact: bool = False  # enforce A x = b exactly instead of to the sample's compression error
+
+    def __post_init__(self):
+        if self.rounds < 1:
+            raise InvalidParameter("rounds", f"rounds must be at least 1, got {self.rounds}")
+        if not self.tol >= 0:
+            raise InvalidParameter("tol", f"tol must be non-negative, got {self.tol}")
+        if not (self.alpha >= 0 and self.beta >= 0 and self.alpha + self.beta > 0):
+            raise InvalidParameter("alpha", "alpha and beta must be >= 0, not both 0")
+
+
+@dataclass
+class EnlargementResult:
+    """The enlarged coefficients, the intermediate results and how they were reached."""
+
+    coefficients: np.ndarray  # (H, W, K) float32: after the last QP
+    texture_optimization: np.ndarray  # (H, W, K): column (1) of the paper's Table 1
+    statistics: np.ndarray | None  # (H, W, K): the first round's statistical synthesis, (2)
+    seconds: dict[str, float] = field(default_factory=dict)
+    rounds: int = 0
+    changes: list[float] = field(default_factory=list)
+    residual: float = 0.0  # relative ||A x - b|| after the last QP
+    residual_rms: float = 0.0  # RMS of A x - b after the last QP (log domain)
+    noise: float = 0.0  # the RMS residual the QP leaves: the sample's own (0: exact)
+    damping: list[float] = field(default_factory=list)  # per round
+    energy: list[list[float]] = field(default_factory=list)
+    constraint_rank: int = 0
+
+
+def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
+            target_constraints: np.ndarray, rows: np.ndarray, *, params: EnlargementParams,
+            guide_weight: float, seed: int = 0) -> EnlargementResult:
+    """Enlarge a sample's coefficients to the constraint images' size (Algorithm 1).
+
+    Parameters
+    ----------
+    sample
+        ``(h, w, K)`` coefficients ``Sigma_S V_S^T`` of the sample, per texel.
+    sample_constraints, target_constraints
+        ``(h, w, G)`` and ``(H, W, G)`` constraint values (log domain) of the sample's texels
+        and of the target's: one value per constraint image and channel.
+    rows
+        ``(G, K)``: the linear function of the coefficients each constraint value is
+        (``U_S`` rows; :func:`mean_colour_rows` for a mean colour).
+    guide_weight
+        ``sqrt(lambda)``, the weight of a constraint value in Texture Optimization.
+    """
+    sample = np.asarray(sample, np.float32)
+    target_constraints = np.asarray(target_constraints, np.float32)
+    shape = target_constraints.shape[:2]
+    projector = ConstraintProjector.of(rows)
+    noise = 0.0 if params.exact else projector.rms_residual(sample, sample_constraints)
+    seconds = {}
+    start = time.perf_counter()
+    to = texture_optimization(sample, sample_constraints, target_constraints, shape=shape,
+                              params=params.texture, guide_weight=guide_weight, seed=seed)
+    seconds["texture_optimization"] = time.perf_counter() - start
+    r = to.coefficients
+    first_stats, changes, dampings = None, [], []
+    seconds["statistics"] = seconds["qp"] = 0.0
+    for _ in range(params.rounds):
+        start = time.perf_counter()
+        if params.statistics is None:
+            r_stats = r
+        else:
+            r_stats = statistical_synthesis(r, sample, params=params.statistics,
+                                            channels=params.statistics_channels)
+        seconds["statistics"] += time.perf_counter() - start
+        if first_stats is None:
+            first_stats = r_stats
+        start = time.perf_counter()
+        new, damping = blend(r, r_stats, target_constraints, projector, alpha=params.alpha,
+                             beta=params.beta, noise=noise)
+        dampings.append(damping)
+        seconds["qp"] += time.perf_counter() - start
+        norm = float(np.linalg.norm(r))
+        changes.append(float(np.linalg.norm(new - r)) / norm if norm else 0.0)
+        r = new
+        if params.statistics is None or changes[-1] < params.tol:
+            break
+    return EnlargementResult(
+        coefficients=r, texture_optimization=to.coefficients,
+        statistics=None if params.statistics is None else first_stats, seconds=seconds,
+        rounds=len(changes), changes=changes,
+        residual=projector.residual(r, target_constraints),
+        residual_rms=projector.rms_residual(r, target_constraints), noise=noise,
+        damping=dampings, energy=to.energy, constraint_rank=projector.rank)
+
+
+def mean_colour_rows(rows: np.ndarray, sample: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                    np.ndarray]:
+    """Linear stand-in for a mean-colour constraint of one view (see the module).
+
+    ``rows`` are ``U_S``'s rows of that view, ``(lights, channels, K)``; ``sample`` the
+    sample's coefficients ``(..., K)``. Returns the rows ``(channels, K)`` (the mean over
+    lights), the offset ``(channels,)`` to subtract from ``log(mean colour + eps)`` (the
+    Jensen gap averaged over the sample), and the gap's standard deviation over the sample
+    ``(channels,)``: the error the approximation makes on the sample's own texels.
+    """
+    from scipy.special import logsumexp
+
+    rows = np.asarray(rows, np.float64)
+    flat = np.asarray(sample, np.float32).reshape(-1, rows.shape[-1])
+    lights = rows.shape[0]
+    step = max(1, (16 << 20) // (8 * rows.shape[0] * rows.shape[1]))  # texels per 16 MiB
+    gaps = []
+    for k in range(0, len(flat), step):
+        logs = np.einsum("lck,nk->nlc", rows, flat[k : k + step])  # log(radiance + eps)
+        gaps.append(logsumexp(logs, axis=1) - np.log(lights) - logs.mean(axis=1))  # >= 0
+    gap = np.concatenate(gaps)
+    return rows.mean(axis=0), gap.mean(axis=0), gap.std(axis=0)

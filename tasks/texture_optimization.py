@@ -1,0 +1,360 @@
+"""Texture Optimization with a guide (Kwatra et al. 2005; paper 000, section 3.1, eqs. 2-3).
+
+The output ``X`` (target size, ``K`` coefficient channels: the eigentexture coefficients
+``Sigma V^T`` of every texel) is optimised so that each of its ``n x n`` neighbourhoods on a
+grid of spacing ``n / 4`` looks like some neighbourhood ``z_p`` of the sample::
+
+    E(X) = sum_p || f(X)_p - f(Z)_{z_p} ||^r
+
+alternating an E-step (find the most similar sample neighbourhood of every output
+neighbourhood) and an M-step (every texel becomes the weighted mean of the sample texels the
+overlapping matches put there; Kwatra's robust weights ``||.||^(r-2)``, ``r = 0.8``, make this
+an iteratively reweighted least squares, which never increases ``E``).
+
+**Guide (the constraint images).** A texel's feature ``f`` is its coefficients stacked with
+``sqrt(lambda)`` times its constraint values (log domain): the sample's own constraint images
+``C_S`` on the sample side, the target's ``C`` on the output side. The output's constraint
+channels are held at ``C``: this is the paper's control term ``lambda E_c`` taken to its
+limit (the QP of :mod:`tasks.constrained_blend` enforces the constraints exactly afterwards),
+and ``lambda`` is the weight of a constraint value against one value of the texel's ABRDF in
+the search. The caller chooses it (paper: 20000 for 22801 textures, "nearly one-to-one").
+
+**Levels.** Synthesis runs coarse to fine on the sample and the guide downsampled by
+``2^(levels-1) ... 1`` (block means; paper: 1/4, 1/2, 1); the coarsest output starts from a
+search on the guide alone, every finer one from the coarser result upsampled.
+
+**Search.** The distance of two neighbourhoods is computed on the leading principal
+components of the coefficients (the components holding ``search_energy`` of the sample's
+variance; rotations keep distances, the truncation drops the rest) and the full guide. Each
+output neighbourhood's ``candidates`` nearest sample neighbourhoods are found by an exact search
+(faiss, flat L2) on a PCA projection of the neighbourhoods to ``search_dims`` dimensions, then
+re-ranked by their true distance together with the previous match; so an E-step never
+returns a worse match than it had, and ``E`` never increases. (Measured, 128^2 -> 256^2 at rank
+32: see BENCHMARKS.md, enlargement.)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tasks.errors import InvalidParameter
+
+CHUNK_BYTES = 32 << 20  # neighbourhood vectors built at a time for a projection
+PCA_FIT = 4096  # sample neighbourhoods the search basis is fitted to
+
+
+@dataclass(frozen=True)
+class TextureOptimizationParams:
+    """Levels, neighbourhood size, EM iterations and search settings."""
+
+    levels: int = 3
+    patch: int = 8
+    iterations: int = 5
+    robust: float = 0.8
+    search_energy: float = 0.9999
+    search_dims: int = 32
+    candidates: int = 4
+
+    def __post_init__(self):
+        if self.levels < 1:
+            raise InvalidParameter("levels", f"levels must be at least 1, got {self.levels}")
+        if self.patch < 2:
+            raise InvalidParameter("patch", f"patch must be at least 2 texels, got {self.patch}")
+        if self.iterations < 1:
+            raise InvalidParameter("iterations",
+                                   f"iterations must be at least 1, got {self.iterations}")
+        if not 0 < self.robust <= 2:
+            raise InvalidParameter("robust", f"robust must be in (0, 2], got {self.robust}")
+        if not 0 < self.search_energy <= 1:
+            raise InvalidParameter("search_energy",
+                                   f"search_energy must be in (0, 1], got {self.search_energy}")
+        if self.search_dims < 1 or self.candidates < 1:
+            raise InvalidParameter("search_dims", "search_dims and candidates must be >= 1")
+
+    @property
+    def spacing(self) -> int:
+        """Distance between neighbouring output neighbourhoods (Kwatra: a quarter patch)."""
+        return max(1, self.patch // 4)
+
+
+@dataclass
+class TextureOptimizationResult:
+    """The synthesized coefficients and how the optimisation went."""
+
+    coefficients: np.ndarray  # (H, W, K) float32
+    energy: list[list[float]] = field(default_factory=list)  # per level, after each E-step
+    seconds: list[float] = field(default_factory=list)  # per level
+
+
+def grid(n: int, patch: int, spacing: int) -> np.ndarray:
+    """Neighbourhood origins along an axis of ``n`` texels: every ``spacing``, the last flush."""
+    last = n - patch
+    if last < 0:
+        raise ValueError(f"{n} texels are fewer than a neighbourhood of {patch}")
+    starts = np.arange(0, last + 1, spacing)
+    return starts if starts[-1] == last else np.append(starts, last)
+
+
+def downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Block means of ``factor x factor`` texels (a partial last block averages what it has)."""
+    image = np.asarray(image, np.float32)
+    if factor == 1:
+        return image
+    h, w, *rest = image.shape
+    hh, ww = -(-h // factor), -(-w // factor)
+    padded = np.zeros((hh * factor, ww * factor, *rest), np.float64)
+    padded[:h, :w] = image
+    count = np.zeros((hh * factor, ww * factor), np.float64)
+    count[:h, :w] = 1.0
+    sums = padded.reshape(hh, factor, ww, factor, *rest).sum(axis=(1, 3))
+    n = count.reshape(hh, factor, ww, factor).sum(axis=(1, 3))
+    return (sums / n.reshape(hh, ww, *([1] * len(rest)))).astype(np.float32)
+
+
+def upsample(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear resampling of ``(h, w, c)`` to ``shape`` (texel centres aligned)."""
+    from scipy import ndimage
+
+    h, w = image.shape[:2]
+    ys = (np.arange(shape[0]) + 0.5) * h / shape[0] - 0.5
+    xs = (np.arange(shape[1]) + 0.5) * w / shape[1] - 0.5
+    yy, xx = np.meshgrid(np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1), indexing="ij")
+    return np.stack([ndimage.map_coordinates(image[..., c], [yy, xx], order=1)
+                     for c in range(image.shape[-1])], axis=-1).astype(np.float32)
+
+
+def _patches(features: np.ndarray, ys: np.ndarray, xs: np.ndarray, patch: int) -> np.ndarray:
+    """Neighbourhood vectors ``(len(ys) * len(xs), patch^2 * C)`` at a grid of origins."""
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    return _patches_at(features, yy.ravel(), xx.ravel(), patch)
+
+
+def _patches_at(features: np.ndarray, ys: np.ndarray, xs: np.ndarray, patch: int
+                ) -> np.ndarray:
+    """Neighbourhood vectors ``(len(ys), patch^2 * C)`` at the origins ``(ys[i], xs[i])``."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    windows = sliding_window_view(features, (patch, patch), axis=(0, 1))  # (h', w', C, p, p)
+    return windows[ys, xs].reshape(len(ys), -1)
+
+
+def _project(features: np.ndarray, ys: np.ndarray, xs: np.ndarray, patch: int,
+             basis: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Neighbourhoods at the origins projected on ``basis``, built a chunk of rows at a time."""
+    per_row = len(xs) * patch * patch * features.shape[-1] * 4
+    rows = max(1, CHUNK_BYTES // max(per_row, 1))
+    out = np.empty((len(ys) * len(xs), basis.shape[1]), np.float32)
+    for k in range(0, len(ys), rows):
+        block = _patches(features, ys[k : k + rows], xs, patch)
+        out[k * len(xs) : k * len(xs) + len(block)] = (block - mean) @ basis
+    return out
+
+
+class _Level:
+    """One level's sample side: its features, the search index and the voting source."""
+
+    def __init__(self, coefficients, guide, rotation, guide_weight, params, rng):
+        p = params.patch
+        self.coefficients = np.ascontiguousarray(coefficients, np.float32)
+        self.features = _features(coefficients, guide, rotation, guide_weight)
+        h, w = self.features.shape[:2]
+        if min(h, w) < p:
+            raise ValueError(f"the sample at this level ({h} x {w}) is smaller than a "
+                             f"neighbourhood of {p} texels: use fewer levels or a smaller patch")
+        self.ys, self.xs = np.arange(h - p + 1), np.arange(w - p + 1)
+        self.width = len(self.xs)
+        count = len(self.ys) * self.width
+        pick = np.sort(rng.choice(count, min(count, PCA_FIT), replace=False))
+        sample = _patches_at(self.features, *self.origin(pick), p).astype(np.float64)
+        mean = sample.mean(axis=0)
+        self.basis = _principal_axes(sample - mean, params.search_dims, rng)
+        self.mean = mean.astype(np.float32)
+        projected = _project(self.features, self.ys, self.xs, p, self.basis, self.mean)
+        self.index = _flat_index(projected)
+
+    def origin(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sample origins (row, column) of flat neighbourhood indices."""
+        return flat // self.width, flat % self.width
+
+
+def _principal_axes(centred: np.ndarray, dims: int, rng) -> np.ndarray:
+    """The ``dims`` leading right singular vectors of ``centred`` (columns, float32).
+
+    A randomized range finder with two power iterations (Halko et al. 2011): the exact SVD of
+    thousands of neighbourhoods of thousands of values took seconds per level.
+    """
+    dims = min(dims, *centred.shape)
+    omega = rng.standard_normal((centred.shape[1], dims + 10))
+    y = centred @ omega
+    for _ in range(2):
+        y, _ = np.linalg.qr(y)
+        y = centred @ (centred.T @ y)
+    q, _ = np.linalg.qr(y)
+    _, _, vt = np.linalg.svd(q.T @ centred, full_matrices=False)
+    return np.ascontiguousarray(vt[:dims].T, np.float32)
+
+
+def _features(coefficients, guide, rotation, guide_weight) -> np.ndarray:
+    """Search features: the leading rotated coefficients and the weighted guide."""
+    lead = np.asarray(coefficients, np.float32) @ rotation
+    if guide is None or guide.shape[-1] == 0:
+        return np.ascontiguousarray(lead)
+    return np.ascontiguousarray(np.concatenate(
+        [lead, np.float32(guide_weight) * np.asarray(guide, np.float32)], axis=-1))
+
+
+def _flat_index(vectors: np.ndarray):
+    """An exact L2 index over ``vectors`` (faiss IndexFlatL2)."""
+    import faiss
+
+    index = faiss.IndexFlatL2(vectors.shape[1])
+    index.add(np.ascontiguousarray(vectors, np.float32))
+    return index
+
+
+def _distances(query: np.ndarray, qy, qx, sample: np.ndarray, cy, cx, patch: int
+               ) -> np.ndarray:
+    """Squared distances between output neighbourhoods and candidate sample ones.
+
+    ``qy, qx`` (Q,) are output origins, ``cy, cx`` (Q, k) candidate sample origins.
+    """
+    w, c = query.shape[1:]
+    sw = sample.shape[1]
+    qflat, sflat = query.reshape(-1, c), sample.reshape(-1, c)
+    qbase, sbase = qy * w + qx, cy * sw + cx
+    out = np.zeros(sbase.shape, np.float32)
+    for dy in range(patch):
+        for dx in range(patch):
+            d = sflat[sbase + dy * sw + dx] - qflat[qbase + dy * w + dx][:, None, :]
+            out += np.einsum("qkc,qkc->qk", d, d)
+    return out
+
+
+def _vote(sample: np.ndarray, shape, qy, qx, my, mx, weights, patch: int) -> np.ndarray:
+    """Every texel: the weighted mean of what the overlapping matches put there."""
+    h, w = shape
+    sw, k = sample.shape[1:]
+    total = np.zeros((h * w, k), np.float64)
+    norm = np.zeros(h * w, np.float64)
+    sflat = sample.reshape(-1, k)
+    qbase, sbase = qy * w + qx, my * sw + mx
+    wt = weights.astype(np.float64)
+    for dy in range(patch):
+        for dx in range(patch):
+            target = qbase + dy * w + dx  # distinct within one offset: plain indexing adds
+            total[target] += wt[:, None] * sflat[sbase + dy * sw + dx]
+            norm[target] += wt
+    return (total / np.maximum(norm, 1e-300)[:, None]).reshape(h, w, k).astype(np.float32)
+
+
+def _robust_weights(dist: np.ndarray, r: float) -> np.ndarray:
+    """Kwatra's IRLS weights ``||d||^(r-2)`` from squared distances (floored: exact matches)."""
+    if r == 2:
+        return np.ones_like(dist)
+    return np.maximum(dist, 1e-6) ** ((r - 2) / 2)
+
+
+def _energy(dist: np.ndarray, r: float) -> float:
+    return float(np.sum(dist.astype(np.float64) ** (r / 2)))
+
+
+def texture_optimization(sample: np.ndarray, sample_guide: np.ndarray | None,
+                         target_guide: np.ndarray | None, *, shape: tuple[int, int],
+                         params: TextureOptimizationParams, guide_weight: float = 1.0,
+                         seed: int = 0) -> TextureOptimizationResult:
+    """Synthesize ``shape`` texels of ``K`` coefficient channels from a sample (see module).
+
+    Parameters
+    ----------
+    sample
+        ``(h, w, K)`` coefficients of the sample (float32).
+    sample_guide, target_guide
+        ``(h, w, G)`` and ``(*shape, G)`` constraint values of the sample and of the target
+        (log domain), or None for unguided synthesis.
+    guide_weight
+        ``sqrt(lambda)``: the weight of a constraint value in the neighbourhood distance.
+    seed
+        Seeds the choice of neighbourhoods the PCA bases are fitted to (and, unguided, the
+        initial output).
+    """
+    sample = np.asarray(sample, np.float32)
+    guided = sample_guide is not None and target_guide is not None and sample_guide.shape[-1]
+    rng = np.random.default_rng(seed)
+    p, s, r = params.patch, params.spacing, params.robust
+    rotation = _leading_components(sample, params.search_energy)
+    result = TextureOptimizationResult(np.empty(0, np.float32))
+    x = None
+    for level in range(params.levels - 1, -1, -1):
+        start = time.perf_counter()
+        factor = 2**level
+        level_shape = (-(-shape[0] // factor), -(-shape[1] // factor))
+        sample_l = downsample(sample, factor)
+        guide_l = downsample(sample_guide, factor) if guided else None
+        target_l = downsample(target_guide, factor) if guided else None
+        source = _Level(sample_l, guide_l, rotation, guide_weight, params, rng)
+        qy, qx = np.meshgrid(grid(level_shape[0], p, s), grid(level_shape[1], p, s),
+                             indexing="ij")
+        qy, qx = qy.ravel(), qx.ravel()
+        if x is None:
+            x = _initial(source, sample_l, target_l, level_shape, qy, qx, params, guide_weight,
+                         rotation, rng)
+        else:
+            x = upsample(x, level_shape)
+        match, energies = None, []
+        for _ in range(params.iterations):
+            query = _features(x, target_l, rotation, guide_weight)
+            projected = _project(query, grid(level_shape[0], p, s), grid(level_shape[1], p, s),
+                                 p, source.basis, source.mean)
+            _, found = source.index.search(projected, params.candidates)
+            found = np.where(found < 0, 0, found)  # fewer sample neighbourhoods than asked
+            if match is not None:
+                found = np.concatenate([match[:, None], found], axis=1)
+            cy, cx = source.origin(found)
+            dist = _distances(query, qy, qx, source.features, cy, cx, p)
+            best = np.argmin(dist, axis=1)  # ties keep the earliest: the previous match
+            match = found[np.arange(len(found)), best]
+            d = dist[np.arange(len(found)), best]
+            energies.append(_energy(d, r))
+            my, mx = source.origin(match)
+            x = _vote(sample_l, level_shape, qy, qx, my, mx, _robust_weights(d, r), p)
+            if len(energies) > 1 and energies[-1] >= energies[-2] * (1 - 1e-7):
+                break  # no neighbourhood found a better match: converged
+        result.energy.append(energies)
+        result.seconds.append(time.perf_counter() - start)
+    result.coefficients = x
+    return result
+
+
+def _leading_components(sample: np.ndarray, energy: float) -> np.ndarray:
+    """Orthonormal ``(K, k)`` basis of the directions holding ``energy`` of the sample's variance.
+
+    Distances between texels are kept up to the dropped share.
+    """
+    flat = sample.reshape(-1, sample.shape[-1]).astype(np.float64)
+    flat = flat - flat.mean(axis=0)
+    _, sv, vt = np.linalg.svd(flat, full_matrices=False)
+    share = np.cumsum(sv**2) / max(np.sum(sv**2), 1e-300)
+    k = int(np.searchsorted(share, energy) + 1) if share[-1] > 0 else 1
+    return np.ascontiguousarray(vt[: min(k, len(sv))].T, np.float32)
+
+
+def _initial(source: _Level, sample_l, target_l, shape, qy, qx, params, guide_weight, rotation,
+             rng) -> np.ndarray:
+    """The coarsest level's start: each neighbourhood matched by its guide alone (or random)."""
+    p = params.patch
+    if target_l is None:
+        found = rng.integers(0, len(source.ys) * len(source.xs), len(qy))
+    else:
+        g = target_l.shape[-1]
+        lead = source.features.shape[-1] - g
+        sample_guide = source.features[..., lead:]
+        query_guide = np.float32(guide_weight) * target_l
+        ys, xs = grid(shape[0], p, params.spacing), grid(shape[1], p, params.spacing)
+        index = _flat_index(_patches(sample_guide, source.ys, source.xs, p))
+        _, found = index.search(np.ascontiguousarray(_patches(query_guide, ys, xs, p)), 1)
+        found = found[:, 0]
+    my, mx = source.origin(found)
+    return _vote(sample_l, shape, qy, qx, my, mx, np.ones(len(qy), np.float32), p)

@@ -1,0 +1,163 @@
+"""btf crop and btf enlarge (paper 000) end to end on small generated materials."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from benchmarks.enlarge import abrdf_error, lookup_baseline, truth_rows
+from helpers import generate_store, no_partial_outputs
+from pipeline.stores.compressed import open_compressed
+
+ORIGIN, HALF, SIZE, RANK = (16, 16), 32, 64, 8
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """Ground truth M (64^2 fabric), its central sample compressed, one photo of M."""
+    from pipeline.cli import main
+
+    tmp = tmp_path_factory.mktemp("enlarge")
+    m = generate_store(tmp / "M.zarr", "--material", "fabric", "--size", str(SIZE),
+                       "--sampling", "abtf:6,2", "--seed", "4", "--chunk", "32")
+    region = f"{ORIGIN[0]}:{ORIGIN[0] + HALF},{ORIGIN[1]}:{ORIGIN[1] + HALF}"
+    top = int(np.argmin(zarr.open_group(m)["theta_light"][...]))
+    for args in (["crop", m, tmp / "S.zarr", "--region", region],
+                 ["compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", str(RANK)],
+                 ["crop", m, tmp / "C.zarr", "--light", str(top)]):
+        assert main([str(a) for a in args] + ["--quiet"]) == 0
+    return {"M": m, "S": tmp / "S.zarr", "S_svd": tmp / "S_svd.zarr", "C": tmp / "C.zarr",
+            "top": top, "tmp": tmp}
+
+
+def test_crop_keeps_the_values_the_truth_and_says_where_it_came_from(inputs, btf, tmp_path):
+    m = zarr.open_group(inputs["M"], mode="r")
+    s = zarr.open_group(inputs["S"], mode="r")
+    ys, xs = slice(ORIGIN[0], ORIGIN[0] + HALF), slice(ORIGIN[1], ORIGIN[1] + HALF)
+    assert np.array_equal(s["radiance"][...], m["radiance"][:, :, ys, xs])
+    assert np.array_equal(s["albedo"][...], m["albedo"][ys, xs])
+    assert s.attrs["cropped_from"]["y"] == [ys.start, ys.stop]
+    assert s.attrs["btf_kind"] == "abtf" and "crop" in s.attrs["provenance"]["command"]
+    c = zarr.open_group(inputs["C"], mode="r")
+    assert c["radiance"].shape == (1, 1, SIZE, SIZE, 3)
+    assert np.array_equal(c["radiance"][0, 0], m["radiance"][0, inputs["top"]])
+    assert c["theta_light"][0] == m["theta_light"][inputs["top"]]
+    beyond = btf("crop", inputs["M"], tmp_path / "x.zarr", "--region", "0:10,60:70", "--quiet")
+    assert beyond.code == 1 and "reaches beyond the 64 x 64 texels" in beyond.err
+    assert no_partial_outputs(tmp_path / "x.zarr")
+    bad = btf("crop", inputs["M"], tmp_path / "x.zarr", "--light", "99", "--quiet")
+    assert bad.code == 1 and "--light 99 is out of range" in bad.err
+    assert btf("crop", inputs["M"], tmp_path / "x.zarr", "--region", "5:2,0:3").code == 2
+
+
+@pytest.fixture(scope="module")
+def enlarged(inputs):
+    from pipeline.cli import main
+
+    out = inputs["tmp"] / "E.zarr"
+    assert main(["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out), "--keep-phases",
+                 "--quiet"]) == 0
+    return out
+
+
+def test_enlarge_writes_a_compressed_store_that_meets_the_photo(inputs, enlarged):
+    group = zarr.open_group(enlarged, mode="r")
+    assert group.attrs["btf_kind"] == "compressed"
+    info = group.attrs["enlargement"]
+    assert info["placement"]["origin"] == list(ORIGIN) and not info["placement"]["given"]
+    assert info["placement"]["correlation"] > 0.99
+    u, s, v = group["U"][...], group["S"][...], group["V"][...]
+    assert v.shape == (SIZE, SIZE, RANK) and np.all(np.diff(s) <= 0)
+    flat = u.reshape(-1, RANK).astype(np.float64)
+    assert np.allclose(flat.T @ flat, np.eye(RANK), atol=1e-5)
+    # the photo's layer, rebuilt, matches the photo to within the sample's compression error
+    eps = group.attrs["transform"]["eps"]
+    rebuilt = open_compressed(enlarged)["radiance"][0, inputs["top"]].values
+    photo = zarr.open_array(inputs["C"], path="radiance")[0, 0]
+    error = np.sqrt(np.mean((np.log(rebuilt + eps) - np.log(photo + eps)) ** 2))
+    assert error <= 1.05 * info["sample_constraint_residual_rms"] + 1e-6
+    assert info["constraint_residual_rms"] == pytest.approx(error, rel=0.05, abs=1e-5)
+
+
+def test_the_result_beats_the_lookup_and_tiling_baselines(inputs, enlarged):
+    truth = truth_rows(inputs["M"])
+    mask = np.ones((SIZE, SIZE), bool)
+    mask[ORIGIN[0] : ORIGIN[0] + HALF, ORIGIN[1] : ORIGIN[1] + HALF] = False
+    group = zarr.open_group(enlarged, mode="r")
+    eps = group.attrs["transform"]["eps"]
+    result = abrdf_error(group["U"][...].reshape(-1, RANK).astype(np.float64),
+                         group["V"][...] * group["S"][...], eps, truth, mask)
+    sample = zarr.open_group(inputs["S_svd"], mode="r")
+    u = sample["U"][...].reshape(-1, RANK).astype(np.float64)
+    coef = sample["V"][...] * sample["S"][...]
+    keys = np.log(truth_rows(inputs["C"]) + eps)
+    lookup = abrdf_error(u, lookup_baseline(coef, keys[ORIGIN[0] : ORIGIN[0] + HALF,
+                                                ORIGIN[1] : ORIGIN[1] + HALF], keys),
+                         eps, truth, mask)
+    tiled = np.roll(np.tile(coef, (2, 2, 1)), ORIGIN, axis=(0, 1))
+    tiling = abrdf_error(u, tiled, eps, truth, mask)
+    assert result < lookup and result < tiling, (result, lookup, tiling)
+
+
+def test_enlarge_output_works_with_the_other_stages(inputs, enlarged, btf, tmp_path):
+    rec = btf("reconstruct", enlarged, tmp_path / "r.zarr", "--light", "0,3", "--quiet")
+    assert rec.code == 0, rec.err
+    assert zarr.open_array(tmp_path / "r.zarr", path="radiance").shape == (1, 2, SIZE, SIZE, 3)
+    report = btf("inspect", enlarged, "--quiet")
+    assert report.code == 0 and "compression: rank 8" in report.out
+    assert "made by: btf enlarge" in report.out
+
+
+def test_the_same_inputs_give_the_same_store_on_every_scheduler(inputs, enlarged, btf,
+                                                               tmp_path):
+    out = tmp_path / "again.zarr"
+    done = btf("enlarge", inputs["S_svd"], inputs["C"], out, "--scheduler", "synchronous",
+               "--keep-phases", "--quiet")
+    assert done.code == 0, done.err
+    a, b = zarr.open_group(enlarged, mode="r"), zarr.open_group(out, mode="r")
+    for name in ("U", "S", "V", "phase_texture_optimization"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
+def _bad_store(path, values_from, mutate):
+    import shutil
+
+    shutil.copytree(values_from, path)
+    array = zarr.open_array(path, path="radiance", mode="r+")
+    layer = array[0, 0]
+    mutate(layer)
+    array[0, 0] = layer
+    return path
+
+
+def test_bad_inputs_are_one_clear_error_and_nothing_is_written(inputs, btf, tmp_path):
+    out = tmp_path / "E.zarr"
+
+    def run(*args):
+        result = btf("enlarge", *args, "--quiet")
+        assert result.code == 1, result.err
+        assert no_partial_outputs(out)
+        return result.err
+
+    err = run(inputs["S"], inputs["C"], out)  # a radiance store, not a compressed one
+    assert "not a compressed store" in err
+    other = generate_store(tmp_path / "o.zarr", "--material", "fabric", "--size", str(SIZE),
+                           "--sampling", "abtf:5,2")
+    assert btf("crop", other, tmp_path / "oc.zarr", "--light", "3", "--quiet").code == 0
+    err = run(inputs["S_svd"], tmp_path / "oc.zarr", out)
+    assert "layer 0" in err and "is not a direction of the sample" in err and "nearest" in err
+    assert btf("crop", inputs["C"], tmp_path / "small.zarr", "--region", "0:20,0:20",
+               "--quiet").code == 0
+    err = run(inputs["S_svd"], tmp_path / "small.zarr", out)
+    assert "smaller than the sample" in err
+    nan = _bad_store(tmp_path / "nan.zarr", inputs["C"], lambda a: a.__setitem__((5, 7, 1),
+                                                                                 np.nan))
+    err = run(inputs["S_svd"], nan, out)
+    assert "1 NaN or Inf value(s) in layer 0" in err and "y=5, x=7, channel=1" in err
+    err = run(inputs["S_svd"], inputs["C"], out, "--sample-origin", "40,3")
+    assert "--sample-origin 40,3 puts the 32 x 32 sample outside" in err
+    noise = _bad_store(tmp_path / "noise.zarr", inputs["C"], lambda a: a.__setitem__(
+        slice(None), np.random.default_rng(0).uniform(0, 1, a.shape)))
+    err = run(inputs["S_svd"], noise, out)
+    assert "do not match the photos convincingly" in err and "--sample-origin" in err

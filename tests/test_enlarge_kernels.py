@@ -1,0 +1,170 @@
+"""BTF enlargement's kernels (paper 000): the QP, Texture Optimization, statistical synthesis."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from tasks.constrained_blend import ConstraintProjector, blend
+from tasks.enlargement import mean_colour_rows
+from tasks.registration import locate
+from tasks.statistical_synthesis import (
+    StatisticsParams,
+    central_autocorrelation,
+    impose,
+    measure,
+    statistical_synthesis,
+)
+from tasks.svd import refactor
+from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
+
+
+def _kkt(a, b, m):
+    """min ||x - m||^2 s.t. A x = b by the KKT system (least squares for inconsistent rows)."""
+    k, r = a.shape[1], a.shape[0]
+    kkt = np.block([[2 * np.eye(k), a.T], [a, np.zeros((r, r))]])
+    rhs = np.concatenate([2 * m, b])
+    return np.linalg.lstsq(kkt, rhs, rcond=None)[0][:k]
+
+
+@pytest.mark.parametrize("case", ["full row rank", "rank deficient", "more rows than K"])
+def test_the_qp_matches_a_kkt_solve_and_meets_the_constraints(case):
+    rng = np.random.default_rng(3)
+    k = 8
+    if case == "full row rank":
+        a = rng.standard_normal((3, k))
+    elif case == "rank deficient":
+        base = rng.standard_normal((2, k))
+        a = np.vstack([base, base[0] + base[1], 2 * base[1]])  # 4 rows of rank 2
+    else:
+        a = rng.standard_normal((12, k))
+    b1, b2 = rng.standard_normal((2, 50, k))
+    if case == "rank deficient":  # consistent right-hand sides, as for duplicate photos
+        b = rng.standard_normal((50, k)) @ a.T
+    else:
+        b = rng.standard_normal((50, a.shape[0]))
+    projector = ConstraintProjector.of(a)
+    x, damping = blend(b1, b2, b, projector, alpha=1.0, beta=3.0)
+    assert damping == 0.0
+    m = (b1 + 3 * b2) / 4
+    for t in range(50):
+        if case == "more rows than K":  # least squares: the closest point to b A can reach
+            expected = np.linalg.lstsq(a, b[t], rcond=None)[0]
+        else:
+            expected = _kkt(a, b[t], m[t])
+        assert np.allclose(x[t], expected, atol=1e-5)
+    if case != "more rows than K":
+        assert np.abs(x @ a.T - b).max() <= 1e-5 * np.abs(b).max()
+    assert projector.rank == {"full row rank": 3, "rank deficient": 2,
+                              "more rows than K": k}[case]
+
+
+def test_the_damped_qp_leaves_the_asked_residual_and_is_the_tikhonov_minimiser():
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal((3, 6)) * np.array([[1.0], [0.3], [0.01]])  # one weak direction
+    m = rng.standard_normal((400, 6))
+    b = m @ a.T + 0.5 * rng.standard_normal((400, 3))
+    projector = ConstraintProjector.of(a)
+    x, damping = blend(m, m, b, projector, noise=0.1)
+    assert damping > 0
+    assert projector.rms_residual(x, b) == pytest.approx(0.1, rel=1e-6)
+    # the minimiser of ||x - m||^2 + ||A x - b||^2 / damping, per texel
+    lhs = np.eye(6) + a.T @ a / damping
+    direct = np.linalg.solve(lhs, (m + (b @ a) / damping).T).T
+    assert np.allclose(x, direct, atol=1e-5)
+    exact, _ = blend(m, m, b, projector)
+    # damping keeps the result far closer to m than the exact projection does
+    assert np.linalg.norm(x - m) < 0.75 * np.linalg.norm(exact - m)
+
+
+def _smooth_field(rng, shape, k, sigma=2.5):
+    field = ndimage.gaussian_filter(rng.standard_normal((*shape, k)), (sigma, sigma, 0),
+                                    mode="wrap")
+    return (field / field.std(axis=(0, 1))).astype(np.float32)
+
+
+def test_texture_optimization_never_increases_its_energy_and_recovers_a_rearrangement():
+    rng = np.random.default_rng(0)
+    sample = _smooth_field(rng, (64, 64), 5)
+    rows = rng.standard_normal((3, 5)).astype(np.float32)
+    sample_guide = sample @ rows.T
+    # the target is the sample rearranged: quadrants swapped and the whole rolled
+    target = np.roll(np.concatenate([np.concatenate([sample[32:, 32:], sample[32:, :32]], 1),
+                                     np.concatenate([sample[:32, 32:], sample[:32, :32]], 1)],
+                                    0), (5, -7), axis=(0, 1))
+    result = texture_optimization(sample, sample_guide, target @ rows.T, shape=(64, 64),
+                                  params=TextureOptimizationParams(levels=2, iterations=6),
+                                  guide_weight=3.0, seed=1)
+    for energies in result.energy:
+        assert all(b <= a * (1 + 1e-6) for a, b in itertools.pairwise(energies))
+    error = np.sqrt(np.mean((result.coefficients - target) ** 2))
+    assert error < 0.15  # of unit-variance channels; a random sample texel gives ~1.4
+    shuffled = rng.permutation(target.reshape(-1, 5)).reshape(target.shape)
+    assert np.sqrt(np.mean((shuffled - target) ** 2)) > 1.0
+
+
+def test_statistics_imposed_on_itself_change_little_and_pull_noise_towards_the_sample():
+    rng = np.random.default_rng(5)
+    sample = _smooth_field(rng, (64, 64), 1, sigma=3.0)[..., 0] ** 2  # skewed, correlated
+    stats = measure(sample, 3)
+    same = impose(sample, stats, iterations=2)
+    assert np.abs(same - sample).max() < 0.05 * np.ptp(sample)
+    noise = rng.standard_normal((96, 80))
+    after = impose(noise, stats, iterations=3)
+
+    def moments(x):
+        x = np.asarray(x, np.float64).ravel()
+        c = x - x.mean()
+        return np.array([x.mean(), x.std(), np.mean(c**3) / x.std() ** 3,
+                         np.mean(c**4) / x.std() ** 4])
+
+    target = moments(sample)
+    assert np.all(np.abs(moments(after) - target) <= np.abs(moments(noise) - target) + 1e-9)
+    assert np.allclose(moments(after), target, rtol=0.02, atol=0.02)
+    ac = central_autocorrelation
+    assert (np.linalg.norm(ac(after) / ac(after)[3, 3] - ac(sample) / ac(sample)[3, 3])
+            < 0.5 * np.linalg.norm(ac(noise) / ac(noise)[3, 3] - ac(sample) / ac(sample)[3, 3]))
+
+
+def test_statistical_synthesis_keeps_its_shape_and_passes_channels_through():
+    rng = np.random.default_rng(6)
+    sample, image = _smooth_field(rng, (48, 48), 3), _smooth_field(rng, (64, 80), 3)
+    out = statistical_synthesis(image, sample, params=StatisticsParams(iterations=1),
+                                channels=2)
+    assert out.shape == image.shape and out.dtype == np.float32
+    assert np.array_equal(out[..., 2], image[..., 2]) and not np.allclose(out[..., 0],
+                                                                          image[..., 0])
+
+
+def test_refactor_keeps_the_product_and_makes_the_factors_canonical():
+    rng = np.random.default_rng(7)
+    u, _ = np.linalg.qr(rng.standard_normal((30, 6)))
+    c = rng.standard_normal((500, 6)) * np.array([5, 3, 2, 1, 0.5, 0.0])  # one unused
+    new_u, s, v, w = refactor(u, c)
+    assert np.allclose(new_u @ np.diag(s) @ v.T, u @ c.T, atol=1e-10)
+    assert np.allclose(new_u.T @ new_u, np.eye(6), atol=1e-10)
+    assert np.allclose(v[:, :5].T @ v[:, :5], np.eye(5), atol=1e-10)
+    assert np.all(np.diff(s) <= 0) and s[-1] < 1e-6
+    assert np.allclose(c @ w, v * s, atol=1e-10)  # other coefficients map by W
+
+
+def test_mean_colour_rows_are_exact_for_constant_log_radiance_over_lights():
+    rng = np.random.default_rng(8)
+    rows = np.repeat(rng.standard_normal((1, 3, 4)), 5, axis=0)  # every light the same
+    lin, offset, spread = mean_colour_rows(rows, rng.standard_normal((20, 4)))
+    assert np.allclose(lin, rows[0]) and np.allclose(offset, 0) and np.allclose(spread, 0)
+    rows = rng.standard_normal((5, 3, 4))
+    _, offset, spread = mean_colour_rows(rows, rng.standard_normal((20, 4)))
+    assert np.all(offset > 0) and np.all(spread > 0)  # Jensen: log of mean >= mean of log
+
+
+def test_locate_finds_a_crop_and_scores_a_stranger_low():
+    rng = np.random.default_rng(9)
+    image = _smooth_field(rng, (120, 100), 3)
+    found = locate(image[37:69, 51:83], image)
+    assert (found.y, found.x) == (37, 51) and found.score > 0.999
+    other = locate(_smooth_field(rng, (32, 32), 3), image)
+    assert other.score < 0.9
