@@ -56,11 +56,19 @@ def test_utia_names_alone_are_enough_to_ingest(tmp_path, btf, small_abtf):
 def test_half_export_is_close_and_png_export_is_tone_mapped(tmp_path, btf, small_abtf):
     assert btf("export", small_abtf, tmp_path / "half", "--half", "--view", "0", "--light",
                "1,2", "--quiet").code == 0
-    original, _, _ = _store_values(small_abtf)
-    for path in sorted((tmp_path / "half").glob("*.exr")):
-        pixels, channels = read_image(path)
+    original, coords, _ = _store_values(small_abtf)
+    with (tmp_path / "half" / "manifest.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2
+    for row in rows:  # each file holds the layer of its own directions, and only that one
+        light = int(np.flatnonzero((coords["theta_light"] == float(row["theta_light"]))
+                                   & (coords["phi_light"] == float(row["phi_light"])))[0])
+        assert light in (1, 2)
+        pixels, channels = read_image(tmp_path / "half" / row["file"])
         assert channels == ("R", "G", "B")
-        assert any(np.allclose(pixels, original[0, i], rtol=1e-3, atol=1e-4) for i in (1, 2))
+        assert np.allclose(pixels, original[0, light], rtol=1e-3, atol=1e-4)
+        other = 3 - light
+        assert not np.allclose(pixels, original[0, other], rtol=1e-3, atol=1e-4)
     assert btf("export", small_abtf, tmp_path / "png", "--format", "png", "--light", "0,1",
                "--quiet").code == 0
     pngs = sorted((tmp_path / "png").glob("*.png"))

@@ -11,7 +11,7 @@ from scipy import ndimage
 
 from helpers import generate_store, no_partial_outputs
 from pipeline.graphs.surface import lazy_layer
-from pipeline.images import write_exr
+from pipeline.images import read_image, write_exr
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
 from tasks.periodicity import detect_lattice
@@ -215,19 +215,33 @@ def test_multiple_tiles_share_their_borders_exactly_and_seeds_reproduce(btf, sto
 
 
 def test_inspect_reports_the_lattice_and_the_ratio(btf, stores, tmp_path):
-    _roller(btf, stores["rotated-30"], tmp_path / "t.zarr")
-    result = btf("inspect", tmp_path / "t.zarr")
+    group = _roller(btf, stores["rotated-30"], tmp_path / "t.zarr")
+    result = btf("inspect", tmp_path / "t.zarr", "--json")
     assert result.code == 0, result.err
-    assert "lattice" in result.out and "u = " in result.out and "1 :" in result.out
+    report = json.loads(result.out)["tileset"]
+    lattice = group.attrs["lattice"]
+    for key in ("hnf", "U", "V", "periods", "u", "v"):
+        assert report["lattice"][key] == lattice[key], key
+    h, w, _ = lattice["hnf"]
+    assert report["tiles"] == group["radiance"].shape[0] == 1
+    assert report["tile_shape"] == [h, w] == list(group["radiance"].shape[3:5])
+    assert report["size_vs_source"] == pytest.approx(h * w / np.prod(report["sample_shape"]))
+    text = btf("inspect", tmp_path / "t.zarr").out
+    assert f"stored as {h} x {w} (Hermite layout, shear {lattice['hnf'][2]})" in text
+    assert f"size relative to the sample: 1 : {1 / report['size_vs_source']:.2f}" in text
 
 
 def test_render_a_roller_tile_set_into_an_exr(btf, stores, tmp_path):
     _roller(btf, stores["sheared"], tmp_path / "t.zarr")
     out = tmp_path / "surface.exr"
     result = btf("render", tmp_path / "t.zarr", out, "--light", "1", "--size", "200,333",
-                 "--quiet")
+                 "--origin=-17,40", "--quiet")
     assert result.code == 0, result.err
-    assert out.exists()
+    pixels, channels = read_image(out)
+    assert channels == ("R", "G", "B") and pixels.shape == (200, 333, 3)
+    expected = lazy_layer(tmp_path / "t.zarr", view=0, light=1, size=(200, 333),
+                          origin=(-17, 40)).compute(scheduler="synchronous")
+    assert np.array_equal(pixels, expected)  # float32 EXR: bit for bit
 
 
 def test_bad_roller_options_are_named(btf, stores, tmp_path):
@@ -268,6 +282,7 @@ def test_the_roller_on_a_compressed_store_gives_a_compressed_tile_set(btf, store
     assert np.isfinite(rendered).all() and rendered.shape == (120, 150, 3)
 
 
+@pytest.mark.slow  # a benchmark suite end to end (about 10 s)
 def test_btf_bench_roller_reports_its_tables():
     import argparse
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import tempfile
+from pathlib import Path
 
 import dask
 import dask.array as da
@@ -10,7 +12,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import BTFError
@@ -41,6 +43,32 @@ def test_layout_chunks_divide_shards_and_cover_the_axis(n, chunk, shard_chunks):
     assert 1 <= c <= max(n, 1) and c <= chunk
     if s is not None:
         assert s % c == 0 and c < s <= max(layout.shard, c) and s < n + c
+    unit = s or c  # the write units tile the axis: ceil(n / unit) of them, the last partial
+    edges = np.arange(0, n, unit)
+    assert edges[-1] < n <= edges[-1] + unit
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 90), st.integers(1, 70), st.integers(1, 7),
+       st.sampled_from([8, 16]), st.integers(0, 3), st.integers(8, 40))
+def test_task_blocks_cover_every_element_once_in_whole_write_units(ny, nx, lights, chunk,
+                                                                   shard_chunks, task_texels):
+    import pipeline.graphs.blocks as blocks
+
+    with pytest.MonkeyPatch.context() as mp, tempfile.TemporaryDirectory() as tmp:
+        mp.setattr(blocks, "TASK_TEXELS", task_texels)
+        d = Directions(np.zeros(1), np.zeros(1), np.arange(lights) * 5.0, np.zeros(lights))
+        array = create_radiance_store(
+            Path(tmp) / "s.zarr", directions=d, ny=ny, nx=nx, channels=("R",),
+            layout=Layout(chunk=chunk, dir_chunk=3, shard=chunk * shard_chunks),
+            attrs={})[RADIANCE]
+        count = np.zeros(array.shape, np.int32)
+        unit = blocks.write_unit(array)
+        for region in blocks.block_regions(array):
+            count[region] += 1
+            for r, u, n in zip(region, unit, array.shape, strict=True):
+                assert r.start % u == 0 and (r.stop % u == 0 or r.stop == n)
+        assert (count == 1).all()
 
 
 def test_layout_rejects_shards_that_are_not_chunk_multiples():
