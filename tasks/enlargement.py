@@ -58,8 +58,11 @@ class EnlargementParams:
             raise InvalidParameter("rounds", f"rounds must be at least 1, got {self.rounds}")
         if not self.tol >= 0:
             raise InvalidParameter("tol", f"tol must be non-negative, got {self.tol}")
-        if not (self.alpha >= 0 and self.beta >= 0 and self.alpha + self.beta > 0):
-            raise InvalidParameter("alpha", "alpha and beta must be >= 0, not both 0")
+        if not self.alpha >= 0:
+            raise InvalidParameter("alpha", f"alpha must be non-negative, got {self.alpha}")
+        if not self.beta >= 0 or self.alpha + self.beta <= 0:
+            raise InvalidParameter("beta", f"beta must be non-negative (and alpha + beta > 0), "
+                                           f"got {self.beta}")
 
 
 @dataclass

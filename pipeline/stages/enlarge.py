@@ -71,7 +71,8 @@ class EnlargeParams:
         None, metavar="Y,X", help="top-left texel of the sample in the photos (default: found "
                                   "by normalised cross-correlation)")
     levels: int = option(3, metavar="N", help="synthesis levels, downsampling 1/2^(N-1) ... 1")
-    patch: int = option(8, metavar="N", help="neighbourhood size in texels")
+    patch: int = option(4, metavar="N", help="neighbourhood size in texels (the paper: 8; 4 "
+                                             "was more accurate here, see BENCHMARKS.md)")
     lambda_: float | None = option(
         None, key="lambda", metavar="L",
         help="weight of a constraint value against one ABRDF value in the search (default: "
@@ -83,6 +84,8 @@ class EnlargeParams:
                                                  "(the paper's QP) rather than to within the "
                                                  "sample's own compression error of them")
     rounds: int = option(5, metavar="N", help="at most N rounds of statistics and QP")
+    beta: float = option(0.25, metavar="B", help="weight of the statistical synthesis against "
+                                                 "Texture Optimization (weight 1) in the QP")
     tol: float = option(1e-3, metavar="T", help="stop the rounds below this relative change")
     mean_colour: int | None = option(
         None, metavar="K", help="constraint layer K (view-major index) is a mean-colour image "
@@ -118,7 +121,7 @@ class EnlargeParams:
             texture=TextureOptimizationParams(levels=self.levels, patch=self.patch,
                                               iterations=self.iterations),
             statistics=None if self.no_statistics else StatisticsParams(),
-            rounds=self.rounds, tol=self.tol, exact=self.exact_constraints)
+            rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints)
 
 
 @dataclasses.dataclass(frozen=True)
