@@ -36,7 +36,7 @@ import numpy as np
 
 from tasks.constrained_blend import ConstraintProjector, blend
 from tasks.errors import InvalidParameter
-from tasks.statistical_synthesis import StatisticsParams, statistical_synthesis
+from tasks.statistical_synthesis import StatisticsParams, impose_statistics, sample_statistics
 from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
 
 
@@ -106,41 +106,61 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
     shape = target_constraints.shape[:2]
     projector = ConstraintProjector.of(rows)
     noise = 0.0 if params.exact else projector.rms_residual(sample, sample_constraints)
-    seconds = {}
     start = time.perf_counter()
     to = texture_optimization(sample, sample_constraints, target_constraints, shape=shape,
                               params=params.texture, guide_weight=guide_weight, seed=seed)
-    seconds["texture_optimization"] = time.perf_counter() - start
-    r = to.coefficients
-    first_stats, changes, dampings = None, [], []
-    seconds["statistics"] = seconds["qp"] = 0.0
+    seconds = {"texture_optimization": time.perf_counter() - start}
+    statistics = None if params.statistics is None else sample_statistics(
+        sample, shape, params=params.statistics, channels=params.statistics_channels)
+    rounds = refine(to.coefficients, target_constraints, projector, noise=noise,
+                    params=params, statistics=statistics)
+    return EnlargementResult(
+        coefficients=rounds.coefficients, texture_optimization=to.coefficients,
+        statistics=rounds.first_statistics, seconds={**seconds, **rounds.seconds},
+        rounds=len(rounds.changes), changes=rounds.changes,
+        residual=projector.residual(rounds.coefficients, target_constraints),
+        residual_rms=projector.rms_residual(rounds.coefficients, target_constraints),
+        noise=noise, damping=rounds.damping, energy=to.energy, constraint_rank=projector.rank)
+
+
+@dataclass
+class Rounds:
+    """Where the rounds of statistics and QP ended, and how they went."""
+
+    coefficients: np.ndarray
+    first_statistics: np.ndarray | None
+    changes: list[float]
+    damping: list[float]
+    seconds: dict[str, float]
+
+
+def refine(r: np.ndarray, target_constraints: np.ndarray, projector: ConstraintProjector, *,
+           noise: float, params: EnlargementParams, statistics) -> Rounds:
+    """Algorithm 1's loop: statistical synthesis of ``R``, then the QP between the two.
+
+    ``statistics`` are the sample's measured channel statistics
+    (:func:`tasks.statistical_synthesis.sample_statistics`), or None: one QP of ``R`` alone.
+    """
+    first, changes, dampings = None, [], []
+    seconds = {"statistics": 0.0, "qp": 0.0}
     for _ in range(params.rounds):
         start = time.perf_counter()
-        if params.statistics is None:
-            r_stats = r
-        else:
-            r_stats = statistical_synthesis(r, sample, params=params.statistics,
-                                            channels=params.statistics_channels)
+        r_stats = r if statistics is None else impose_statistics(
+            r, statistics, iterations=params.statistics.iterations)
         seconds["statistics"] += time.perf_counter() - start
-        if first_stats is None:
-            first_stats = r_stats
+        if first is None and statistics is not None:
+            first = r_stats
         start = time.perf_counter()
         new, damping = blend(r, r_stats, target_constraints, projector, alpha=params.alpha,
                              beta=params.beta, noise=noise)
-        dampings.append(damping)
         seconds["qp"] += time.perf_counter() - start
+        dampings.append(damping)
         norm = float(np.linalg.norm(r))
         changes.append(float(np.linalg.norm(new - r)) / norm if norm else 0.0)
         r = new
-        if params.statistics is None or changes[-1] < params.tol:
+        if statistics is None or changes[-1] < params.tol:
             break
-    return EnlargementResult(
-        coefficients=r, texture_optimization=to.coefficients,
-        statistics=None if params.statistics is None else first_stats, seconds=seconds,
-        rounds=len(changes), changes=changes,
-        residual=projector.residual(r, target_constraints),
-        residual_rms=projector.rms_residual(r, target_constraints), noise=noise,
-        damping=dampings, energy=to.energy, constraint_rank=projector.rank)
+    return Rounds(r, first, changes, dampings, seconds)
 
 
 def mean_colour_rows(rows: np.ndarray, sample: np.ndarray) -> tuple[np.ndarray, np.ndarray,

@@ -147,17 +147,35 @@ def impose(image: np.ndarray, stats: ChannelStatistics, *, iterations: int) -> n
     return x
 
 
+def sample_statistics(sample: np.ndarray, shape: tuple[int, int], *, params: StatisticsParams,
+                      channels: int | None = None) -> list[ChannelStatistics]:
+    """The statistics of a sample's channels for images of ``shape`` (the pyramid both allow).
+
+    ``channels``: only the first ones (the leading components).
+    """
+    sample = np.asarray(sample, np.float32)
+    height = pyramid_height(shape, sample.shape, params.height)
+    count = sample.shape[-1] if channels is None else min(channels, sample.shape[-1])
+    return [measure(sample[..., k], height) for k in range(count)]
+
+
+def impose_statistics(image: np.ndarray, statistics: list[ChannelStatistics], *,
+                      iterations: int) -> np.ndarray:
+    """Impose measured channel statistics on ``image`` (``(H, W, K)``; float32 result).
+
+    Channels beyond the measured ones pass through.
+    """
+    out = np.array(image, np.float32)
+    for k, stats in enumerate(statistics):
+        out[..., k] = impose(out[..., k], stats, iterations=iterations)
+    return out
+
+
 def statistical_synthesis(image: np.ndarray, sample: np.ndarray, *, params: StatisticsParams,
                           channels: int | None = None) -> np.ndarray:
     """Impose every channel's sample statistics on ``image`` (``(H, W, K)``, float32 result).
 
     ``channels``: only the first ones (the leading components; the rest pass through).
     """
-    image = np.asarray(image, np.float32)
-    sample = np.asarray(sample, np.float32)
-    height = pyramid_height(image.shape, sample.shape, params.height)
-    out = image.copy()
-    for k in range(image.shape[-1] if channels is None else min(channels, image.shape[-1])):
-        stats = measure(sample[..., k], height)
-        out[..., k] = impose(image[..., k], stats, iterations=params.iterations)
-    return out
+    stats = sample_statistics(sample, image.shape[:2], params=params, channels=channels)
+    return impose_statistics(image, stats, iterations=params.iterations)

@@ -116,14 +116,32 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
 
 def upsample(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Bilinear resampling of ``(h, w, c)`` to ``shape`` (texel centres aligned)."""
+    return upsample_region(image, (0, 0), image.shape[:2], shape, (0, 0), shape)
+
+
+def coarse_rows(fine0: int, fine1: int, coarse: int, fine: int) -> tuple[int, int]:
+    """The coarse rows (or columns) that bilinear upsampling of fine ``[fine0, fine1)`` reads."""
+    pos = (np.array([fine0, fine1 - 1]) + 0.5) * coarse / fine - 0.5
+    pos = np.clip(pos, 0, coarse - 1)
+    return int(np.floor(pos[0])), min(coarse, int(np.floor(pos[1])) + 2)
+
+
+def upsample_region(block: np.ndarray, block_origin: tuple[int, int],
+                    coarse_shape: tuple[int, int], fine_shape: tuple[int, int],
+                    origin: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    """Texels ``origin .. origin + size`` of a coarse image bilinearly upsampled to ``fine_shape``.
+
+    ``block`` holds the coarse texels from ``block_origin`` on (at least :func:`coarse_rows` of
+    the region): a region computes exactly what the whole image's upsampling has there.
+    """
     from scipy import ndimage
 
-    h, w = image.shape[:2]
-    ys = (np.arange(shape[0]) + 0.5) * h / shape[0] - 0.5
-    xs = (np.arange(shape[1]) + 0.5) * w / shape[1] - 0.5
-    yy, xx = np.meshgrid(np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1), indexing="ij")
-    return np.stack([ndimage.map_coordinates(image[..., c], [yy, xx], order=1)
-                     for c in range(image.shape[-1])], axis=-1).astype(np.float32)
+    (h, w), (hf, wf) = coarse_shape, fine_shape
+    ys = np.clip((np.arange(origin[0], origin[0] + size[0]) + 0.5) * h / hf - 0.5, 0, h - 1)
+    xs = np.clip((np.arange(origin[1], origin[1] + size[1]) + 0.5) * w / wf - 0.5, 0, w - 1)
+    yy, xx = np.meshgrid(ys - block_origin[0], xs - block_origin[1], indexing="ij")
+    return np.stack([ndimage.map_coordinates(block[..., c], [yy, xx], order=1)
+                     for c in range(block.shape[-1])], axis=-1).astype(np.float32)
 
 
 def _patches(features: np.ndarray, ys: np.ndarray, xs: np.ndarray, patch: int) -> np.ndarray:
@@ -153,12 +171,21 @@ def _project(features: np.ndarray, ys: np.ndarray, xs: np.ndarray, patch: int,
     return out
 
 
-class _Level:
-    """One level's sample side: its features, the search index and the voting source."""
+class SampleLevel:
+    """One level's sample side: features, search basis and projections, voting source.
+
+    Built once per level (the PCA basis is fitted to neighbourhoods drawn with the caller's
+    generator) and then usable for any part of the output: it pickles without its search
+    index, which every process rebuilds from the projections on first use.
+    """
 
     def __init__(self, coefficients, guide, rotation, guide_weight, params, rng):
         p = params.patch
+        self.patch = p
+        self.rotation = rotation
+        self.guide_weight = float(guide_weight)
         self.coefficients = np.ascontiguousarray(coefficients, np.float32)
+        self.guide = None if guide is None else np.asarray(guide, np.float32)
         self.features = _features(coefficients, guide, rotation, guide_weight)
         h, w = self.features.shape[:2]
         if min(h, w) < p:
@@ -172,8 +199,18 @@ class _Level:
         mean = sample.mean(axis=0)
         self.basis = _principal_axes(sample - mean, params.search_dims, rng)
         self.mean = mean.astype(np.float32)
-        projected = _project(self.features, self.ys, self.xs, p, self.basis, self.mean)
-        self.index = _flat_index(projected)
+        self.projected = _project(self.features, self.ys, self.xs, p, self.basis, self.mean)
+        self._index = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_index": None}
+
+    @property
+    def index(self):
+        """The exact L2 index over the sample's projected neighbourhoods (built on first use)."""
+        if self._index is None:
+            self._index = _flat_index(self.projected)
+        return self._index
 
     def origin(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Sample origins (row, column) of flat neighbourhood indices."""
@@ -283,52 +320,58 @@ def texture_optimization(sample: np.ndarray, sample_guide: np.ndarray | None,
     sample = np.asarray(sample, np.float32)
     guided = sample_guide is not None and target_guide is not None and sample_guide.shape[-1]
     rng = np.random.default_rng(seed)
-    p, s, r = params.patch, params.spacing, params.robust
-    rotation = _leading_components(sample, params.search_energy)
+    rotation = leading_components(sample, params.search_energy)
     result = TextureOptimizationResult(np.empty(0, np.float32))
     x = None
     for level in range(params.levels - 1, -1, -1):
         start = time.perf_counter()
         factor = 2**level
         level_shape = (-(-shape[0] // factor), -(-shape[1] // factor))
-        sample_l = downsample(sample, factor)
-        guide_l = downsample(sample_guide, factor) if guided else None
+        source = SampleLevel(downsample(sample, factor),
+                             downsample(sample_guide, factor) if guided else None,
+                             rotation, guide_weight, params, rng)
         target_l = downsample(target_guide, factor) if guided else None
-        source = _Level(sample_l, guide_l, rotation, guide_weight, params, rng)
-        qy, qx = np.meshgrid(grid(level_shape[0], p, s), grid(level_shape[1], p, s),
-                             indexing="ij")
-        qy, qx = qy.ravel(), qx.ravel()
-        if x is None:
-            x = _initial(source, sample_l, target_l, level_shape, qy, qx, params, guide_weight,
-                         rotation, rng)
-        else:
-            x = upsample(x, level_shape)
-        match, energies = None, []
-        for _ in range(params.iterations):
-            query = _features(x, target_l, rotation, guide_weight)
-            projected = _project(query, grid(level_shape[0], p, s), grid(level_shape[1], p, s),
-                                 p, source.basis, source.mean)
-            _, found = source.index.search(projected, params.candidates)
-            found = np.where(found < 0, 0, found)  # fewer sample neighbourhoods than asked
-            if match is not None:
-                found = np.concatenate([match[:, None], found], axis=1)
-            cy, cx = source.origin(found)
-            dist = _distances(query, qy, qx, source.features, cy, cx, p)
-            best = np.argmin(dist, axis=1)  # ties keep the earliest: the previous match
-            match = found[np.arange(len(found)), best]
-            d = dist[np.arange(len(found)), best]
-            energies.append(_energy(d, r))
-            my, mx = source.origin(match)
-            x = _vote(sample_l, level_shape, qy, qx, my, mx, _robust_weights(d, r), p)
-            if len(energies) > 1 and energies[-1] >= energies[-2] * (1 - 1e-7):
-                break  # no neighbourhood found a better match: converged
+        x = (initial(source, target_l, level_shape, params, rng) if x is None
+             else upsample(x, level_shape))
+        x, energies = optimize(source, x, target_l, params)
         result.energy.append(energies)
         result.seconds.append(time.perf_counter() - start)
     result.coefficients = x
     return result
 
 
-def _leading_components(sample: np.ndarray, energy: float) -> np.ndarray:
+def optimize(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray | None,
+             params: TextureOptimizationParams) -> tuple[np.ndarray, list[float]]:
+    """EM iterations of one level from the coefficients ``x`` (``(H, W, K)``).
+
+    Returns the optimised coefficients and the energy after each E-step (never increasing).
+    """
+    p, s, r = params.patch, params.spacing, params.robust
+    shape = x.shape[:2]
+    gy, gx = grid(shape[0], p, s), grid(shape[1], p, s)
+    qy, qx = (a.ravel() for a in np.meshgrid(gy, gx, indexing="ij"))
+    match, energies = None, []
+    for _ in range(params.iterations):
+        query = _features(x, target_guide, source.rotation, source.guide_weight)
+        projected = _project(query, gy, gx, p, source.basis, source.mean)
+        _, found = source.index.search(projected, params.candidates)
+        found = np.where(found < 0, 0, found)  # fewer sample neighbourhoods than asked
+        if match is not None:
+            found = np.concatenate([match[:, None], found], axis=1)
+        cy, cx = source.origin(found)
+        dist = _distances(query, qy, qx, source.features, cy, cx, p)
+        best = np.argmin(dist, axis=1)  # ties keep the earliest: the previous match
+        match = found[np.arange(len(found)), best]
+        d = dist[np.arange(len(found)), best]
+        energies.append(_energy(d, r))
+        my, mx = source.origin(match)
+        x = _vote(source.coefficients, shape, qy, qx, my, mx, _robust_weights(d, r), p)
+        if len(energies) > 1 and energies[-1] >= energies[-2] * (1 - 1e-7):
+            break  # no neighbourhood found a better match: converged
+    return x, energies
+
+
+def leading_components(sample: np.ndarray, energy: float) -> np.ndarray:
     """Orthonormal ``(K, k)`` basis of the directions holding ``energy`` of the sample's variance.
 
     Distances between texels are kept up to the dropped share.
@@ -341,20 +384,19 @@ def _leading_components(sample: np.ndarray, energy: float) -> np.ndarray:
     return np.ascontiguousarray(vt[: min(k, len(sv))].T, np.float32)
 
 
-def _initial(source: _Level, sample_l, target_l, shape, qy, qx, params, guide_weight, rotation,
-             rng) -> np.ndarray:
+def initial(source: SampleLevel, target_guide: np.ndarray | None, shape: tuple[int, int],
+            params: TextureOptimizationParams, rng) -> np.ndarray:
     """The coarsest level's start: each neighbourhood matched by its guide alone (or random)."""
     p = params.patch
-    if target_l is None:
-        found = rng.integers(0, len(source.ys) * len(source.xs), len(qy))
+    gy, gx = grid(shape[0], p, params.spacing), grid(shape[1], p, params.spacing)
+    qy, qx = (a.ravel() for a in np.meshgrid(gy, gx, indexing="ij"))
+    if target_guide is None:
+        found = rng.integers(0, len(source.ys) * source.width, len(qy))
     else:
-        g = target_l.shape[-1]
-        lead = source.features.shape[-1] - g
-        sample_guide = source.features[..., lead:]
-        query_guide = np.float32(guide_weight) * target_l
-        ys, xs = grid(shape[0], p, params.spacing), grid(shape[1], p, params.spacing)
+        query_guide = np.float32(source.guide_weight) * np.asarray(target_guide, np.float32)
+        sample_guide = np.float32(source.guide_weight) * source.guide
         index = _flat_index(_patches(sample_guide, source.ys, source.xs, p))
-        _, found = index.search(np.ascontiguousarray(_patches(query_guide, ys, xs, p)), 1)
+        _, found = index.search(np.ascontiguousarray(_patches(query_guide, gy, gx, p)), 1)
         found = found[:, 0]
     my, mx = source.origin(found)
-    return _vote(sample_l, shape, qy, qx, my, mx, np.ones(len(qy), np.float32), p)
+    return _vote(source.coefficients, shape, qy, qx, my, mx, np.ones(len(qy), np.float32), p)
