@@ -60,15 +60,23 @@ def test_half_export_is_close_and_png_export_is_tone_mapped(tmp_path, btf, small
     with (tmp_path / "half" / "manifest.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2
+    found = []
     for row in rows:  # each file holds the layer of its own directions, and only that one
-        light = int(np.flatnonzero((coords["theta_light"] == float(row["theta_light"]))
-                                   & (coords["phi_light"] == float(row["phi_light"])))[0])
-        assert light in (1, 2)
+        # the (view, light) pair of the row's four angles: exactly one of each in the store
+        view = np.flatnonzero((coords["theta_view"] == float(row["theta_view"]))
+                              & (coords["phi_view"] == float(row["phi_view"])))
+        light = np.flatnonzero((coords["theta_light"] == float(row["theta_light"]))
+                               & (coords["phi_light"] == float(row["phi_light"])))
+        assert len(view) == 1 and len(light) == 1, row
+        view, light = int(view[0]), int(light[0])
+        assert view == 0 and light in (1, 2)
+        found.append((view, light))
         pixels, channels = read_image(tmp_path / "half" / row["file"])
-        assert channels == ("R", "G", "B")
-        assert np.allclose(pixels, original[0, light], rtol=1e-3, atol=1e-4)
+        assert channels == ("R", "G", "B") and pixels.shape == original.shape[2:]
+        assert np.allclose(pixels, original[view, light], rtol=1e-3, atol=1e-4)
         other = 3 - light
-        assert not np.allclose(pixels, original[0, other], rtol=1e-3, atol=1e-4)
+        assert not np.allclose(pixels, original[view, other], rtol=1e-3, atol=1e-4)
+    assert sorted(found) == [(0, 1), (0, 2)]  # both layers, once each
     assert btf("export", small_abtf, tmp_path / "png", "--format", "png", "--light", "0,1",
                "--quiet").code == 0
     pngs = sorted((tmp_path / "png").glob("*.png"))

@@ -241,6 +241,8 @@ def test_render_a_roller_tile_set_into_an_exr(btf, stores, tmp_path):
     assert channels == ("R", "G", "B") and pixels.shape == (200, 333, 3)
     expected = lazy_layer(tmp_path / "t.zarr", view=0, light=1, size=(200, 333),
                           origin=(-17, 40)).compute(scheduler="synchronous")
+    assert pixels.dtype == expected.dtype == np.float32
+    assert expected.std() > 0  # a textured region, not a constant any shift would match
     assert np.array_equal(pixels, expected)  # float32 EXR: bit for bit
 
 

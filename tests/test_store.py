@@ -36,16 +36,32 @@ def _values(shape):
     return np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
 
 
-@given(st.integers(1, 2000), st.sampled_from([8, 16, 64, 128]), st.integers(0, 8))
-def test_layout_chunks_divide_shards_and_cover_the_axis(n, chunk, shard_chunks):
+@settings(deadline=None)
+@given(st.integers(1, 2000), st.sampled_from([8, 16, 64, 128]), st.integers(0, 8),
+       st.integers(1, 600))
+def test_layout_chunks_divide_shards_and_cover_the_axis(n, chunk, shard_chunks, task_texels):
+    import pipeline.graphs.blocks as blocks
+
     layout = Layout(chunk=chunk, shard=chunk * shard_chunks)
     c, s = layout.spatial(n)
     assert 1 <= c <= max(n, 1) and c <= chunk
     if s is not None:
         assert s % c == 0 and c < s <= max(layout.shard, c) and s < n + c
-    unit = s or c  # the write units tile the axis: ceil(n / unit) of them, the last partial
-    edges = np.arange(0, n, unit)
-    assert edges[-1] < n <= edges[-1] + unit
+    # An axis laid out so, as zarr stores it: the task blocks over it cover every element
+    # exactly once, each made of whole write units (the last one may be partial).
+    array = zarr.create_array(zarr.storage.MemoryStore(), shape=(n,), dtype="f4", chunks=(c,),
+                              shards=(s,) if s else None, dimension_names=("y",))
+    unit = s or c
+    assert blocks.write_unit(array) == (unit,)
+    count = np.zeros(n, np.int32)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(blocks, "TASK_TEXELS", task_texels)
+        regions = blocks.block_regions(array)
+    for (region,) in regions:
+        count[region] += 1
+        assert region.start % unit == 0 and (region.stop % unit == 0 or region.stop == n)
+    assert (count == 1).all()
+    assert len(regions) == -(-n // (unit * max(1, task_texels // unit)))
 
 
 @settings(max_examples=25, deadline=None)
