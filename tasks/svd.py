@@ -384,13 +384,22 @@ def refactor(u: np.ndarray, coefficients: np.ndarray) -> tuple[np.ndarray, np.nd
     the new one.
     """
     c = np.asarray(coefficients, np.float64)
-    gram = c.T @ c  # K x K: the texels need not be held twice
-    evals, w = np.linalg.eigh(gram)
-    order = np.argsort(evals)[::-1]
-    evals, w = np.maximum(evals[order], 0.0), w[:, order]
-    s = np.sqrt(evals)
+    new_u, s, w = refactor_gram(u, c.T @ c)
     v = c @ w
     kept = s > (s[0] * 1e-12 if s.size else 0.0)  # components the coefficients do not use: 0
     v[:, kept] /= s[kept]
     v[:, ~kept] = 0.0
-    return np.asarray(u, np.float64) @ w, s, v, w
+    return new_u, s, v, w
+
+
+def refactor_gram(u: np.ndarray, gram: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                            np.ndarray]:
+    """:func:`refactor` from the coefficients' Gram matrix ``C^T C`` (a sum over tiles).
+
+    Returns ``U = u W``, ``S`` and ``W``; the caller computes ``V = C W / S`` tile by tile.
+    """
+    evals, w = np.linalg.eigh(np.asarray(gram, np.float64))
+    order = np.argsort(evals)[::-1]
+    s = np.sqrt(np.maximum(evals[order], 0.0))
+    w = w[:, order]
+    return np.asarray(u, np.float64) @ w, s, w

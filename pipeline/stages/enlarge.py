@@ -15,8 +15,11 @@ coefficients ``x``. The result's coefficients are re-factorised (:func:`tasks.sv
 into a compressed store whose ``U`` spans the sample's eigen-ABRDFs: ``open_compressed``,
 ``btf reconstruct``, ``quilt``, ``roller``, ``render`` and ``inspect`` take it like any other.
 
-Runs on the client, in memory: the coefficients of the target (``H x W x K`` float32) and a few
-working copies must fit (the stage refuses before computing anything otherwise).
+A target of at most 1024^2 texels is synthesized in memory on the client (its coefficients,
+``H x W x K`` float32, and a few working copies must fit: the stage refuses before computing
+anything otherwise). A larger one, or any with ``--tile N``, is synthesized as dask graphs level
+by level, every level larger than a tile in tiles with halos (:mod:`pipeline.graphs.enlarge`):
+memory is bounded by the tile size, and the store is the same on every scheduler.
 """
 
 from __future__ import annotations
@@ -29,26 +32,47 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
+from pipeline.graphs.enlarge import (
+    HALO,
+    WHOLE_TEXELS,
+    Guide,
+    blend_task,
+    check_photos,
+    factor_task,
+    gram_task,
+    grown_boxes,
+    level_task,
+    raise_on_bad_photos,
+    tiles,
+)
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stores.base import (
     RADIANCE,
     add_array,
+    location,
     open_group,
     read_channels,
     read_directions,
 )
 from pipeline.stores.compressed import check_compressed, create_compressed_store
 from pipeline.stores.radiance import check_radiance
+from tasks.constrained_blend import ConstraintProjector
 from tasks.enlargement import EnlargementParams, enlarge, mean_colour_rows
-from tasks.registration import locate
+from tasks.registration import Match, locate
 from tasks.sampling import nearest_layer
-from tasks.statistical_synthesis import StatisticsParams
-from tasks.svd import refactor
-from tasks.texture_optimization import TextureOptimizationParams
+from tasks.statistical_synthesis import StatisticsParams, sample_statistics
+from tasks.svd import refactor, refactor_gram
+from tasks.texture_optimization import (
+    SampleLevel,
+    TextureOptimizationParams,
+    downsample,
+    leading_components,
+)
 
 WORKING_COPIES = 12  # target-sized float32 coefficient arrays held at the peak, about
+DEFAULT_TILE = 512  # texels per side of a tile when the target is too large for one task
 # Default lambda: a constraint value weighs as much as LAMBDA_SCALE whole ABRDFs' worth of
 # values would (rows / constraint values is the paper's "nearly one-to-one", its 20000 for
 # 22801 textures and one RGB photo). Measured on generated wood, leather, fabric and a brick
@@ -98,6 +122,10 @@ class EnlargeParams:
     min_match: float = option(0.9, metavar="R", help="least correlation that locates the "
                                                      "sample in the photos")
     seed: int = option(0, metavar="S", help="seed of the search's random choices")
+    tile: int | None = option(None, metavar="N",
+                              help="synthesize in tiles of N texels with halos, each level "
+                                   "larger than a tile (0: the whole target in memory; "
+                                   "default: 0 up to 1024^2 texels, else 512)")
     keep_phases: bool = option(False, help="also store the coefficients after Texture "
                                            "Optimization and after the first statistical "
                                            "synthesis (phase_* variables, for evaluation)")
@@ -111,6 +139,12 @@ class EnlargeParams:
             raise ParamError("lambda", f"must be positive, got {self.lambda_}")
         if not self.max_angle >= 0:
             raise ParamError("max_angle", f"must be non-negative, got {self.max_angle}")
+        if self.tile is not None and self.tile != 0 and self.tile < 2 * HALO * self.patch:
+            raise ParamError("tile", f"must be 0 or at least twice the halo of {HALO} "
+                                     f"neighbourhoods ({2 * HALO * self.patch} texels), got "
+                                     f"{self.tile}")
+        if self.keep_phases and self.tile:
+            raise ParamError("keep_phases", "is only kept for whole targets (--tile 0)")
         if not -1 <= self.min_match <= 1:
             raise ParamError("min_match", f"must be between -1 and 1, got {self.min_match}")
         self.enlargement()  # the kernels' own checks, under the option names
@@ -126,39 +160,28 @@ class EnlargeParams:
 
 @dataclasses.dataclass(frozen=True)
 class _Constraints:
-    """The constraint values (log domain) and the linear rows they are of the coefficients."""
+    """The constraint layers: where their values come from and the rows they are of ``x``."""
 
-    values: np.ndarray  # (H, W, G) float32
+    guide: Guide
     rows: np.ndarray  # (G, K)
     layers: list[dict]  # what each constraint layer is, for the attrs and messages
 
 
-def _read_constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
-                      eps: float) -> _Constraints:
+def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
+                 eps: float) -> _Constraints:
+    """Match every constraint layer to the sample (nothing of the photos' pixels is read)."""
     path = params.constraints
     d, ds = read_directions(group), read_directions(sample_group)
     u = sample_group["U"]
     nv, nl = d.views, d.lights
-    layers = group[RADIANCE]
+    nc = group[RADIANCE].shape[-1]
     if params.mean_colour is not None and not 0 <= params.mean_colour < nv * nl:
         raise BTFError(f"{path}: --mean-colour {params.mean_colour} is not a layer of the "
                        f"store ({nv * nl} layers, indices 0 to {nv * nl - 1})")
-    values, rows, described = [], [], []
+    rows, offsets, described, layers = [], [], [], []
     for k in range(nv * nl):
         j, i = divmod(k, nl)
-        layer = np.asarray(layers[j, i], np.float32)
-        bad = ~np.isfinite(layer)
-        if bad.any():
-            y, x, c = np.argwhere(bad)[0]
-            raise BTFError(f"{path}: variable 'radiance' has {int(bad.sum())} NaN or Inf "
-                           f"value(s) in layer {k} (view {j}, light {i}), the first at y={y}, "
-                           f"x={x}, channel={c}")
-        if (layer < 0).any():
-            y, x, c = np.argwhere(layer < 0)[0]
-            raise BTFError(f"{path}: variable 'radiance' has negative values in layer {k} "
-                           f"(view {j}, light {i}), the first at y={y}, x={x}, channel={c}; "
-                           "log(radiance + eps) needs radiance >= 0")
-        logs = np.log(layer + np.float32(eps))
+        layers.append((j, i))
         if k == params.mean_colour:
             view = (int(np.argmin(ds.theta_view)) if params.mean_view is None
                     else params.mean_view)
@@ -166,8 +189,8 @@ def _read_constraints(params: EnlargeParams, group, sample_group, sample_coeffic
                 raise BTFError(f"{params.sample}: --mean-view {view} is out of range (the "
                                f"sample has {ds.views} views)")
             r, offset, spread = mean_colour_rows(u[view], sample_coefficients)
-            values.append(logs - offset.astype(np.float32))
             rows.append(r)
+            offsets += offset.tolist()
             described.append({"layer": k, "kind": "mean colour", "sample_view": view,
                               "jensen_offset": offset.tolist(),
                               "jensen_spread": spread.tolist()})
@@ -184,18 +207,39 @@ def _read_constraints(params: EnlargeParams, group, sample_group, sample_coeffic
                 f"{ds.phi_view[sv]:g}) and light {sl} ({ds.theta_light[sl]:g}/"
                 f"{ds.phi_light[sl]:g}), is {angle:.2f} degrees away (--max-angle "
                 f"{params.max_angle:g})")
-        values.append(logs)
         rows.append(np.asarray(u[sv, sl], np.float64))
+        offsets += [0.0] * nc
         described.append({"layer": k, "kind": "photo", "sample_view": sv, "sample_light": sl,
                           "angle_deg": angle})
-    return _Constraints(np.concatenate(values, axis=-1), np.concatenate(rows, axis=0),
-                        described)
+    guide = Guide(location(path), tuple(layers), tuple(offsets), eps,
+                  tuple(group[RADIANCE].shape[2:4]))
+    return _Constraints(guide, np.concatenate(rows, axis=0), described)
+
+
+def _locate(guide: Guide, rendered: np.ndarray) -> tuple[Match, int]:
+    """Best placement of the sample's rendering in the photos, coarse to fine.
+
+    The photos are searched at the scale at which they hold at most WHOLE_TEXELS texels (and
+    the sample keeps 8 texels a side), then at full resolution near the coarse answer.
+    """
+    (h, w), (big_h, big_w) = rendered.shape[:2], guide.shape
+    factor = 1
+    while (big_h // factor) * (big_w // factor) > WHOLE_TEXELS and min(h, w) // factor >= 16:
+        factor *= 2
+    coarse = locate(downsample(rendered, factor),
+                    guide.region(factor, 0, -(-big_h // factor), 0, -(-big_w // factor)))
+    if factor == 1:
+        return coarse, factor
+    y0, x0 = max(0, (coarse.y - 2) * factor), max(0, (coarse.x - 2) * factor)
+    y1, x1 = min(big_h, (coarse.y + 2) * factor + h), min(big_w, (coarse.x + 2) * factor + w)
+    fine = locate(rendered, guide.region(1, y0, y1, x0, x1))
+    return Match(fine.y + y0, fine.x + x0, fine.score, coarse.runner_up), factor
 
 
 def _place_sample(params: EnlargeParams, constraints: _Constraints,
                   sample_coefficients: np.ndarray, session: Session) -> tuple[int, int, dict]:
     h, w = sample_coefficients.shape[:2]
-    big_h, big_w = constraints.values.shape[:2]
+    big_h, big_w = constraints.guide.shape
     if params.sample_origin is not None:
         y, x = params.sample_origin
         if not (0 <= y <= big_h - h and 0 <= x <= big_w - w):
@@ -203,7 +247,8 @@ def _place_sample(params: EnlargeParams, constraints: _Constraints,
                            f"sample outside the {big_h} x {big_w} photos")
         return y, x, {"origin": [y, x], "given": True}
     rendered = sample_coefficients @ constraints.rows.T.astype(np.float32)
-    match = locate(rendered, constraints.values)
+    rendered -= np.asarray(constraints.guide.offsets, np.float32)
+    match, factor = _locate(constraints.guide, rendered)
     session.log(f"enlarge: the sample matches the photos at {match.y},{match.x} (correlation "
                 f"{match.score:.4f}; best elsewhere {match.runner_up:.4f})")
     if match.score < params.min_match:
@@ -212,12 +257,109 @@ def _place_sample(params: EnlargeParams, constraints: _Constraints,
                        f"{match.y},{match.x}, below --min-match {params.min_match:g}); give "
                        "--sample-origin Y,X if you know where it is")
     return match.y, match.x, {"origin": [match.y, match.x], "given": False,
-                              "correlation": match.score, "runner_up": match.runner_up}
+                              "correlation": match.score, "runner_up": match.runner_up,
+                              "search_scale": factor}
+
+
+def _whole(params, session, constraints, coefficients, sample_values, lam):
+    """The whole target in memory on the client (:func:`tasks.enlargement.enlarge`)."""
+    import psutil
+
+    big_h, big_w = constraints.guide.shape
+    rank = coefficients.shape[-1]
+    need = WORKING_COPIES * big_h * big_w * rank * 4
+    available = psutil.virtual_memory().available
+    if need > 0.8 * available:
+        raise BTFError(f"{params.constraints}: enlarging to {big_h} x {big_w} texels at rank "
+                       f"{rank} in memory needs about {need / 2**30:.1f} GiB, more than the "
+                       f"{available / 2**30:.1f} GiB available; use --tile N")
+    values = constraints.guide.region(1, 0, big_h, 0, big_w)
+    result = enlarge(coefficients, sample_values, values, constraints.rows,
+                     params=params.enlargement(), guide_weight=float(np.sqrt(lam)),
+                     seed=params.seed)
+    report = {"seconds": result.seconds, "rounds": result.rounds, "changes": result.changes,
+              "constraint_residual_rms": result.residual_rms,
+              "sample_constraint_residual_rms": result.noise, "damping": result.damping,
+              "constraint_rank": result.constraint_rank, "energy": result.energy}
+    return result.coefficients, report, result
+
+
+def _tiled(params, session, out, path, constraints, coefficients, sample_values, lam, tile):
+    """The target level by level, large levels in tiles (:mod:`pipeline.graphs.enlarge`).
+
+    Writes the coefficients into the scratch array ``_coefficients`` of the output group
+    ``out`` (at ``path``); returns the report.
+    """
+    import dask
+
+    from pipeline.stores.base import add_array
+
+    ep = params.enlargement()
+    to = ep.texture
+    rng = np.random.default_rng(params.seed)
+    rotation = leading_components(coefficients, to.search_energy)
+    projector = ConstraintProjector.of(constraints.rows)
+    noise = 0.0 if ep.exact else projector.rms_residual(coefficients, sample_values)
+    big_h, big_w = constraints.guide.shape
+    rank = coefficients.shape[-1]
+    halo = HALO * to.patch
+    side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
+    statistics = None if ep.statistics is None else sample_statistics(
+        coefficients, side, params=ep.statistics, channels=ep.statistics_channels)
+    report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
+    coarse, coarse_shape = None, None
+    for level in range(to.levels - 1, -1, -1):
+        start = time.perf_counter()
+        factor = 2**level
+        shape = (-(-big_h // factor), -(-big_w // factor))
+        source = SampleLevel(downsample(coefficients, factor), downsample(sample_values, factor),
+                             rotation, float(np.sqrt(lam)), to, rng)
+        name = "_coefficients" if level == 0 else f"_level{level}"
+        add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
+                  chunks=(tile, tile, rank))
+        whole = max(shape) <= tile  # a level that fits in one tile is one task
+        regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
+        finish = None if level else (projector, noise, ep, statistics)
+        blend = level == 0 and not whole  # the finest level's tiles are blended
+        if blend:
+            add_array(out, "_grown", shape=(len(regions), tile + 2 * halo, tile + 2 * halo,
+                                            rank), dims=("tile", "gy", "gx", "component"),
+                      chunks=(1, tile + 2 * halo, tile + 2 * halo, rank))
+        shared = session.share(source)
+        tasks = [dask.delayed(level_task)(
+                     location(path), "_grown" if blend else name, region, shape=shape,
+                     factor=factor, coarse=coarse, coarse_shape=coarse_shape, source=shared,
+                     guide=constraints.guide, params=to, halo=0 if whole else halo,
+                     finish=finish, slot=k if blend else None)
+                 for k, region in enumerate(regions)]
+        session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
+                    f"task(s)")
+        reports = session.compute(*tasks)
+        if blend:
+            boxes = grown_boxes(regions, halo, shape)
+            session.compute(*[dask.delayed(blend_task)(location(path), "_grown", name, region,
+                                                       boxes, shape=shape, halo=halo)
+                              for region in regions])
+            del out["_grown"]
+        report["levels"].append({"factor": factor, "tasks": len(tasks),
+                                 "energy": [r["energy"] for r in reports]})
+        report["seconds"][f"level_1/{factor}"] = time.perf_counter() - start
+        if coarse is not None:
+            del out[coarse]
+        coarse, coarse_shape = name, shape
+    residual2 = sum(r["residual2"] for r in reports)
+    values = sum(r["values"] for r in reports)
+    report.update(rounds=max(len(r["changes"]) for r in reports),
+                  changes=[r["changes"] for r in reports],
+                  damping=[r["damping"] for r in reports],
+                  constraint_residual_rms=float(np.sqrt(residual2 / values)),
+                  sample_constraint_residual_rms=noise, constraint_rank=projector.rank)
+    return report
 
 
 def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     """Enlarge the sample under the constraint photos; write a compressed store."""
-    import psutil
+    import dask
 
     sample_group = open_group(params.sample)
     check_compressed(sample_group, params.sample)
@@ -235,70 +377,77 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     if big_h < h or big_w < w:
         raise BTFError(f"{params.constraints}: the photos ({big_h} x {big_w}) are smaller than "
                        f"the sample ({h} x {w}); enlargement needs photos at the target size")
-    need = WORKING_COPIES * big_h * big_w * rank * 4
-    available = psutil.virtual_memory().available
-    if need > 0.8 * available:
-        raise BTFError(f"{params.constraints}: enlarging to {big_h} x {big_w} texels at rank "
-                       f"{rank} needs about {need / 2**30:.1f} GiB in memory, more than the "
-                       f"{available / 2**30:.1f} GiB available (enlargement is not tile-parallel "
-                       "yet); use smaller photos or a lower rank")
     eps = float(sample_group.attrs["transform"]["eps"])
-    constraints = _read_constraints(params, group, sample_group, coefficients, eps)
+    constraints = _constraints(params, group, sample_group, coefficients, eps)
+    raise_on_bad_photos(session.compute(*check_photos(constraints.guide)), params.constraints,
+                        constraints.guide)
     y0, x0, placement = _place_sample(params, constraints, coefficients, session)
+    sample_values = constraints.guide.region(1, y0, y0 + h, x0, x0 + w)
     m = nv * nl * nc
-    g = constraints.values.shape[-1]
+    g = len(constraints.guide.offsets)
     lam = params.lambda_ if params.lambda_ is not None else LAMBDA_SCALE * m / g
+    tile = params.tile if params.tile is not None else (
+        0 if big_h * big_w <= WHOLE_TEXELS else DEFAULT_TILE)
     session.log(f"enlarge: {h} x {w} sample at rank {rank} -> {big_h} x {big_w} under "
                 f"{len(constraints.layers)} constraint layer(s) ({g} values per texel, lambda "
-                f"{lam:g}) -> {params.out}")
+                f"{lam:g}){f' in tiles of {tile}' if tile else ''} -> {params.out}")
     start = time.perf_counter()
-    result = enlarge(coefficients, constraints.values[y0 : y0 + h, x0 : x0 + w],
-                     constraints.values, constraints.rows, params=params.enlargement(),
-                     guide_weight=float(np.sqrt(lam)), seed=params.seed)
-    session.log("enlarge: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
-                                          for k, v in result.seconds.items())
-                + f"; {result.rounds} round(s), constraint residual (RMS, log domain) "
-                f"{result.residual_rms:.3g} (the sample's own: {result.noise:.3g})")
-    new_u, new_s, new_v, basis = refactor(u.reshape(m, rank),
-                                          result.coefficients.reshape(-1, rank))
     attrs = {
         "source": "enlarge",
         "source_btf_kind": sample_group.attrs.get("source_btf_kind"),
         "source_shape": [nv, nl, big_h, big_w, nc],
         "transform": sample_group.attrs["transform"],
         "svd": {"rank": rank, "method": "enlargement (paper 000, Algorithm 1), re-factorised"},
-        "enlargement": {"sample": params.sample, "constraints": params.constraints,
-                        "sample_shape": [h, w], "placement": placement,
-                        "constraint_layers": constraints.layers, "lambda": lam,
-                        "parameters": dataclasses.asdict(params.enlargement()),
-                        "seconds": {**result.seconds, "total": time.perf_counter() - start},
-                        "rounds": result.rounds, "changes": result.changes,
-                        "constraint_residual": result.residual,
-                        "constraint_residual_rms": result.residual_rms,
-                        "sample_constraint_residual_rms": result.noise,
-                        "damping": result.damping,
-                        "constraint_rank": result.constraint_rank,
-                        "energy": result.energy},
         "provenance": provenance("enlarge", params),
     }
     for key in ("source_sampling", "source_material"):
         if key in sample_group.attrs:
             attrs[key] = sample_group.attrs[key]
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
+            session.blas_pinned_in_tasks():
         out = create_compressed_store(
             tmp, directions=read_directions(sample_group), channels=read_channels(sample_group),
-            ny=big_h, nx=big_w, rank=rank, chunk=sample_group["V"].chunks[0],
+            ny=big_h, nx=big_w, rank=rank, chunk=tile or sample_group["V"].chunks[0],
             dir_chunk=sample_group["U"].chunks[1], attrs=attrs)
+        if tile:
+            report = _tiled(params, session, out, tmp, constraints, coefficients,
+                            sample_values, lam, tile)
+            regions = tiles((big_h, big_w), tile)
+            grams = session.compute(*[dask.delayed(gram_task)(location(tmp), "_coefficients",
+                                                              r) for r in regions])
+            new_u, new_s, basis = refactor_gram(u.reshape(m, rank), sum(grams))
+            session.compute(*[dask.delayed(factor_task)(location(tmp), "_coefficients", r,
+                                                        basis, new_s) for r in regions])
+            del out["_coefficients"]
+        else:
+            result_coefficients, report, result = _whole(params, session, constraints,
+                                                         coefficients, sample_values, lam)
+            new_u, new_s, new_v, basis = refactor(u.reshape(m, rank),
+                                                  result_coefficients.reshape(-1, rank))
+            out["V"][...] = new_v.reshape(big_h, big_w, rank).astype(np.float32)
+            if params.keep_phases:
+                _keep_phases(out, result, basis, rank)
         out["U"][...] = new_u.reshape(nv, nl, nc, rank).astype(np.float32)
         out["S"][...] = new_s.astype(np.float32)
-        out["V"][...] = new_v.reshape(big_h, big_w, rank).astype(np.float32)
-        if params.keep_phases:
-            phases = {"texture_optimization": result.texture_optimization,
-                      "statistics": result.statistics}
-            for name, phase in phases.items():
-                if phase is not None:  # in the output's basis: radiance exp(U c) - eps
-                    add_array(out, f"phase_{name}", shape=phase.shape,
-                              dims=("y", "x", "component"), chunks=out["V"].chunks,
-                              attrs={"long_name": f"coefficients S V^T after {name}"})[...] = (
-                        (phase.reshape(-1, rank) @ basis).reshape(phase.shape))
+        report["seconds"]["total"] = time.perf_counter() - start
+        out.attrs["enlargement"] = {
+            "sample": params.sample, "constraints": params.constraints, "sample_shape": [h, w],
+            "placement": placement, "constraint_layers": constraints.layers, "lambda": lam,
+            "parameters": dataclasses.asdict(params.enlargement()), **report}
+    session.log("enlarge: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
+                                        for k, v in report["seconds"].items())
+                + f"; constraint residual (RMS, log domain) "
+                f"{report['constraint_residual_rms']:.3g} (the sample's own: "
+                f"{report['sample_constraint_residual_rms']:.3g})")
     return Path(params.out)
+
+
+def _keep_phases(out, result, basis, rank) -> None:
+    phases = {"texture_optimization": result.texture_optimization,
+              "statistics": result.statistics}
+    for name, phase in phases.items():
+        if phase is not None:  # in the output's basis: radiance exp(U c) - eps
+            add_array(out, f"phase_{name}", shape=phase.shape, dims=("y", "x", "component"),
+                      chunks=out["V"].chunks,
+                      attrs={"long_name": f"coefficients S V^T after {name}"})[...] = (
+                (phase.reshape(-1, rank) @ basis).reshape(phase.shape))

@@ -1,0 +1,244 @@
+"""Enlargement as dask graphs: constraint photos read by region, levels synthesized in tiles.
+
+A target too large for one in-memory image is synthesized level by level (paper 000, coarse to
+fine). A level that fits in one tile is one task; a larger one is cut into tiles of ``tile``
+texels, each optimised on itself plus a halo of :data:`HALO` neighbourhoods from the same
+starting point (the coarser level upsampled, or at the coarsest a search on the guide alone:
+the same values wherever two tiles overlap) and the same guide, keeping only its interior.
+Neighbouring tiles therefore start alike and see the same photos across their common border;
+what differs is how far the EM iterations carry each from that start, which the halo keeps
+away from the interior. At the finest level the statistics and QP rounds follow in each tile;
+histogram matching is not local, so two tiles map their common texels a little differently:
+there the grown tiles are blended with linear ramps across their overlap
+(:func:`blend_task`; measured: a 1.5x rougher tile border without, none with). The finest
+level's tiles also run the statistics and QP rounds. Results go to scratch arrays of the
+output store (one chunk per tile: no two tasks write the same file), then the coefficients are
+re-factorised from their Gram matrix (a sum over tiles) and written as ``V`` tile by tile.
+
+Every task computes from its region of the inputs, the shared sample side and the seed alone,
+so the store is the same on every scheduler; memory is bounded by a tile and its halo.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.stores.base import RADIANCE
+from tasks.svd import BlockCheck, check_block
+from tasks.texture_optimization import (
+    coarse_rows,
+    downsample,
+    initial,
+    optimize,
+    upsample_region,
+)
+
+WHOLE_TEXELS = 1 << 20  # targets up to 1024^2 texels are synthesized whole by default
+HALO = 4  # neighbourhoods of halo around a tile
+
+
+@dataclass(frozen=True)
+class Guide:
+    """Where the constraint values come from: layers of the photos store, log domain."""
+
+    store: str  # absolute path of the constraints store
+    layers: tuple[tuple[int, int], ...]  # (view, light) of every constraint layer
+    offsets: tuple[float, ...]  # subtracted per value (a mean colour's Jensen offset)
+    eps: float
+    shape: tuple[int, int]  # full-resolution size of the photos
+
+    def region(self, factor: int, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """Constraint values of level texels ``[y0, y1) x [x0, x1)`` at ``1 / factor`` scale.
+
+        Block means of the full-resolution log values (a last partial block averages what it
+        has), so a region computes what downsampling the whole image gives there.
+        """
+        import zarr
+
+        array = zarr.open_array(self.store, path=RADIANCE, mode="r")
+        h, w = self.shape
+        rows, cols = slice(y0 * factor, min(y1 * factor, h)), slice(x0 * factor,
+                                                                    min(x1 * factor, w))
+        values = np.concatenate([np.log(np.asarray(array[v, li, rows, cols], np.float32)
+                                        + np.float32(self.eps)) for v, li in self.layers],
+                                axis=-1)
+        values -= np.asarray(self.offsets, np.float32)
+        return downsample(values, factor)
+
+
+def check_photos(guide: Guide, block: int = 1024) -> list:
+    """Delayed checks of every constraint layer, a block of texels at a time."""
+    import dask
+
+    h, w = guide.shape
+    return [dask.delayed(_check_block, pure=True)(guide.store, k, v, li, y, x, block)
+            for k, (v, li) in enumerate(guide.layers)
+            for y in range(0, h, block) for x in range(0, w, block)]
+
+
+def _check_block(store: str, k: int, v: int, li: int, y: int, x: int, block: int):
+    import zarr
+
+    layer = zarr.open_array(store, path=RADIANCE, mode="r")[v, li, y : y + block,
+                                                            x : x + block]
+    return k, check_block(layer, (y, x, 0))
+
+
+def raise_on_bad_photos(checks: list, path: str, guide: Guide) -> None:
+    """One error for the first layer with NaN/Inf or negative values (layer, count, place)."""
+    by_layer: dict[int, BlockCheck] = {}
+    for k, found in checks:
+        by_layer[k] = by_layer.get(k, BlockCheck()).merge(found)
+    for k in sorted(by_layer):
+        found, (v, li) = by_layer[k], guide.layers[k]
+        if found.nonfinite:
+            y, x, c = found.first_nonfinite
+            raise BTFError(f"{path}: variable 'radiance' has {found.nonfinite} NaN or Inf "
+                           f"value(s) in layer {k} (view {v}, light {li}), the first at y={y}, "
+                           f"x={x}, channel={c}")
+        if found.negative:
+            y, x, c = found.first_negative
+            raise BTFError(f"{path}: variable 'radiance' has negative values in layer {k} "
+                           f"(view {v}, light {li}), the first at y={y}, x={x}, channel={c}; "
+                           "log(radiance + eps) needs radiance >= 0")
+
+
+def tiles(shape: tuple[int, int], tile: int) -> list[tuple[int, int, int, int]]:
+    """``(y0, y1, x0, x1)`` of the tiles covering ``shape``, in C order."""
+    from dask.array.core import normalize_chunks, slices_from_chunks
+
+    return [(ys.start, ys.stop, xs.start, xs.stop) for ys, xs in
+            slices_from_chunks(normalize_chunks((tile, tile), shape))]
+
+
+def _grown(region, halo: int, shape) -> tuple[int, int, int, int]:
+    y0, y1, x0, x1 = region
+    return max(0, y0 - halo), min(shape[0], y1 + halo), max(0, x0 - halo), min(shape[1],
+                                                                               x1 + halo)
+
+
+def _start(out: str, coarse: str | None, coarse_shape, shape, grown) -> np.ndarray:
+    """The coarser level upsampled over ``grown`` (read from the scratch array)."""
+    import zarr
+
+    y0, y1, x0, x1 = grown
+    cy, cx = (coarse_rows(y0, y1, coarse_shape[0], shape[0]),
+              coarse_rows(x0, x1, coarse_shape[1], shape[1]))
+    block = zarr.open_array(out, path=coarse, mode="r")[cy[0] : cy[1], cx[0] : cx[1]]
+    return upsample_region(block, (cy[0], cx[0]), coarse_shape, shape, (y0, x0),
+                           (y1 - y0, x1 - x0))
+
+
+def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str | None,
+               coarse_shape, source, guide: Guide, params, halo: int, finish=None,
+               slot: int | None = None):
+    """Optimise one tile of a level (with its halo) and write its interior to ``name``.
+
+    ``finish`` (the finest level): ``(projector, noise, enlargement params, statistics)``:
+    the tile then also runs the rounds of statistics and QP. With ``slot``, the whole grown
+    tile goes to slot ``slot`` of ``name`` instead, for :func:`blend_task`. Returns the EM
+    energies and, with ``finish``, the rounds' changes and damping and the tile's squared
+    residual.
+    """
+    import zarr
+
+    from tasks.enlargement import refine
+
+    grown = _grown(region, halo, shape)
+    target = guide.region(factor, *grown)
+    if coarse is None:  # the coarsest level starts from a search on the guide alone
+        x = initial(source, target, (grown[1] - grown[0], grown[3] - grown[2]), params, None)
+    else:
+        x = _start(out, coarse, coarse_shape, shape, grown)
+    x, energies = optimize(source, x, target, params)
+    report = {"energy": energies}
+    if finish is not None:
+        projector, noise, enlargement, statistics = finish
+        rounds = refine(x, target, projector, noise=noise, params=enlargement,
+                        statistics=statistics)
+        x = rounds.coefficients
+        report.update(changes=rounds.changes, damping=rounds.damping)
+    y0, y1, x0, x1 = region
+    inner = x[y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]
+    if finish is not None:
+        d = inner.astype(np.float64) @ projector.a.T - target[
+            y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]
+        report.update(residual2=float(np.sum(d**2)), values=int(d.size))
+    if slot is None:
+        zarr.open_array(out, path=name, mode="r+")[y0:y1, x0:x1] = inner
+    else:
+        zarr.open_array(out, path=name, mode="r+")[slot, : x.shape[0], : x.shape[1]] = x
+    return report
+
+
+def _ramp(start: int, stop: int, lo: int, hi: int, extent: int, width: int) -> np.ndarray:
+    """Weights of a grown tile ``[lo, hi)`` along ``[start, stop)``.
+
+    They rise over ``width`` texels from the tile's edges, except at the image's own edges
+    (0 and ``extent``), where there is no neighbour to share with.
+    """
+    t = np.arange(start, stop) + 0.5
+    w = np.ones(stop - start)
+    if lo > 0:
+        w = np.minimum(w, (t - lo) / width)
+    if hi < extent:
+        w = np.minimum(w, (hi - t) / width)
+    return np.clip(w, 0.0, 1.0)
+
+
+def blend_task(out: str, grown_name: str, name: str, region, boxes, *, shape,
+               halo: int) -> None:
+    """Write a tile's interior as the blend of every grown tile that covers it.
+
+    ``boxes`` are the grown regions ``(y0, y1, x0, x1)`` of all tiles, by slot. Linear ramps
+    over the ``2 halo`` texels where two grown tiles overlap sum to one, so the texels pass
+    from one tile's result to its neighbour's without a step.
+    """
+    import zarr
+
+    grown = zarr.open_array(out, path=grown_name, mode="r")
+    y0, y1, x0, x1 = region
+    total = np.zeros((y1 - y0, x1 - x0, grown.shape[-1]), np.float64)
+    norm = np.zeros((y1 - y0, x1 - x0, 1), np.float64)
+    for slot, (gy0, gy1, gx0, gx1) in enumerate(boxes):
+        a, b, c, d = max(y0, gy0), min(y1, gy1), max(x0, gx0), min(x1, gx1)
+        if a >= b or c >= d:
+            continue
+        weight = np.outer(_ramp(a, b, gy0, gy1, shape[0], 2 * halo),
+                          _ramp(c, d, gx0, gx1, shape[1], 2 * halo))[..., None]
+        part = grown[slot, a - gy0 : b - gy0, c - gx0 : d - gx0]
+        total[a - y0 : b - y0, c - x0 : d - x0] += weight * part
+        norm[a - y0 : b - y0, c - x0 : d - x0] += weight
+    zarr.open_array(out, path=name, mode="r+")[y0:y1, x0:x1] = (total / norm).astype(
+        np.float32)
+
+
+def grown_boxes(regions, halo: int, shape) -> list[tuple[int, int, int, int]]:
+    """The grown region of every tile (its interior plus the halo, inside the image)."""
+    return [_grown(r, halo, shape) for r in regions]
+
+
+def gram_task(out: str, name: str, region) -> np.ndarray:
+    """``C^T C`` (float64) of a tile of coefficients."""
+    import zarr
+
+    y0, y1, x0, x1 = region
+    c = np.asarray(zarr.open_array(out, path=name, mode="r")[y0:y1, x0:x1], np.float64)
+    c = c.reshape(-1, c.shape[-1])
+    return c.T @ c
+
+
+def factor_task(out: str, name: str, region, w: np.ndarray, s: np.ndarray) -> None:
+    """Write ``V = C W / s`` of a tile (components with ``s = 0`` get 0)."""
+    import zarr
+
+    y0, y1, x0, x1 = region
+    c = np.asarray(zarr.open_array(out, path=name, mode="r")[y0:y1, x0:x1], np.float64)
+    kept = s > (s[0] * 1e-12 if s.size else 0.0)
+    v = c @ w
+    v[..., kept] /= s[kept]
+    v[..., ~kept] = 0.0
+    zarr.open_array(out, path="V", mode="r+")[y0:y1, x0:x1] = v.astype(np.float32)
