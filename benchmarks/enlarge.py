@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import git_revision, machine
+from benchmarks.harness import btf_executable, git_revision, machine, measure
 
 SUITE = "enlarge"
 SAMPLING = "abtf:12,4"
@@ -54,6 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="extra btf enlarge options, e.g. '--lambda 480 --patch 6'")
     parser.add_argument("--sheet", metavar="PNG", help="contact sheet of the first material")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--scaling", metavar="N,..", default="",
+                        help="also time btf enlarge --tile 512 of a 128^2 sample (rank 32, 12 "
+                             "lights) to targets of these sides, in fresh processes (wall time "
+                             "and peak memory), e.g. 256,1024,4096")
+    parser.add_argument("--scaling-options", default="",
+                        help="btf enlarge options of the scaling runs")
+    parser.add_argument("--timing-rank", type=int, default=64,
+                        help="rank of the timing run (wood 128^2 -> 256^2, one photo; 0: none)")
 
 
 def _btf(*args) -> None:
@@ -238,7 +246,7 @@ def _material(name: str, args, tmp: Path) -> dict:
                                     mask) if "phase_statistics" in g.array_keys() else None,
                "final": abrdf_error(ue, ve * se.astype(np.float32), eps, truth, mask),
                "seconds": info["seconds"], "wall": wall, "rounds": info["rounds"],
-               "residual": info["constraint_residual"], "lambda": info["lambda"],
+               "residual": info["constraint_residual_rms"], "lambda": info["lambda"],
                "placement": info["placement"]}
         if "lookup" in baselines:
             keys = _log_layers(c, eps)
@@ -292,18 +300,66 @@ def _sheet(path, name, truth, u, ue, coef, coef_s, origin, size, eps, lookup) ->
     fig.savefig(path, format="png", dpi=80)
 
 
+def _timing(args, tmp: Path) -> dict:
+    """Wood 128^2 -> 256^2 at ``--timing-rank`` with one photo: time per phase, wall time."""
+    m = tmp / "M.zarr"
+    _btf("generate", m, "--material", "wood", "--size", 256, "--sampling", SAMPLING, "--seed",
+         args.seed)
+    _btf("crop", m, tmp / "S.zarr", "--region", "64:192,64:192")
+    _btf("compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", args.timing_rank)
+    _btf("crop", m, tmp / "C.zarr", "--light", 3)
+    took = measure([btf_executable(), "enlarge", str(tmp / "S_svd.zarr"), str(tmp / "C.zarr"),
+                    str(tmp / "E.zarr"), "--quiet", *args.enlarge_options.split()])
+    import zarr
+
+    info = zarr.open_group(tmp / "E.zarr", mode="r").attrs["enlargement"]
+    return {"rank": args.timing_rank, "wall": took.seconds, "peak_rss": took.peak_rss,
+            "seconds": info["seconds"]}
+
+
+def _scaling(args, tmp: Path) -> list[dict]:
+    """``btf enlarge --tile 512`` of one 128^2 sample to targets of growing sides."""
+    rows = []
+    for side in [int(n) for n in args.scaling.split(",") if n]:
+        m = tmp / f"M{side}.zarr"
+        _btf("generate", m, "--material", "wood", "--size", side, "--sampling", "abtf:12,1",
+             "--seed", args.seed, "--chunk", 256)
+        if not (tmp / "S_svd.zarr").exists():  # one sample for all: the centre of the first
+            o = (side - 128) // 2
+            _btf("crop", m, tmp / "S.zarr", "--region", f"{o}:{o + 128},{o}:{o + 128}")
+            _btf("compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", 32)
+        _btf("crop", m, tmp / f"C{side}.zarr", "--light", 0)
+        shutil.rmtree(m)
+        took = measure([btf_executable(), "enlarge", str(tmp / "S_svd.zarr"),
+                        str(tmp / f"C{side}.zarr"), str(tmp / f"E{side}.zarr"), "--tile", "512",
+                        "--quiet", *args.scaling_options.split()])
+        rows.append({"side": side, "texels": side * side, "seconds": took.seconds,
+                     "peak_rss": took.peak_rss})
+        shutil.rmtree(tmp / f"E{side}.zarr")
+        shutil.rmtree(tmp / f"C{side}.zarr")
+    return rows
+
+
 def run(args: argparse.Namespace) -> dict:
-    """Every material and constraint set (see the module)."""
+    """Every material and constraint set (see the module), the timing and scaling runs."""
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-enlarge-"))
     try:
         materials = []
-        for name in args.materials.split(","):
+        for name in [m for m in args.materials.split(",") if m]:
             folder = tmp / name
             folder.mkdir()
             materials.append(_material(name, args, folder))
+        timing = None
+        if args.timing_rank:
+            (tmp / "timing").mkdir()
+            timing = _timing(args, tmp / "timing")
+        (tmp / "scaling").mkdir()
+        scaling = _scaling(args, tmp / "scaling")
         return {"suite": SUITE, "size": args.size, "sample": args.size // 2, "rank": args.rank,
                 "sampling": SAMPLING, "enlarge_options": args.enlarge_options,
-                "materials": materials, "machine": machine(), "revision": git_revision()}
+                "materials": materials, "timing": timing, "scaling": scaling,
+                "scaling_options": args.scaling_options, "machine": machine(),
+                "revision": git_revision()}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -332,4 +388,21 @@ def report(result: dict) -> str:
                 f"{_num(row.get('lookup'))} | {_num(b.get('tiling'))} | {_num(b.get('quilt'))} | "
                 f"{_num(b.get('roller'))} | {s['texture_optimization']:.1f} | "
                 f"{s['statistics']:.1f} | {s['qp']:.2f} | {row['rounds']} |")
+    t = result.get("timing")
+    if t:
+        lines += ["", f"Wood 128^2 -> 256^2 at rank {t['rank']}, one photo: {t['wall']:.1f} s "
+                      f"wall in a fresh process (peak {t['peak_rss'] / 2**20:.0f} MiB); "
+                      + ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
+                                  for k, v in t["seconds"].items())]
+    if result.get("scaling"):
+        base = result["scaling"][0]
+        lines += ["", f"Scaling: a 128^2 sample (rank 32, 12 lights) to larger targets, "
+                      f"btf enlarge --tile 512 {result['scaling_options']} in a fresh process.",
+                  "", "| target | texels | wall s | s per Mtexel | vs first | peak RSS MiB |",
+                  "|---|---|---|---|---|---|"]
+        for row in result["scaling"]:
+            per = row["seconds"] / row["texels"] * 2**20
+            first = base["seconds"] / base["texels"] * 2**20
+            lines.append(f"| {row['side']}^2 | {row['texels']} | {row['seconds']:.1f} | "
+                         f"{per:.1f} | {per / first:.2f} | {row['peak_rss'] / 2**20:.0f} |")
     return "\n".join(lines)

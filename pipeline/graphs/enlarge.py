@@ -60,13 +60,19 @@ class Guide:
 
         array = zarr.open_array(self.store, path=RADIANCE, mode="r")
         h, w = self.shape
-        rows, cols = slice(y0 * factor, min(y1 * factor, h)), slice(x0 * factor,
-                                                                    min(x1 * factor, w))
-        values = np.concatenate([np.log(np.asarray(array[v, li, rows, cols], np.float32)
-                                        + np.float32(self.eps)) for v, li in self.layers],
-                                axis=-1)
-        values -= np.asarray(self.offsets, np.float32)
-        return downsample(values, factor)
+        cols = slice(x0 * factor, min(x1 * factor, w))
+        # level rows a strip at a time: a few dozen MiB of full-resolution values at most
+        per_row = factor * (cols.stop - cols.start) * len(self.offsets) * 16
+        step = max(1, (64 << 20) // max(per_row, 1))
+        out = []
+        for a in range(y0, y1, step):
+            rows = slice(a * factor, min(min(a + step, y1) * factor, h))
+            values = np.concatenate([np.log(np.asarray(array[v, li, rows, cols], np.float32)
+                                            + np.float32(self.eps)) for v, li in self.layers],
+                                    axis=-1)
+            values -= np.asarray(self.offsets, np.float32)
+            out.append(downsample(values, factor))
+        return np.concatenate(out, axis=0)
 
 
 def check_photos(guide: Guide, block: int = 1024) -> list:

@@ -110,7 +110,9 @@ class EnlargeParams:
     rounds: int = option(5, metavar="N", help="at most N rounds of statistics and QP")
     beta: float = option(0.25, metavar="B", help="weight of the statistical synthesis against "
                                                  "Texture Optimization (weight 1) in the QP")
-    tol: float = option(1e-3, metavar="T", help="stop the rounds below this relative change")
+    tol: float = option(0.01, metavar="T", help="stop the rounds below this relative change "
+                                                "(measured: about 2 rounds, fewer than 5 "
+                                                "were also more accurate)")
     mean_colour: int | None = option(
         None, metavar="K", help="constraint layer K (view-major index) is a mean-colour image "
                                 "(mean over the lights of one view), not a photo")
