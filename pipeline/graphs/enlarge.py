@@ -248,3 +248,106 @@ def factor_task(out: str, name: str, region, w: np.ndarray, s: np.ndarray) -> No
     v[..., kept] /= s[kept]
     v[..., ~kept] = 0.0
     zarr.open_array(out, path="V", mode="r+")[y0:y1, x0:x1] = v.astype(np.float32)
+
+
+def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
+               sample_values: np.ndarray, *, params, guide_weight: float, seed: int, tile: int,
+               session) -> dict:
+    """Synthesize the target level by level into the scratch array ``_coefficients``.
+
+    ``out`` is the output group (at ``path``), ``sample`` the sample's coefficients and
+    ``sample_values`` its constraint values, ``params`` the
+    :class:`tasks.enlargement.EnlargementParams`. Computes on ``session``, one level at a time;
+    returns the report for the store's attrs.
+    """
+    import time
+
+    import dask
+
+    from pipeline.stores.base import add_array, location
+    from tasks.constrained_blend import ConstraintProjector
+    from tasks.statistical_synthesis import sample_statistics
+    from tasks.texture_optimization import SampleLevel, leading_components
+
+    to = params.texture
+    rng = np.random.default_rng(seed)
+    rotation = leading_components(sample, to.search_energy)
+    projector = ConstraintProjector.of(rows)
+    noise = 0.0 if params.exact else projector.rms_residual(sample, sample_values)
+    big_h, big_w = guide.shape
+    rank = sample.shape[-1]
+    halo = HALO * to.patch
+    side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
+    statistics = None if params.statistics is None else sample_statistics(
+        sample, side, params=params.statistics, channels=params.statistics_channels)
+    report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
+    coarse, coarse_shape, here = None, None, location(path)
+    for level in range(to.levels - 1, -1, -1):
+        start = time.perf_counter()
+        factor = 2**level
+        shape = (-(-big_h // factor), -(-big_w // factor))
+        source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
+                             rotation, guide_weight, to, rng)
+        name = "_coefficients" if level == 0 else f"_level{level}"
+        add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
+                  chunks=(tile, tile, rank))
+        whole = max(shape) <= tile  # a level that fits in one tile is one task
+        regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
+        finish = None if level else (projector, noise, params, statistics)
+        blend = level == 0 and not whole  # the finest level's tiles are blended
+        if blend:
+            add_array(out, "_grown", shape=(len(regions), tile + 2 * halo, tile + 2 * halo,
+                                            rank), dims=("tile", "gy", "gx", "component"),
+                      chunks=(1, tile + 2 * halo, tile + 2 * halo, rank))
+        shared = session.share(source)
+        tasks = [dask.delayed(level_task)(
+                     here, "_grown" if blend else name, region, shape=shape, factor=factor,
+                     coarse=coarse, coarse_shape=coarse_shape, source=shared, guide=guide,
+                     params=to, halo=0 if whole else halo, finish=finish,
+                     slot=k if blend else None)
+                 for k, region in enumerate(regions)]
+        session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
+                    f"task(s)")
+        reports = session.compute(*tasks)
+        if blend:
+            boxes = grown_boxes(regions, halo, shape)
+            session.compute(*[dask.delayed(blend_task)(here, "_grown", name, region, boxes,
+                                                       shape=shape, halo=halo)
+                              for region in regions])
+            del out["_grown"]
+        report["levels"].append({"factor": factor, "tasks": len(tasks),
+                                 "energy": [r["energy"] for r in reports]})
+        report["seconds"][f"level_1/{factor}"] = time.perf_counter() - start
+        if coarse is not None:
+            del out[coarse]
+        coarse, coarse_shape = name, shape
+    residual2 = sum(r["residual2"] for r in reports)
+    values = sum(r["values"] for r in reports)
+    report.update(rounds=max(len(r["changes"]) for r in reports),
+                  changes=[r["changes"] for r in reports],
+                  damping=[r["damping"] for r in reports],
+                  constraint_residual_rms=float(np.sqrt(residual2 / values)),
+                  sample_constraint_residual_rms=noise, constraint_rank=projector.rank)
+    return report
+
+
+def write_factors(out, path, u: np.ndarray, *, tile: int, session
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Re-factorise ``_coefficients`` in ``u``'s basis: write ``V``, return ``U`` and ``S``.
+
+    The Gram matrix is summed over tiles, ``V`` written tile by tile; the scratch array goes.
+    """
+    import dask
+
+    from pipeline.stores.base import location
+    from tasks.svd import refactor_gram
+
+    regions = tiles(out["_coefficients"].shape[:2], tile)
+    here = location(path)
+    grams = session.compute(*[dask.delayed(gram_task)(here, "_coefficients", r)
+                              for r in regions])
+    new_u, new_s, basis = refactor_gram(u, sum(grams))
+    session.compute(*[dask.delayed(factor_task)(here, "_coefficients", r, basis, new_s)
+                      for r in regions])
+    del out["_coefficients"]
+    return new_u, new_s

@@ -36,14 +36,10 @@ from pipeline.graphs.enlarge import (
     HALO,
     WHOLE_TEXELS,
     Guide,
-    blend_task,
     check_photos,
-    factor_task,
-    gram_task,
-    grown_boxes,
-    level_task,
     raise_on_bad_photos,
-    tiles,
+    synthesize,
+    write_factors,
 )
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
@@ -58,17 +54,14 @@ from pipeline.stores.base import (
 )
 from pipeline.stores.compressed import check_compressed, create_compressed_store
 from pipeline.stores.radiance import check_radiance
-from tasks.constrained_blend import ConstraintProjector
 from tasks.enlargement import EnlargementParams, enlarge, mean_colour_rows
 from tasks.registration import Match, locate
 from tasks.sampling import nearest_layer
-from tasks.statistical_synthesis import StatisticsParams, sample_statistics
-from tasks.svd import refactor, refactor_gram
+from tasks.statistical_synthesis import StatisticsParams
+from tasks.svd import refactor
 from tasks.texture_optimization import (
-    SampleLevel,
     TextureOptimizationParams,
     downsample,
-    leading_components,
 )
 
 WORKING_COPIES = 12  # target-sized float32 coefficient arrays held at the peak, about
@@ -286,83 +279,8 @@ def _whole(params, session, constraints, coefficients, sample_values, lam):
     return result.coefficients, report, result
 
 
-def _tiled(params, session, out, path, constraints, coefficients, sample_values, lam, tile):
-    """The target level by level, large levels in tiles (:mod:`pipeline.graphs.enlarge`).
-
-    Writes the coefficients into the scratch array ``_coefficients`` of the output group
-    ``out`` (at ``path``); returns the report.
-    """
-    import dask
-
-    from pipeline.stores.base import add_array
-
-    ep = params.enlargement()
-    to = ep.texture
-    rng = np.random.default_rng(params.seed)
-    rotation = leading_components(coefficients, to.search_energy)
-    projector = ConstraintProjector.of(constraints.rows)
-    noise = 0.0 if ep.exact else projector.rms_residual(coefficients, sample_values)
-    big_h, big_w = constraints.guide.shape
-    rank = coefficients.shape[-1]
-    halo = HALO * to.patch
-    side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
-    statistics = None if ep.statistics is None else sample_statistics(
-        coefficients, side, params=ep.statistics, channels=ep.statistics_channels)
-    report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
-    coarse, coarse_shape = None, None
-    for level in range(to.levels - 1, -1, -1):
-        start = time.perf_counter()
-        factor = 2**level
-        shape = (-(-big_h // factor), -(-big_w // factor))
-        source = SampleLevel(downsample(coefficients, factor), downsample(sample_values, factor),
-                             rotation, float(np.sqrt(lam)), to, rng)
-        name = "_coefficients" if level == 0 else f"_level{level}"
-        add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
-                  chunks=(tile, tile, rank))
-        whole = max(shape) <= tile  # a level that fits in one tile is one task
-        regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
-        finish = None if level else (projector, noise, ep, statistics)
-        blend = level == 0 and not whole  # the finest level's tiles are blended
-        if blend:
-            add_array(out, "_grown", shape=(len(regions), tile + 2 * halo, tile + 2 * halo,
-                                            rank), dims=("tile", "gy", "gx", "component"),
-                      chunks=(1, tile + 2 * halo, tile + 2 * halo, rank))
-        shared = session.share(source)
-        tasks = [dask.delayed(level_task)(
-                     location(path), "_grown" if blend else name, region, shape=shape,
-                     factor=factor, coarse=coarse, coarse_shape=coarse_shape, source=shared,
-                     guide=constraints.guide, params=to, halo=0 if whole else halo,
-                     finish=finish, slot=k if blend else None)
-                 for k, region in enumerate(regions)]
-        session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
-                    f"task(s)")
-        reports = session.compute(*tasks)
-        if blend:
-            boxes = grown_boxes(regions, halo, shape)
-            session.compute(*[dask.delayed(blend_task)(location(path), "_grown", name, region,
-                                                       boxes, shape=shape, halo=halo)
-                              for region in regions])
-            del out["_grown"]
-        report["levels"].append({"factor": factor, "tasks": len(tasks),
-                                 "energy": [r["energy"] for r in reports]})
-        report["seconds"][f"level_1/{factor}"] = time.perf_counter() - start
-        if coarse is not None:
-            del out[coarse]
-        coarse, coarse_shape = name, shape
-    residual2 = sum(r["residual2"] for r in reports)
-    values = sum(r["values"] for r in reports)
-    report.update(rounds=max(len(r["changes"]) for r in reports),
-                  changes=[r["changes"] for r in reports],
-                  damping=[r["damping"] for r in reports],
-                  constraint_residual_rms=float(np.sqrt(residual2 / values)),
-                  sample_constraint_residual_rms=noise, constraint_rank=projector.rank)
-    return report
-
-
 def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     """Enlarge the sample under the constraint photos; write a compressed store."""
-    import dask
-
     sample_group = open_group(params.sample)
     check_compressed(sample_group, params.sample)
     group = open_group(params.constraints)
@@ -412,15 +330,12 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
             ny=big_h, nx=big_w, rank=rank, chunk=tile or sample_group["V"].chunks[0],
             dir_chunk=sample_group["U"].chunks[1], attrs=attrs)
         if tile:
-            report = _tiled(params, session, out, tmp, constraints, coefficients,
-                            sample_values, lam, tile)
-            regions = tiles((big_h, big_w), tile)
-            grams = session.compute(*[dask.delayed(gram_task)(location(tmp), "_coefficients",
-                                                              r) for r in regions])
-            new_u, new_s, basis = refactor_gram(u.reshape(m, rank), sum(grams))
-            session.compute(*[dask.delayed(factor_task)(location(tmp), "_coefficients", r,
-                                                        basis, new_s) for r in regions])
-            del out["_coefficients"]
+            report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
+                                sample_values, params=params.enlargement(),
+                                guide_weight=float(np.sqrt(lam)), seed=params.seed,
+                                tile=tile, session=session)
+            new_u, new_s = write_factors(out, tmp, u.reshape(m, rank), tile=tile,
+                                         session=session)
         else:
             result_coefficients, report, result = _whole(params, session, constraints,
                                                          coefficients, sample_values, lam)
