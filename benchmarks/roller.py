@@ -39,6 +39,7 @@ from benchmarks.harness import (
     machine,
     parse_sizes,
 )
+from benchmarks.lattices import detection_rates
 from benchmarks.quilt import render_throughput
 
 SUITE = "roller"
@@ -56,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "tiled, rendered and compared with quilting)")
     parser.add_argument("--render", type=int, default=16384,
                         help="side of the rendered region in texels (default 16384)")
+    parser.add_argument("--lattices", type=int, default=400, metavar="N",
+                        help="random lattices to detect (benchmarks.lattices; 0 skips; default "
+                             "400)")
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs of each timing; the fastest is kept (default 3)")
 
@@ -134,6 +138,10 @@ def run(args: argparse.Namespace) -> dict:
     from pipeline.session import RuntimeOptions, Session
 
     btf = btf_executable()
+    detection = detection_rates(args.lattices, seed=1, threshold=0.5) if args.lattices else None
+    if detection:
+        found = sum(r["found"] for r in detection["rows"])
+        print(f"detection: {found} of {args.lattices} random lattices", file=sys.stderr)
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-roller-"))
     sizes = parse_sizes(args.sizes, SUITE)
     analysis = []
@@ -159,7 +167,7 @@ def run(args: argparse.Namespace) -> dict:
     return {"suite": SUITE, "material": args.material, "sampling": SAMPLING,
             "repeat": args.repeat, "analysis": analysis,
             "roller_cli": {"size": sizes[-1], "seconds": cli.seconds, "peak_rss": cli.peak_rss},
-            "rendering": rendering, "seams": seams, "machine": machine(),
+            "rendering": rendering, "seams": seams, "detection": detection, "machine": machine(),
             "git": git_revision()}
 
 
@@ -197,4 +205,36 @@ def report(result: dict) -> str:
               f"{s['roller']['all_pairs']:.2f} |",
               f"| quilting (periodic tile, defaults) | {s['quilt']['tile_border']:.2f} | "
               f"{s['quilt']['all_pairs']:.2f} |"]
+    if result.get("detection"):
+        lines += ["", *detection_report(result["detection"])]
     return "\n".join(lines)
+
+
+def _rate(rows) -> str:
+    return f"{sum(r['found'] for r in rows)}/{len(rows)}" if rows else "-"
+
+
+def detection_report(d: dict) -> list[str]:
+    """Detection rates by motif, noise and period; failure modes; stochastic confidences."""
+    rows = d["rows"]
+    lines = [f"Lattice detection on {d['count']} random lattices (`benchmarks/lattices.py`, seed "
+             f"{d['seed']}): found = confidence >= {d['threshold']} and both vectors within 1 px "
+             "of the true lattice with the cell area within 5%; "
+             f"{d['seconds_per_image'] * 1e3:.0f} ms per image.", "",
+             "| motif | all | noise 0 | noise <= 0.1 | noise > 0.1 | shortest period < 12 px | "
+             "12-32 px | > 32 px |", "|---|---|---|---|---|---|---|---|"]
+    for motif in [*sorted({r["motif"] for r in rows}), "all"]:
+        sel = [r for r in rows if motif in ("all", r["motif"])]
+        lines.append("| " + " | ".join([motif, _rate(sel)] + [
+            _rate([r for r in sel if test(r)]) for test in (
+                lambda r: r["noise"] == 0, lambda r: 0 < r["noise"] <= 0.1,
+                lambda r: r["noise"] > 0.1, lambda r: r["shortest"] < 12,
+                lambda r: 12 <= r["shortest"] <= 32, lambda r: r["shortest"] > 32)]) + " |")
+    misses = [r for r in rows if not r["found"]]
+    lines += ["", "Misses:" if misses else "No misses."]
+    lines += [f"- {r['case']}: {r['mode']} (confidence {r['confidence']:.2f})" for r in misses]
+    neg = d["negatives"]
+    lines += ["", f"Stochastic textures ({', '.join(sorted({k.rsplit('-', 1)[0] for k in neg}))};"
+                  f" {len(neg)} images): highest confidence {max(neg.values()):.2f}, false "
+                  f"positives {sum(c >= d['threshold'] for c in neg.values())}."]
+    return lines

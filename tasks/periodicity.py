@@ -1,24 +1,30 @@
 """Periodicity detection: the two periodicity vectors of a texture (paper 004, section 2).
 
-Following the paper: the Fourier amplitude spectrum of the grey-scale image gives the two
-largest coefficients at least 10 degrees apart; their directions bisect two sectors (here the
-two halves of the half-plane of directions, split half-way between the bisectors); in each
-sector the maximum of the spatial autocorrelation gives a periodicity vector, and among several
-maxima of about the same correlation the smallest period is taken. Choices where the paper is not
-specific:
+The paper takes the directions of the two largest Fourier coefficients, splits the half-plane
+of directions into two sectors around them and, in each sector, the autocorrelation maximum with
+the smallest period. On rotated and oblique lattices the two largest coefficients often belong
+to one lattice row (a harmonic, or a diagonal of the cell), so a sector holds no basis vector and
+the detection fails. This module keeps the paper's ingredients (the autocorrelation, its maxima,
+the smallest period among strong maxima) but picks the basis by a rule that does not depend on
+directions:
 
-- **Autocorrelation**: of the image minus a broad Gaussian blur (sigma = size / 8, removing
-  shading gradients), zero-padded and normalised per lag by the overlap and the variance, so
-  that a perfectly periodic image scores 1 at its lattice vectors; lags up to half the image.
-- **"About the same correlation"**: at least 80% of the sector's maximum.
-- **Minimal rhomboid**: the two vectors are Lagrange-Gauss reduced (the shortest basis of the
-  lattice they span); a strong maximum that is not on that lattice (a finer lattice than the
-  sectors suggested) is added and the basis reduced again.
-- **Sub-pixel vectors**: the maxima near the lattice points ``i u + j v`` (``|i|, |j| <= 3``)
-  are located to sub-pixel precision by quadratic fits and ``u``, ``v`` fitted to all of them by
-  least squares, so rotated lattices are not limited to integer lags.
-- **Confidence**: the smaller of the normalised autocorrelations at ``u`` and ``v`` (0 if no
-  vector was found): about 1 for a strictly periodic texture, under 0.3 for a stochastic one.
+- **Autocorrelation**: of the image with its illumination removed (minus a broad Gaussian blur,
+  sigma = size / 8, divided by the local contrast at the same scale), zero-padded and normalised
+  per lag by the overlap and the variance, so that a perfectly periodic image scores 1 at its
+  lattice vectors; lags up to half the image.
+- **Candidates**: the local maxima (3 x 3) above 0.15, at least 2 px from the origin, one of
+  each +- pair; the 24 shortest.
+- **Basis**: every pair of candidates spanning a cell of at least 4 px^2 is reduced
+  (Lagrange-Gauss: the shortest basis of its lattice) and scored by the weakest autocorrelation
+  maximum within a pixel of ``u``, ``v``, ``u + v`` and ``u - v``. A lattice finer than the
+  texture's has a basis vector off the texture's lattice, so it scores low; a coarser one (a
+  sub-lattice) scores about as high but has a larger cell. The smallest cell scoring at least 80%
+  of the best wins (the paper's "smallest period among maxima of about the same correlation").
+- **Sub-pixel vectors**: the maxima near ``i u + j v`` (``|i|, |j| <= 3``) are located to
+  sub-pixel precision by quadratic fits and ``u``, ``v`` fitted to all of them by least squares,
+  so rotated lattices are not limited to integer lags.
+- **Confidence**: the score of the refined basis (0 if there is none): about 1 for a strictly
+  periodic texture, under 0.3 for a stochastic one.
 
 Vectors are ``(dy, dx)`` in pixels; angles are degrees from the image's +x axis (columns)
 towards +y (rows), in ``(-90, 90]``.
@@ -31,9 +37,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.fft import irfft2, next_fast_len, rfft2
+from skimage.morphology import h_maxima
 
-MIN_SEPARATION_DEG = 10.0
-SAME_CORRELATION = 0.8
+CANDIDATES = 24
+MIN_AREA = 4.0
+SAME_CORRELATION = 0.9
+PROMINENCE = 0.03
+ANTIALIAS = 1.0
 PEAK_FLOOR = 0.15
 
 
@@ -44,7 +54,6 @@ class Lattice:
     u: tuple[float, float]
     v: tuple[float, float]
     confidence: float
-    sector_angles_deg: tuple[float, float] = (0.0, 90.0)
 
     @property
     def lengths_px(self) -> tuple[float, float]:
@@ -80,35 +89,15 @@ def _angle(d: np.ndarray) -> float:
     return a
 
 
-def _line_difference(a: float | np.ndarray, b: float) -> np.ndarray:
-    """Angle between lines of directions ``a`` and ``b`` (degrees, in ``[0, 90]``)."""
-    d = np.abs((np.asarray(a) - b) % 180.0)
-    return np.minimum(d, 180.0 - d)
-
-
-def spectrum_directions(gray: np.ndarray) -> tuple[float, float]:
-    """Directions (degrees) of the two largest Fourier coefficients >= 10 degrees apart."""
-    h, w = gray.shape
-    window = np.outer(np.hanning(h), np.hanning(w))
-    amp = np.abs(np.fft.fftshift(np.fft.fft2((gray - gray.mean()) * window)))
-    fy = np.fft.fftshift(np.fft.fftfreq(h))[:, None] * np.ones((1, w))
-    fx = np.fft.fftshift(np.fft.fftfreq(w))[None, :] * np.ones((h, 1))
-    near_dc = np.hypot(fy * h, fx * w) < 2.0
-    amp[near_dc] = 0.0
-    order = np.argsort(amp, axis=None)[::-1]
-    angles = np.degrees(np.arctan2(fy.ravel()[order], fx.ravel()[order]))
-    first = float(angles[0])
-    apart = np.flatnonzero(_line_difference(angles, first) > MIN_SEPARATION_DEG)
-    second = float(angles[apart[0]]) if apart.size else first + 90.0
-    return _angle(np.array([np.sin(np.radians(first)), np.cos(np.radians(first))])), _angle(
-        np.array([np.sin(np.radians(second)), np.cos(np.radians(second))]))
-
-
 def autocorrelation(gray: np.ndarray) -> np.ndarray:
     """Normalised autocorrelation for lags ``(-h/2..h/2, -w/2..w/2)``, centred (see module)."""
     g = np.asarray(gray, np.float64)
     h, w = g.shape
-    g = g - ndimage.gaussian_filter(g, sigma=max(h, w) / 8.0, mode="reflect")
+    sigma = max(h, w) / 8.0
+    g = ndimage.gaussian_filter(g, ANTIALIAS, mode="reflect")
+    g = g - ndimage.gaussian_filter(g, sigma, mode="reflect")
+    contrast = np.sqrt(ndimage.gaussian_filter(g * g, sigma, mode="reflect"))
+    g = g / np.maximum(contrast, 1e-6 * max(float(contrast.max()), 1e-300))
     g = g - g.mean()
     shape = (next_fast_len(2 * h, real=True), next_fast_len(2 * w, real=True))
     spec = rfft2(g, shape)
@@ -155,9 +144,38 @@ def _canonical(d: np.ndarray) -> np.ndarray:
     return -d if (d[1] < -0.5 or (abs(d[1]) <= 0.5 and d[0] < 0)) else d
 
 
-def _on_lattice(p: np.ndarray, u: np.ndarray, v: np.ndarray, tol: float = 0.15) -> bool:
-    coef = np.linalg.solve(np.stack([u, v], axis=1), p)
-    return bool(np.all(np.abs(coef - np.rint(coef)) < tol))
+def _peak_map(corr: np.ndarray) -> np.ndarray:
+    """``corr`` at its local maxima above the floor and 2 px or more from the origin, else -inf."""
+    cy, cx = corr.shape[0] // 2, corr.shape[1] // 2
+    yy, xx = np.ogrid[-cy : corr.shape[0] - cy, -cx : corr.shape[1] - cx]
+    peak = ndimage.maximum_filter(corr, size=3, mode="constant", cval=-np.inf) == corr
+    peak &= h_maxima(corr, PROMINENCE).astype(bool)
+    peak &= (corr > PEAK_FLOOR) & (yy * yy + xx * xx >= 4)
+    return np.where(peak, corr, -np.inf)
+
+
+def _near_peak(peaks: np.ndarray, d: np.ndarray) -> float:
+    """The largest value of ``peaks`` within a pixel of lag ``d`` (``-inf`` if none)."""
+    cy, cx = peaks.shape[0] // 2, peaks.shape[1] // 2
+    y, x = round(cy + float(d[0])), round(cx + float(d[1]))
+    if not (1 <= y < peaks.shape[0] - 1 and 1 <= x < peaks.shape[1] - 1):
+        return -np.inf
+    return float(peaks[y - 1 : y + 2, x - 1 : x + 2].max())
+
+
+def _score(peaks: np.ndarray, u: np.ndarray, v: np.ndarray) -> float:
+    """The weakest maximum near ``u``, ``v``, ``u + v`` and ``u - v`` (see module)."""
+    return min(_near_peak(peaks, d) for d in (u, v, u + v, u - v))
+
+
+def _candidates(peaks: np.ndarray) -> np.ndarray:
+    """The shortest local maxima of the autocorrelation, one of each +- pair (see module)."""
+    cy, cx = peaks.shape[0] // 2, peaks.shape[1] // 2
+    ys, xs = np.nonzero(np.isfinite(peaks))
+    lags = np.stack([ys - cy, xs - cx], axis=1).astype(float)
+    half = (lags[:, 1] > 0) | ((lags[:, 1] == 0) & (lags[:, 0] > 0))
+    lags = lags[half]
+    return lags[np.argsort(np.hypot(lags[:, 0], lags[:, 1]), kind="stable")][:CANDIDATES]
 
 
 def detect_lattice(gray: np.ndarray) -> Lattice:
@@ -165,55 +183,34 @@ def detect_lattice(gray: np.ndarray) -> Lattice:
     gray = np.asarray(gray, np.float64)
     if gray.ndim != 2 or min(gray.shape) < 16:
         raise ValueError(f"need a grey-scale image of at least 16 x 16, got {gray.shape}")
-    sectors = spectrum_directions(gray)
     corr = autocorrelation(gray)
-    cy, cx = corr.shape[0] // 2, corr.shape[1] // 2
-    peaks = (ndimage.maximum_filter(corr, size=3, mode="constant", cval=-np.inf) == corr)
-    peaks &= corr > PEAK_FLOOR
-    ys, xs = np.nonzero(peaks)
-    lags = np.stack([ys - cy, xs - cx], axis=1).astype(float)
-    keep = np.hypot(lags[:, 0], lags[:, 1]) >= 2.0
-    lags, values = lags[keep], corr[ys[keep], xs[keep]]
-    if lags.shape[0] == 0:
-        return Lattice((0.0, 0.0), (0.0, 0.0), 0.0, sectors)
-    angles = np.array([_angle(d) for d in lags])
-    sector = _line_difference(angles, sectors[0]) > _line_difference(angles, sectors[1])
-    chosen = []
-    for s in (False, True):
-        inside = sector == s
-        if not inside.any():
-            continue
-        strong = inside & (values >= SAME_CORRELATION * values[inside].max())
-        lengths = np.where(strong, np.hypot(lags[:, 0], lags[:, 1]), np.inf)
-        chosen.append(lags[int(np.argmin(lengths))])
-    if len(chosen) < 2 or abs(chosen[0][0] * chosen[1][1] - chosen[0][1] * chosen[1][0]) < 1:
-        return Lattice(tuple(chosen[0]), (0.0, 0.0), 0.0, sectors)
-    u, v = _reduce(chosen[0], chosen[1])
-    strong = values >= SAME_CORRELATION * min(_value(corr, u), _value(corr, v))
-    for p in lags[strong][np.argsort(np.hypot(*lags[strong].T))]:
-        if not _on_lattice(p, u, v):
-            a, b = _reduce(u, p)
-            if abs(a[0] * b[1] - a[1] * b[0]) >= 1:
-                u, v = a, b
-    u, v = _refine(corr, u, v)
-    u, v = _reduce(u, v)
+    peaks = _peak_map(corr)
+    lags = _candidates(peaks)
+    bases = []
+    for i in range(len(lags)):
+        for j in range(i + 1, len(lags)):
+            area = abs(lags[i, 0] * lags[j, 1] - lags[i, 1] * lags[j, 0])
+            if area >= MIN_AREA:
+                u, v = _reduce(lags[i], lags[j])
+                bases.append((_score(peaks, u, v), area, u, v))
+    if not bases:
+        return Lattice((0.0, 0.0), (0.0, 0.0), 0.0)
+    best = max(score for score, *_ in bases)
+    if best <= PEAK_FLOOR:
+        return Lattice((0.0, 0.0), (0.0, 0.0), max(best, 0.0))
+    _, _, u, v = min((b for b in bases if b[0] >= SAME_CORRELATION * best),
+                     key=lambda b: (round(b[1], 6), -b[0]))
+    refined = _reduce(*_refine(corr, peaks, u, v))
+    if abs(np.linalg.det(np.stack(refined))) >= MIN_AREA:
+        u, v = refined
     u, v = _canonical(u), _canonical(v)
     if _angle(v) < _angle(u):
         u, v = v, u
-    confidence = float(np.clip(min(_value(corr, u), _value(corr, v)), 0.0, 1.0))
-    return Lattice((float(u[0]), float(u[1])), (float(v[0]), float(v[1])), confidence, sectors)
+    confidence = float(np.clip(_score(peaks, u, v), 0.0, 1.0))
+    return Lattice((float(u[0]), float(u[1])), (float(v[0]), float(v[1])), confidence)
 
 
-def _value(corr: np.ndarray, d: np.ndarray) -> float:
-    """Autocorrelation at the lag nearest ``d`` (``-inf`` outside the computed lags)."""
-    cy, cx = corr.shape[0] // 2, corr.shape[1] // 2
-    y, x = round(cy + d[0]), round(cx + d[1])
-    if not (0 <= y < corr.shape[0] and 0 <= x < corr.shape[1]):
-        return -np.inf
-    return float(corr[y, x])
-
-
-def _refine(corr: np.ndarray, u: np.ndarray, v: np.ndarray, reach: int = 3
+def _refine(corr: np.ndarray, peaks: np.ndarray, u: np.ndarray, v: np.ndarray, reach: int = 3
             ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares ``u``, ``v`` from the sub-pixel maxima near ``i u + j v``."""
     cy, cx = corr.shape[0] // 2, corr.shape[1] // 2
@@ -228,11 +225,11 @@ def _refine(corr: np.ndarray, u: np.ndarray, v: np.ndarray, reach: int = 3
                 y, x = round(cy + p[0]), round(cx + p[1])
                 if not (1 <= y < h - 1 and 1 <= x < w - 1):
                     continue
-                win = corr[y - 1 : y + 2, x - 1 : x + 2]
+                win = peaks[y - 1 : y + 2, x - 1 : x + 2]
+                if not np.isfinite(win.max()):
+                    continue
                 oy, ox = np.unravel_index(int(np.argmax(win)), win.shape)
                 py, px, val = _subpixel(corr, y - 1 + oy, x - 1 + ox)
-                if val < PEAK_FLOOR:
-                    continue
                 coefs.append((i, j))
                 points.append((py - cy, px - cx))
                 weights.append(val)
