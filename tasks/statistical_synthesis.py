@@ -59,10 +59,19 @@ def pyramid_height(shape_a: tuple[int, ...], shape_b: tuple[int, ...], wanted: i
 
 
 def _pyramid(image: np.ndarray, height: int):
+    """The pyramid of ``image`` mirrored out to a multiple of ``2^height`` texels a side.
+
+    pyrtools reconstructs exactly only sizes that halve evenly at every scale; odd or
+    non-dyadic images are extended by reflection (no new edge), and callers crop back.
+    """
     import pyrtools as pt
 
-    return pt.pyramids.SteerablePyramidFreq(np.asarray(image, np.float64), height=height,
-                                            order=3)
+    image = np.asarray(image, np.float64)
+    step = 2**height
+    pad = [(0, -n % step) for n in image.shape]
+    if any(after for _, after in pad):
+        image = np.pad(image, pad, mode="symmetric")
+    return pt.pyramids.SteerablePyramidFreq(image, height=height, order=3)
 
 
 @dataclass(frozen=True)
@@ -143,7 +152,7 @@ def impose(image: np.ndarray, stats: ChannelStatistics, *, iterations: int) -> n
             if key == "residual_lowpass":
                 band = impose_autocorrelation(band, stats.lowpass_autocorrelation)
             pyr.pyr_coeffs[key] = match_histograms(band, stats.bands[key])
-        x = match_histograms(pyr.recon_pyr(), stats.pixels)
+        x = match_histograms(pyr.recon_pyr()[: x.shape[0], : x.shape[1]], stats.pixels)
     return x
 
 

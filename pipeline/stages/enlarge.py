@@ -297,6 +297,13 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     if big_h < h or big_w < w:
         raise BTFError(f"{params.constraints}: the photos ({big_h} x {big_w}) are smaller than "
                        f"the sample ({h} x {w}); enlargement needs photos at the target size")
+    factor = 2 ** (params.levels - 1)  # texture_optimization.downsample keeps partial blocks
+    coarsest = (-(-h // factor), -(-w // factor))
+    if min(coarsest) < params.patch:
+        raise BTFError(f"{params.sample}: the sample ({h} x {w}) is {coarsest[0]} x "
+                       f"{coarsest[1]} at the coarsest of --levels {params.levels}, smaller than "
+                       f"a neighbourhood (--patch {params.patch}): use fewer levels or a smaller "
+                       "patch")
     eps = float(sample_group.attrs["transform"]["eps"])
     constraints = _constraints(params, group, sample_group, coefficients, eps)
     raise_on_bad_photos(session.compute(*check_photos(constraints.guide)), params.constraints,
