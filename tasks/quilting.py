@@ -410,3 +410,38 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
     strips.update({("vertical", *k): c for k, (c, _) in vertical.items()})
     return TileSet(tiles, np.array(corners, np.int64), planner.placements,
                    reference.shape[:2], strips)
+
+
+DEFAULT_BLOCK = 32
+BLOCK_RANGE = (16, 96)
+
+
+def choose_block(reference: np.ndarray, min_confidence: float = 0.5
+                 ) -> tuple[int, int, str]:
+    """Block and overlap for a reference image, and why (when the user gave no block size).
+
+    A periodic texture gets blocks of one lattice period (the longer reduced periodicity
+    vector, rounded up to an even size, within 16-96 texels and at most half the sample), so
+    every patch holds a whole cell and overlaps compare like with like; the overlap is a
+    quarter of the block. Without a clear lattice (confidence below ``min_confidence``) the
+    default 32 / 8 stays.
+    """
+    from tasks.periodicity import detect_lattice
+    from tasks.reference import luminance
+
+    reference = np.asarray(reference, np.float64)
+    gray = luminance(reference) if reference.ndim == 3 and reference.shape[-1] == 3 else (
+        reference.mean(axis=-1) if reference.ndim == 3 else reference)
+    if min(gray.shape) < 16:
+        return DEFAULT_BLOCK, DEFAULT_BLOCK // 4, "the sample is too small to detect a lattice"
+    lattice = detect_lattice(gray)
+    if lattice.confidence < min_confidence:
+        return (DEFAULT_BLOCK, DEFAULT_BLOCK // 4,
+                f"no clear lattice (confidence {lattice.confidence:.2f}): the default")
+    period = max(lattice.lengths_px)
+    block = 2 * int(np.ceil(period / 2))
+    block = int(np.clip(block, BLOCK_RANGE[0], min(BLOCK_RANGE[1], min(gray.shape) // 2)))
+    block -= block % 2
+    overlap = max(2, 2 * round(block / 8))
+    return block, overlap, (f"one period of the detected lattice ({period:.1f} px, confidence "
+                            f"{lattice.confidence:.2f})")

@@ -614,3 +614,34 @@ def test_light_sums_of_blocks_combine_to_the_sums_over_all_lights():
         twice = combine_light_sums(np.stack([combine_light_sums(parts[:2]),
                                              combine_light_sums(parts[2:])]))
         assert np.allclose(twice, whole, rtol=1e-6, atol=1e-6)
+
+
+def test_the_block_size_follows_the_detected_period():
+    from benchmarks.lattices import random_lattice_texture, stochastic_texture
+    from tasks.quilting import choose_block
+
+    rng = np.random.default_rng(5)
+    for _ in range(6):
+        case = random_lattice_texture(rng, motif="blobs", noise=0.05, low=14, high=60)
+        block, overlap, why = choose_block(case.image)
+        period = max(np.hypot(*case.u), np.hypot(*case.v))
+        assert block == pytest.approx(max(16, period), abs=2.5), (case.describe(), block, why)
+        assert block % 2 == 0 and 2 <= overlap < block // 2 and "period" in why
+    block, overlap, why = choose_block(stochastic_texture(rng, "fbm"))
+    assert (block, overlap) == (32, 8) and "no clear lattice" in why
+
+
+def test_btf_quilt_without_a_block_takes_one_period_and_says_so(tmp_path, btf):
+    tiles = generate_store(tmp_path / "tiles.zarr", "--material", "tiles", "--size", "160",
+                           "--scale", "40", "--sampling", "abtf:4,2", "--chunk", "32")
+    result = btf("quilt", tiles, tmp_path / "q.zarr", "--candidates", "3")
+    assert result.code == 0, result.err
+    assert "block 40, overlap 10: one period of the detected lattice (" in result.err
+    quilt = zarr.open_group(tmp_path / "q.zarr", mode="r").attrs["quilt"]
+    assert (quilt["block"], quilt["overlap"]) == (40, 10)
+    stone = generate_store(tmp_path / "stone.zarr", "--material", "stone", "--size", "96",
+                           "--sampling", "abtf:4,2")
+    result = btf("quilt", stone, tmp_path / "s.zarr", "--candidates", "3")
+    assert result.code == 0 and "block 32, overlap 8: no clear lattice" in result.err
+    result = btf("quilt", stone, tmp_path / "bad.zarr", "--overlap", "20", "--quiet")
+    assert result.code == 1 and "--overlap (with --block 32)" in result.err

@@ -25,7 +25,7 @@ from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.tileset import TileSet
 from tasks.canvas import TERMS
-from tasks.quilting import QuiltParams, plan_tiles
+from tasks.quilting import QuiltParams, choose_block, plan_tiles
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,8 +36,11 @@ class QuiltStageParams:
                         path="in", metavar="IN")
     out: str = option(help="output tile-set store (a .zarr directory)", positional=True,
                       path="out")
-    block: int = option(32, metavar="B", help="patch size in texels (even)")
-    overlap: int = option(8, metavar="O", help="overlap of neighbouring patches in texels")
+    block: int | None = option(
+        None, metavar="B", help="patch size in texels (even; default: one period of the "
+                                "sample's lattice, within 16-96, or 32 without a clear lattice)")
+    overlap: int | None = option(None, metavar="O", help="overlap of neighbouring patches in "
+                                                         "texels (default: a quarter of B)")
     candidates: int = option(5, metavar="K",
                              help="a patch is drawn from the K best matching ones")
     corners: int = option(1, metavar="V", help="corner types: V^4 tiles (1: one periodic "
@@ -56,34 +59,47 @@ class QuiltStageParams:
         if self.size is not None and len(self.size) not in (1, 2):
             raise ParamError("size", f"expected H,W or N, got {self.size}")
         check_seed(self.seed)
-        try:  # the planner's own checks, under this stage's option names
-            self.quilt_params((max(self.block, 1) * 64,) * 2)
-        except ParamError as exc:
-            raise ParamError({"tile": "size"}.get(exc.name, exc.name), exc.message) from None
+        if self.block is not None:  # the planner's own checks, under this stage's names
+            self.quilt_params((max(self.block, 1) * 64,) * 2, self.block, self.overlap)
 
-    def tile_shape(self, sample: tuple[int, int]) -> tuple[int, int]:
+    def tile_shape(self, sample: tuple[int, int], step: int) -> tuple[int, int]:
         """The tile size for a sample of the given size."""
-        step = self.block - self.overlap
         if self.size is None:
             return tuple(max(2 * step, (n // step) * step) for n in sample)
         return (self.size[0], self.size[-1])
 
-    def quilt_params(self, sample: tuple[int, int]) -> QuiltParams:
-        """The planner's parameters for a sample of the given size."""
-        return QuiltParams(self.block, self.overlap, self.candidates, self.corners,
-                           self.tile_shape(sample))
+    def quilt_params(self, sample: tuple[int, int], block: int, overlap: int | None
+                     ) -> QuiltParams:
+        """The planner's parameters for a sample of the given size and the block."""
+        overlap = max(2, 2 * round(block / 8)) if overlap is None else overlap
+        try:
+            return QuiltParams(block, overlap, self.candidates, self.corners,
+                               self.tile_shape(sample, block - overlap))
+        except ParamError as exc:
+            raise ParamError({"tile": "size"}.get(exc.name, exc.name), exc.message) from None
 
 
 def quilt(params: QuiltStageParams, session: Session) -> Path:
     """Plan a tile set on the reference image and apply it to every layer."""
     layers = open_layers(params.store)[RADIANCE]
     sample = (layers.sizes["y"], layers.sizes["x"])
+    if params.block is not None and min(sample) < params.block:
+        raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
+                       f"than a block ({params.block})")
+    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
+                                   view=params.view, session=session)
+    block, overlap = params.block, params.overlap
+    if block is None:
+        block, auto_overlap, why = choose_block(maps.reference)
+        overlap = auto_overlap if overlap is None else overlap
+        session.log(f"quilt: block {block}, overlap {overlap}: {why}")
+        if min(sample) < block:
+            raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
+                           f"than a block ({block}); give a smaller --block")
     try:
-        qp = params.quilt_params(sample)
-        if min(sample) < params.block:
-            raise ValueError(f"the sample ({sample[0]} x {sample[1]}) is smaller than a block")
-    except ValueError as exc:
-        raise BTFError(f"{params.store}: {exc}") from None
+        qp = params.quilt_params(sample, block, overlap)
+    except ParamError as exc:  # with the automatic block: name the option to give
+        raise BTFError(f"--{exc.name} (with --block {block}): {exc.message}") from None
     need = qp.plan_bytes(sample, layers.sizes["channel"])
     available = psutil.virtual_memory().available
     if need > 0.8 * available:
@@ -94,8 +110,6 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
                 f"texels on the {sample[0]} x {sample[1]} reference image (about "
                 f"{need / 2**20:.0f} MiB)")
-    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
-                                   view=params.view, session=session)
     try:
         plan = plan_tiles(maps.reference, qp, seed=params.seed)
     except ValueError as exc:
