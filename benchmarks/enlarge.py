@@ -51,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                                "mean")
     parser.add_argument("--baselines", default="tiling,quilt,roller,lookup")
     parser.add_argument("--enlarge-options", default="",
-                        help="extra btf enlarge options, e.g. '--lambda 480 --patch 6'")
+                        help="extra btf enlarge options, given with '=' since they start with "
+                             "'-': --enlarge-options='--patch 8 --beta 1'")
     parser.add_argument("--sheet", metavar="PNG", help="contact sheet of the first material")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--scaling", metavar="N,..", default="",
@@ -59,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "lights) to targets of these sides, in fresh processes (wall time "
                              "and peak memory), e.g. 256,1024,4096")
     parser.add_argument("--scaling-options", default="",
-                        help="btf enlarge options of the scaling runs")
+                        help="btf enlarge options of the scaling runs (with '=', as above)")
     parser.add_argument("--timing-rank", type=int, default=64,
                         help="rank of the timing run (wood 128^2 -> 256^2, one photo; 0: none)")
 
