@@ -61,6 +61,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs of the planning, application and copy timings; the fastest "
                              "is kept (default 3); independent per-layer plans run once")
+    parser.add_argument("--seams", default="brick,gravel,grass,tiles,fabric", metavar="T,..",
+                        help="textures whose wrap and tile-border seams to measure "
+                             "(benchmarks/seams.py: scikit-image photos or generated "
+                             "materials; empty: none)")
+    parser.add_argument("--seam-seeds", type=int, default=6, metavar="N",
+                        help="seeds pooled per texture (default 6)")
+    parser.add_argument("--seams-only", action="store_true",
+                        help="measure the seams only (no planning, application or rendering)")
 
 
 def _main_source(tile) -> np.ndarray:
@@ -174,6 +182,9 @@ def run(args: argparse.Namespace) -> dict:
     """Plan, apply and render, with their references, in this run."""
     from pipeline.session import RuntimeOptions, Session
 
+    seams = _seams(args)
+    if args.seams_only:
+        return {"suite": SUITE, "seams": seams, "machine": machine(), "git": git_revision()}
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
     sizes = parse_sizes(args.sizes, SUITE)
@@ -207,12 +218,40 @@ def run(args: argparse.Namespace) -> dict:
             "planning": planning, "application": application,
             "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
                           "peak_rss": quilt.peak_rss},
-            "rendering": rendering, "machine": machine(),
+            "rendering": rendering, "seams": seams, "machine": machine(),
             "git": git_revision()}
+
+
+def _seams(args) -> list[dict]:
+    from benchmarks.seams import texture_seams
+
+    rows = []
+    for texture in filter(None, args.seams.split(",")):
+        for block in (None, 48):  # the automatic choice, and the bug report's 48 / 12
+            rows.append(texture_seams(texture, block=block, overlap=None if block is None
+                                      else block // 4, seeds=args.seam_seeds))
+            r = rows[-1]
+            print(f"seams {texture} block {r['block']}: wrap {r['wrap']:.2f}, borders "
+                  f"{r['border']:.2f}, sharpness {r['sharpness']:.2f}", file=sys.stderr)
+    return rows
+
+
+def _seams_report(result: dict) -> list[str]:
+    from benchmarks.seams import seams_report
+
+    if not result.get("seams"):
+        return []
+    return ["", "Seams of periodic textures (V = 1) and corner tile sets (V = 2, a 4 x 4 "
+                "mosaic) quilted from photos and generated materials, three tone curves as "
+                "layers, K = 5, pooled over seeds (`benchmarks/seams.py`); 1.00 = as rough as "
+                "the texture's interior; sharpness = the texture's neighbour differences over "
+                "the photo's:", "", *seams_report(result["seams"])]
 
 
 def report(result: dict) -> str:
     """Markdown tables of a result."""
+    if "planning" not in result:
+        return "\n".join(_seams_report(result)).strip()
     mib = 1 << 20
     p = result["params"]
     lines = [f"`btf bench quilt`: {result['material']} samples, {result['sampling']} "
@@ -253,4 +292,4 @@ def report(result: dict) -> str:
               f"{r['cli_seconds']:.2f} | {r['bytes'] / r['cli_seconds'] / 1e9:.2f} |",
               "", f"Render vs numpy.tile: {r['ratio']:.2f}x its speed; `btf render` peak RSS "
                   f"{r['cli_peak_rss'] / mib:.0f} MiB for a {r['bytes'] / mib:.0f} MiB region."]
-    return "\n".join(lines)
+    return "\n".join(lines + _seams_report(result))
