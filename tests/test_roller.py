@@ -290,11 +290,33 @@ def test_btf_bench_roller_reports_its_tables():
 
     from benchmarks import roller as suite
 
-    args = argparse.Namespace(material="tiles", sizes="256", render=512, repeat=1, json=None)
+    args = argparse.Namespace(material="tiles", sizes="256", render=512, repeat=1, json=None,
+                              lattices=8)
     result = suite.run(args)
     text = suite.report(result)
     assert "| 256^2 | 64.0 at 0, 64.0 at 90 | 1.00 |" in text
+    assert "Lattice detection on 8 random lattices" in text and "| all |" in text
     assert result["rendering"]["render_gbps"] > 0 and result["rendering"]["tile_gbps"] > 0
     seams = result["seams"]
     # both are seamless on this periodic material: no rougher than the sample across tiles
     assert seams["roller"]["tile_border"] < 1.5 and seams["quilt"]["tile_border"] < 1.5
+
+
+@pytest.mark.slow
+def test_btf_bench_tradeoff_sweeps_and_plots(tmp_path):
+    import argparse
+
+    from benchmarks import tradeoff as suite
+
+    result = suite.run(argparse.Namespace(stages="roller,compress", plots=str(tmp_path)))
+    text = suite.report(result)
+    for stage in ("roller", "compress"):
+        rows = result["stages"][stage]
+        assert sum(r["default"] for r in rows) == 1
+        assert all(r["seconds"] > 0 and np.isfinite(r["error"]) for r in rows)
+        assert (tmp_path / f"tradeoff_{stage}.png").stat().st_size > 10_000
+    compress = {r["label"]: r["error"] for r in result["stages"]["compress"]}
+    # more components can only lower the optimum's error; power iterations approach it
+    assert compress["rank 8"] > compress["rank 16"] > compress["rank 32"] > compress["rank 64"]
+    assert compress["rank 32, q = 0"] >= compress["rank 32"]
+    assert "| 1 tile(s) * |" in text
