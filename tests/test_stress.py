@@ -3,7 +3,8 @@
 Each case is a radiance store that went through the user's path: a generated store exported to
 EXR files, the files' pixels replaced by the case (HDR extremes from 1e-6 to 1e6, constant and
 all-zero layers, single-texel spikes, half floats), then ingested; plus a single light, an odd
-non-square crop and a crop smaller than a quilting block. Every stage then runs on it with small
+non-square crop and a crop smaller than a quilting block; ``btf generate`` also gets each value
+case as the photo of ``--albedo``. Every stage then runs on it with small
 settings. A stage passes when it exits 0 with finite output (and, where the answer is known,
 the right one), or exits 1 with one clear error line and nothing written at OUT. A crash, a
 NaN, a traceback or a run over the time limit fails.
@@ -77,6 +78,12 @@ def cases(tmp_path_factory):
         out[case] = tmp / f"{case}.zarr"
         MATRIX[("ingest", case)] = _outcome(*btf("ingest", folder, out[case], "--chunk", "16"),
                                             out=out[case])
+    for case in ("hdr", "constant", "zero", "spike"):  # the case as a photo to generate from
+        photo = tmp / f"{case}-photo.exr"
+        write_exr(photo, _pixels(case, np.zeros((40, 56, 3), np.float32), 0), ("R", "G", "B"))
+        target = tmp / f"{case}-generated.zarr"
+        MATRIX[("generate", case)] = _outcome(*btf("generate", target, "--albedo", photo,
+                                                   "--sampling", "abtf:4,2"), out=target)
     out["single-light"] = tmp / "single.zarr"
     MATRIX[("generate", "single-light")] = _outcome(*btf(
         "generate", out["single-light"], "--material", "leather", "--size", "33", "--sampling",
