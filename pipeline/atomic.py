@@ -60,6 +60,23 @@ def _check_replaceable(path: Path, shown: Path, directory: bool) -> None:
                        "(no btf store or exported layers in it)")
 
 
+def consolidate(store: Path) -> None:
+    """Write the store's consolidated metadata (zarr v3), so that opening it reads one file.
+
+    Called on every store a stage finishes, after its last write and before it appears at its
+    path; ``xarray.open_zarr(path)`` then opens it quietly. zarr-python warns that consolidated
+    metadata is not yet part of the v3 specification (it is a zarr-python extension, which
+    xarray reads); readers without it fall back to the per-array metadata, which stays.
+    """
+    import warnings
+
+    import zarr
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        zarr.consolidate_metadata(str(store))
+
+
 @contextmanager
 def atomic_output(path: str | os.PathLike, *, directory: bool,
                   overwrite: bool = False) -> Iterator[Path]:
@@ -97,6 +114,8 @@ def atomic_output(path: str | os.PathLike, *, directory: bool,
         raise
     if not tmp.exists():
         raise BTFError(f"{shown}: the stage finished without writing its output")
+    if directory and (tmp / "zarr.json").is_file():
+        consolidate(tmp)
     if not (path.exists() or path.is_symlink()):
         tmp.rename(path)
         return

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+import warnings
 from pathlib import Path
 
 import dask
@@ -197,3 +198,40 @@ def test_things_that_are_not_stores_are_refused(tmp_path):
     zarr.create_array(tmp_path / "array.zarr", shape=(3,), dtype="f4")
     with pytest.raises(BTFError, match="not a group"):
         open_radiance(tmp_path / "array.zarr")
+
+
+def _members(path: Path, consolidated: bool) -> dict:
+    group = zarr.open_group(path, mode="r", use_consolidated=consolidated)
+    return {name: (a.shape, str(a.dtype), dict(a.attrs)) for name, a in group.arrays()}
+
+
+def test_every_store_a_stage_writes_opens_quietly_with_consolidated_metadata(btf, tmp_path):
+    """xarray.open_zarr(path) warned on every store; the consolidated copy matches the files."""
+    s = tmp_path
+    runs = [("generate", s / "g.zarr", "--material", "fabric", "--size", "48", "--sampling",
+             "abtf:4,2"),
+            ("crop", s / "g.zarr", s / "c.zarr", "--region", "0:40,8:48"),
+            ("compress", s / "c.zarr", s / "svd.zarr", "--rank", "4"),
+            ("reconstruct", s / "svd.zarr", s / "r.zarr", "--light", "0,1"),
+            ("quilt", s / "c.zarr", s / "q.zarr", "--block", "16", "--overlap", "4"),
+            ("render", s / "q.zarr", s / "surface.zarr", "--light", "0", "--size", "64,64"),
+            ("fit", s / "g.zarr", s / "f.zarr"),
+            ("crop", s / "g.zarr", s / "photo.zarr", "--light", "0"),
+            ("crop", s / "g.zarr", s / "sample.zarr", "--region", "12:36,12:36"),
+            ("compress", s / "sample.zarr", s / "sample_svd.zarr", "--rank", "4"),
+            ("enlarge", s / "sample_svd.zarr", s / "photo.zarr", s / "e.zarr",
+             "--sample-origin", "12,12", "--levels", "1", "--iterations", "1", "--rounds", "1")]
+    outputs = []
+    for stage, *args in runs:
+        result = btf(stage, *args, "--quiet")
+        assert result.code == 0, (stage, result.err)
+        outputs.append(Path(args[1] if stage != "generate" else args[0]))
+        if stage == "enlarge":
+            outputs[-1] = Path(args[2])
+    for path in dict.fromkeys(outputs):
+        meta = json.loads((path / "zarr.json").read_text())
+        assert "consolidated_metadata" in meta, path
+        assert _members(path, True) == _members(path, False), path
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            xr.open_zarr(path).close()
