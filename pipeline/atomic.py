@@ -66,7 +66,9 @@ def consolidate(store: Path) -> None:
     Called on every store a stage finishes, after its last write and before it appears at its
     path; ``xarray.open_zarr(path)`` then opens it quietly. zarr-python warns that consolidated
     metadata is not yet part of the v3 specification (it is a zarr-python extension, which
-    xarray reads); readers without it fall back to the per-array metadata, which stays.
+    xarray reads); readers without it fall back to the per-array metadata, which stays. btf
+    itself reads the per-array metadata (``use_consolidated=False``), so a store edited by hand
+    afterwards is judged by its files, not by a stale copy.
     """
     import warnings
 

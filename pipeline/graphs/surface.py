@@ -23,7 +23,7 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
     """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32, in ``order``."""
     import zarr
 
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(store, mode="r", use_consolidated=False)
     if group.attrs["btf_kind"] == "tileset":
         tiles = group[RADIANCE][:, view, light]
     else:

@@ -107,7 +107,7 @@ def _stored_window(block_info=None, *, store: str, halo: int, ych, xch):
 
     i, j = block_info[None]["chunk-location"][:2]
     (y0, ny), (x0, nx) = _block(ych, i), _block(xch, j)
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(store, mode="r", use_consolidated=False)
     height, width = group["height"].shape
     ya, yb = max(0, y0 - halo), min(height, y0 + ny + halo)
     xa, xb = max(0, x0 - halo), min(width, x0 + nx + halo)

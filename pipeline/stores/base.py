@@ -141,7 +141,8 @@ def open_group(path: str | Path):
         raise BTFError(f"{path}: unreadable zarr.json ({exc})") from None
     if node_type != "group":
         raise BTFError(f"{path}: a zarr array, not a group of variables")
-    return zarr.open_group(location(p), mode="r")
+    # the files themselves, not the consolidated copy (written for other tools, see atomic)
+    return zarr.open_group(location(p), mode="r", use_consolidated=False)
 
 
 def read_directions(group) -> Directions:
