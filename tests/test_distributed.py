@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import generate_store, no_partial_outputs
+from helpers import compose_command, compose_services, generate_store, no_partial_outputs
 
 BIN = Path(sys.executable).parent
 DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
@@ -46,10 +46,11 @@ def cluster(tmp_path_factory):
     elsewhere = tmp_path / "worker-home"
     elsewhere.mkdir()
     logs = (tmp_path / "scheduler.log").open("w"), (tmp_path / "worker.log").open("w")
-    # without a dashboard the scheduler still serves /metrics: on any free port, not 8787
-    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port",
-                               str(port), "--no-dashboard", "--dashboard-address", ":0"],
-                              stdout=logs[0], stderr=logs[0])]
+    # docker-compose.yml's commands, on loopback, with the dashboard on any free local port
+    scheduler = compose_command("scheduler", values={"--host": "127.0.0.1", "--port": str(port),
+                                                     "--dashboard-address": "127.0.0.1:0"})
+    procs = [subprocess.Popen([BIN / scheduler[0], *scheduler[1:]], stdout=logs[0],
+                              stderr=logs[0])]
     try:
         deadline = time.monotonic() + 30
         while True:
@@ -60,10 +61,14 @@ def cluster(tmp_path_factory):
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.2)
-        procs.append(subprocess.Popen(
-            [BIN / "dask", "worker", address, "--nworkers", "2", "--nthreads", "1",
-             "--no-dashboard"], cwd=elsewhere, stdout=logs[1], stderr=logs[1]))
-        _wait_for_workers(address, 2)
+        # the compose file's replicas as worker processes (at most 2: CI has 2 cores), one
+        # thread each
+        replicas = min(2, compose_services()["worker"]["deploy"]["replicas"])
+        worker = compose_command("worker", words={"tcp://scheduler:8786": address},
+                                 values={"--nworkers": str(replicas), "--nthreads": "1"})
+        procs.append(subprocess.Popen([BIN / worker[0], *worker[1:]], cwd=elsewhere,
+                                      stdout=logs[1], stderr=logs[1]))
+        _wait_for_workers(address, replicas)
         yield address
     finally:
         for proc in reversed(procs):
@@ -94,8 +99,12 @@ def _shows_progress(stderr: str) -> bool:
 @pytest.mark.distributed
 @pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
 def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
-    run = _btf("run", DEMO, "--scheduler", cluster, "--set", "generate.size=40",
-               *(["--quiet"] if quiet else []), cwd=tmp_path)
+    # docker-compose.yml's runner command (a smaller store), from an outputs folder like /data
+    runner = compose_command("runner", words={"/app/configs/demo.yaml": str(DEMO)},
+                             values={"--scheduler": cluster})
+    assert runner[0] == "btf"
+    run = _btf(*runner[1:], "--set", "generate.size=40", *(["--quiet"] if quiet else []),
+               cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     if quiet:
         assert run.stderr == ""
