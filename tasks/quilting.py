@@ -461,15 +461,22 @@ DEFAULT_BLOCK = 32
 BLOCK_RANGE = (16, 96)
 
 
-def choose_block(reference: np.ndarray, min_confidence: float = 0.5
-                 ) -> tuple[int, int, str]:
+def overlap_for(block: int) -> int:
+    """The default overlap of a block: a quarter of it, even, at least 2."""
+    return max(2, 2 * round(block / 8))
+
+
+def choose_block(reference: np.ndarray, min_confidence: float = 0.5,
+                 tile: tuple[int, int] | None = None) -> tuple[int, int, str]:
     """Block and overlap for a reference image, and why (when the user gave no block size).
 
     A periodic texture gets blocks of one lattice period (the longer reduced periodicity
-    vector, rounded up to an even size, within 16-96 texels and at most half the sample), so
+    vector, rounded to an even size, within 16-96 texels and at most half the sample), so
     every patch holds a whole cell and overlaps compare like with like; the overlap is a
     quarter of the block. Without a clear lattice (confidence below ``min_confidence``) the
-    default 32 / 8 stays.
+    default 32 / 8 stays. With a given ``tile`` size, the block nearest the period whose step
+    divides the tile is taken (within a quarter of the period), else the default. The lattice
+    is detected on the central 512 x 512 texels at most.
     """
     from tasks.periodicity import detect_lattice
     from tasks.reference import luminance
@@ -477,16 +484,28 @@ def choose_block(reference: np.ndarray, min_confidence: float = 0.5
     reference = np.asarray(reference, np.float64)
     gray = luminance(reference) if reference.ndim == 3 and reference.shape[-1] == 3 else (
         reference.mean(axis=-1) if reference.ndim == 3 else reference)
-    if min(gray.shape) < 16:
-        return DEFAULT_BLOCK, DEFAULT_BLOCK // 4, "the sample is too small to detect a lattice"
-    lattice = detect_lattice(gray)
+    default = (DEFAULT_BLOCK, overlap_for(DEFAULT_BLOCK))
+    if min(gray.shape) < 32:
+        return (*default, "the sample is too small to detect a lattice: the default")
+    crop = tuple(slice(max(0, (n - 512) // 2), max(0, (n - 512) // 2) + 512) for n in gray.shape)
+    lattice = detect_lattice(gray[crop])
     if lattice.confidence < min_confidence:
-        return (DEFAULT_BLOCK, DEFAULT_BLOCK // 4,
-                f"no clear lattice (confidence {lattice.confidence:.2f}): the default")
+        return (*default, f"no clear lattice (confidence {lattice.confidence:.2f}): the default")
     period = max(lattice.lengths_px)
-    block = 2 * int(np.ceil(period / 2))
-    block = int(np.clip(block, BLOCK_RANGE[0], min(BLOCK_RANGE[1], min(gray.shape) // 2)))
-    block -= block % 2
-    overlap = max(2, 2 * round(block / 8))
-    return block, overlap, (f"one period of the detected lattice ({period:.1f} px, confidence "
-                            f"{lattice.confidence:.2f})")
+    low, high = BLOCK_RANGE[0], min(BLOCK_RANGE[1], min(gray.shape) // 2)
+    wanted = int(np.clip(2 * round(period / 2), low, high))
+    wanted -= wanted % 2
+    why = f"one period of the detected lattice ({period:.1f} px, confidence " \
+          f"{lattice.confidence:.2f})"
+    if tile is None:
+        return wanted, overlap_for(wanted), why
+    reach = max(2, int(period / 4))
+    for block in sorted(range(max(low, wanted - reach), min(high, wanted + reach) + 1, 2),
+                        key=lambda b: (abs(b - wanted), b)):
+        step = block - overlap_for(block)
+        if all(n % step == 0 and n >= 2 * step for n in tile):
+            return block, overlap_for(block), why + (
+                f", the nearest whose step divides the tile {tile[0]} x {tile[1]}"
+                if block != wanted else "")
+    return (*default, why + f", but no block near it divides the tile {tile[0]} x {tile[1]}: "
+                            "the default")

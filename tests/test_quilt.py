@@ -681,3 +681,18 @@ def test_structured_textures_wrap_and_meet_without_rougher_borders(texture, bloc
                       seeds=3, mosaic_seeds=1)
     assert r["wrap"] <= 1.3 and r["border"] <= 1.3, r
     assert r["sharpness"] >= 0.85, r
+
+
+def test_the_automatic_block_fits_a_given_tile_size():
+    from benchmarks.lattices import random_lattice_texture
+    from tasks.quilting import choose_block
+
+    case = random_lattice_texture(np.random.default_rng(2), motif="blobs", noise=0.0,
+                                  gradient=0.0, low=39, high=41)
+    block, overlap, why = choose_block(case.image)
+    assert block == 40 and overlap == 10
+    block, overlap, why = choose_block(case.image, tile=(144, 144))  # step 30 does not divide
+    assert 144 % (block - overlap) == 0 and abs(block - 40) <= 10, (block, overlap, why)
+    assert "divides the tile 144 x 144" in why
+    block, overlap, why = choose_block(case.image, tile=(97, 97))  # nothing near divides 97
+    assert (block, overlap) == (32, 8) and "the default" in why

@@ -25,7 +25,7 @@ from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.tileset import TileSet
 from tasks.canvas import TERMS
-from tasks.quilting import QuiltParams, choose_block, plan_tiles
+from tasks.quilting import QuiltParams, choose_block, overlap_for, plan_tiles
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,7 +71,7 @@ class QuiltStageParams:
     def quilt_params(self, sample: tuple[int, int], block: int, overlap: int | None
                      ) -> QuiltParams:
         """The planner's parameters for a sample of the given size and the block."""
-        overlap = max(2, 2 * round(block / 8)) if overlap is None else overlap
+        overlap = overlap_for(block) if overlap is None else overlap
         try:
             return QuiltParams(block, overlap, self.candidates, self.corners,
                                self.tile_shape(sample, block - overlap))
@@ -90,7 +90,8 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
                                    view=params.view, session=session)
     block, overlap = params.block, params.overlap
     if block is None:
-        block, auto_overlap, why = choose_block(maps.reference)
+        tile = None if params.size is None else (params.size[0], params.size[-1])
+        block, auto_overlap, why = choose_block(maps.reference, tile=tile)
         overlap = auto_overlap if overlap is None else overlap
         session.log(f"quilt: block {block}, overlap {overlap}: {why}")
         if min(sample) < block:
