@@ -159,6 +159,8 @@ def test_compress_and_reconstruct(btf, cases, case, tmp_path):
     # the log domain, log(x + eps) (eps = 1e-3)
     got = _values(out)
     np.testing.assert_allclose(np.log(got + 1e-3), np.log(want + 1e-3), atol=1e-3, rtol=0)
+    big = want > 1e-2  # and relative in linear radiance where eps does not dominate
+    np.testing.assert_allclose(got[big], want[big], rtol=3e-3)
     if np.ptp(want) > 0:  # the check would catch a wrong reconstruction
         with pytest.raises(AssertionError):
             np.testing.assert_allclose(np.log(np.roll(got, 1) + 1e-3), np.log(want + 1e-3),
@@ -186,8 +188,10 @@ def test_quilt_and_render(btf, cases, case, tmp_path):
 def test_roller(btf, cases, case, tmp_path):
     out = tmp_path / "r.zarr"
     outcome = run_stage(btf, "roller", case, out, "roller", cases[case], out)
-    if case in ("constant", "zero", "hdr", "single-light"):
-        assert "no clear periodicity" in outcome or "smaller" in outcome or outcome == "ok"
+    if case in ("constant", "zero", "hdr", "spike", "single-light"):  # nothing periodic left
+        assert "no clear periodicity" in outcome
+    elif case == "half":  # the generated tiles, through half floats: still a lattice
+        assert outcome == "ok"
 
 
 @pytest.mark.parametrize("case", CASES)
