@@ -9,7 +9,7 @@ own command, inputs prepared beforehand, after one untimed warm-up run of the st
 - **quilt**: block size (overlap a quarter of it) and candidates K, on scikit-image's brick
   photo (three tone curves as layers, :mod:`benchmarks.seams`); error: the corner-tile border
   seam (V = 2, pooled over 2 seeds; 1 = as rough as the interior), with the sharpness against
-  the photo alongside; time: planning;
+  the photo alongside; time: planning the periodic texture (V = 1), in-process;
 - **roller**: tiles per set on a generated ``tiles`` ABTF (384^2, period 32); error: mean
   neighbour difference across tile borders of a rendered 1024^2 layer over the sample's own;
 - **enlarge**: levels, EM iterations and rounds, wood 128^2 -> 256^2 with one photo at rank
@@ -69,6 +69,7 @@ def _compress(tmp: Path) -> list[dict]:
         seconds = _timed("compress", store, out, *options, "--overwrite")
         u, s, v, eps, _ = _factors(out)
         error = abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), eps, truth, mask)
+        # --rank has no default: rank 32 with the default power iterations is the reference
         rows.append({"label": label, "seconds": seconds, "error": error,
                      "default": label == "rank 32"})
         print(f"compress {label}: {seconds:.1f} s, E {error:.4g}", file=sys.stderr)

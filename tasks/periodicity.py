@@ -12,13 +12,14 @@ directions:
   sigma = size / 8, divided by the local contrast at the same scale), zero-padded and normalised
   per lag by the overlap and the variance, so that a perfectly periodic image scores 1 at its
   lattice vectors; lags up to half the image.
-- **Candidates**: the local maxima (3 x 3) above 0.15, at least 2 px from the origin, one of
-  each +- pair; the 24 shortest.
+- **Candidates**: the local maxima (3 x 3) above 0.15 with a prominence of at least 0.03
+  (skimage's ``h_maxima``: the ridges of line textures carry maxima without prominence), at
+  least 2 px from the origin, one of each +- pair; the 24 shortest.
 - **Basis**: every pair of candidates spanning a cell of at least 4 px^2 is reduced
   (Lagrange-Gauss: the shortest basis of its lattice) and scored by the weakest autocorrelation
   maximum within a pixel of ``u``, ``v``, ``u + v`` and ``u - v``. A lattice finer than the
   texture's has a basis vector off the texture's lattice, so it scores low; a coarser one (a
-  sub-lattice) scores about as high but has a larger cell. The smallest cell scoring at least 80%
+  sub-lattice) scores about as high but has a larger cell. The smallest cell scoring at least 90%
   of the best wins (the paper's "smallest period among maxima of about the same correlation").
 - **Sub-pixel vectors**: the maxima near ``i u + j v`` (``|i|, |j| <= 3``) are located to
   sub-pixel precision by quadratic fits and ``u``, ``v`` fitted to all of them by least squares,
