@@ -1,0 +1,143 @@
+"""A worker lost in the middle of a run: the run finishes, with the bits of a synchronous run.
+
+A real ``dask scheduler`` and two ``dask worker`` processes (docker-compose.yml's commands,
+without a nanny so that SIGKILL really loses the worker) on loopback; one is killed once the
+stage has written its first chunks. The scheduler reruns the lost worker's tasks on the other;
+tasks write whole chunks and are pure functions of their inputs and the seed, so the output is
+the same. Slow (a cluster per test): run by CI with ``-m slow``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from helpers import compose_command, generate_store
+
+BIN = Path(sys.executable).parent
+pytestmark = [pytest.mark.slow, pytest.mark.distributed]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def two_workers(tmp_path):
+    """``(address, [worker processes])`` of a fresh cluster."""
+    from distributed import Client
+
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    log = (tmp_path / "cluster.log").open("w")
+    scheduler = compose_command("scheduler", values={"--host": "127.0.0.1", "--port": str(port),
+                                                     "--dashboard-address": "127.0.0.1:0"})
+    procs = [subprocess.Popen([BIN / scheduler[0], *scheduler[1:]], stdout=log, stderr=log)]
+    worker = compose_command("worker", words={"tcp://scheduler:8786": address},
+                             values={"--nworkers": "1", "--nthreads": "1"})
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                with Client(address, timeout="2s"):
+                    break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.3)
+        workers = [subprocess.Popen([BIN / worker[0], *worker[1:], "--no-nanny"], stdout=log,
+                                    stderr=log, cwd=tmp_path) for _ in range(2)]
+        procs += workers
+        with Client(address, timeout="20s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address, workers
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        log.close()
+
+
+def _run_and_kill(args: list, out: Path, workers) -> subprocess.CompletedProcess:
+    """Run ``btf args`` on the cluster; SIGKILL a worker once OUT's partial has 4 chunks."""
+    proc = subprocess.Popen([BIN / "btf", *map(str, args), "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed = False
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline:
+        partial = [p for p in out.parent.glob(f".{out.stem}*partial*")]
+        chunks = sum(1 for p in partial for _ in p.rglob("c/*")) if partial else 0
+        if not killed and chunks >= 4:
+            os.kill(workers[0].pid, signal.SIGKILL)
+            killed = True
+        time.sleep(0.05)
+    out_text, err_text = proc.communicate(timeout=300)
+    assert killed, "the run ended before a worker could be killed: make it larger"
+    assert workers[0].wait(timeout=10) == -signal.SIGKILL
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out_text, err_text)
+
+
+GENERATE = ("--material", "wood", "--size", "192", "--sampling", "abtf:12,4", "--chunk", "32",
+            "--dir-chunk", "8", "--seed", "5")
+
+
+def test_generate_survives_a_lost_worker(tmp_path, two_workers):
+    address, workers = two_workers
+    out = tmp_path / "cluster.zarr"
+    run = _run_and_kill(["generate", out, *GENERATE, "--scheduler", address], out, workers)
+    assert run.returncode == 0, run.stderr
+    local = generate_store(tmp_path / "local.zarr", *GENERATE, "--scheduler", "synchronous")
+    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
+    for name in ("radiance", "height", "albedo"):
+        assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def test_compress_survives_a_lost_worker(tmp_path, two_workers):
+    address, workers = two_workers
+    src = generate_store(tmp_path / "src.zarr", *GENERATE)
+    out = tmp_path / "cluster_svd.zarr"
+    run = _run_and_kill(["compress", src, out, "--rank", "16", "--scheduler", address], out,
+                        workers)
+    assert run.returncode == 0, run.stderr
+    local = tmp_path / "local_svd.zarr"
+    from pipeline.cli import main
+
+    assert main(["compress", str(src), str(local), "--rank", "16", "--scheduler",
+                 "synchronous", "--quiet"]) == 0
+    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][:], b[name][:]), name
+
+
+def test_quilt_application_survives_a_lost_worker(tmp_path, two_workers):
+    address, workers = two_workers
+    src = generate_store(tmp_path / "src.zarr", *GENERATE)
+    options = ["--block", "32", "--overlap", "8", "--size", "480,480"]
+    out = tmp_path / "cluster_q.zarr"
+    run = _run_and_kill(["quilt", src, out, *options, "--scheduler", address], out, workers)
+    assert run.returncode == 0, run.stderr
+    local = tmp_path / "local_q.zarr"
+    from pipeline.cli import main
+
+    assert main(["quilt", str(src), str(local), *options, "--scheduler", "synchronous",
+                 "--quiet"]) == 0
+    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
+    assert np.array_equal(a["radiance"][:], b["radiance"][:])
