@@ -76,20 +76,39 @@ def two_workers(tmp_path):
         log.close()
 
 
+def _chunks(out: Path) -> int:
+    """Chunk files written so far in OUT's partial sibling (-1 before it exists; it may vanish:
+    it is renamed)."""
+    try:
+        partial = list(out.parent.glob(f".{out.stem}*partial*"))
+        return sum(1 for p in partial for _ in p.rglob("c/*")) if partial else -1
+    except OSError:
+        return 0
+
+
 def _run_and_kill(args: list, out: Path, workers) -> subprocess.CompletedProcess:
-    """Run ``btf args`` on the cluster; SIGKILL a worker once OUT's partial has 4 chunks."""
+    """Run ``btf args`` on the cluster; SIGKILL a worker once OUT's partial has 4 chunks, or
+    half a second after it appeared (a stage that writes its output in its last pass)."""
     proc = subprocess.Popen([BIN / "btf", *map(str, args), "--quiet"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     killed = False
     deadline = time.monotonic() + 300
-    while proc.poll() is None and time.monotonic() < deadline:
-        partial = [p for p in out.parent.glob(f".{out.stem}*partial*")]
-        chunks = sum(1 for p in partial for _ in p.rglob("c/*")) if partial else 0
-        if not killed and chunks >= 4:
-            os.kill(workers[0].pid, signal.SIGKILL)
-            killed = True
-        time.sleep(0.05)
-    out_text, err_text = proc.communicate(timeout=300)
+    try:
+        started = None
+        while proc.poll() is None and time.monotonic() < deadline:
+            chunks = _chunks(out)
+            if started is None and chunks >= 0:
+                started = time.monotonic()
+            if not killed and started is not None and (
+                    chunks >= 4 or time.monotonic() - started > 0.5):
+                os.kill(workers[0].pid, signal.SIGKILL)
+                killed = True
+            time.sleep(0.05)
+        out_text, err_text = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
     assert killed, "the run ended before a worker could be killed: make it larger"
     assert workers[0].wait(timeout=10) == -signal.SIGKILL
     return subprocess.CompletedProcess(proc.args, proc.returncode, out_text, err_text)
