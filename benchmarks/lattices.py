@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from tasks.periodicity import reduce_basis
+
 MOTIFS = ("blobs", "lines", "checkers", "weave")
 
 
@@ -42,19 +44,6 @@ class Case:
         return (f"{self.motif} {self.image.shape[0]}x{self.image.shape[1]} periods "
                 f"{lengths[0]:.1f}/{lengths[1]:.1f} px at {np.degrees(np.arctan2(*self.u)):.0f} "
                 f"deg, {angle:.0f} deg apart, noise {self.noise:.2f}, gradient {self.gradient:.2f}")
-
-
-def reduce_basis(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lagrange-Gauss reduction: the shortest basis of the lattice spanned by ``u``, ``v``."""
-    u, v = np.asarray(u, float), np.asarray(v, float)
-    for _ in range(64):
-        if v @ v < u @ u:
-            u, v = v, u
-        k = round(float(v @ u) / float(u @ u))
-        if k == 0:
-            break
-        v = v - k * u
-    return u, v
 
 
 def _primitive(rng: np.random.Generator, low: float, high: float):

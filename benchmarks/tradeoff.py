@@ -50,6 +50,12 @@ def _timed(*args) -> float:
     return time.perf_counter() - start
 
 
+def _error(store: Path, truth: np.ndarray, mask: np.ndarray) -> float:
+    """Eq. (11) of a compressed store against the truth over the masked texels."""
+    u, s, v, eps, _ = _factors(store)
+    return abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), eps, truth, mask)
+
+
 def _compress(tmp: Path) -> list[dict]:
     store = tmp / "wood.zarr"
     _btf("generate", store, "--material", "wood", "--size", 256, "--sampling", "abtf:12,4",
@@ -67,8 +73,7 @@ def _compress(tmp: Path) -> list[dict]:
     for label, options in configs:
         out = tmp / "svd.zarr"
         seconds = _timed("compress", store, out, *options, "--overwrite")
-        u, s, v, eps, _ = _factors(out)
-        error = abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), eps, truth, mask)
+        error = _error(out, truth, mask)
         # --rank has no default: rank 32 with the default power iterations is the reference
         rows.append({"label": label, "seconds": seconds, "error": error,
                      "default": label == "rank 32"})
@@ -147,8 +152,7 @@ def _enlarge(tmp: Path) -> list[dict]:
         out = tmp / "E.zarr"
         seconds = _timed("enlarge", tmp / "S_svd.zarr", tmp / "C.zarr", out,
                          "--sample-origin", "64,64", *options, "--overwrite")
-        u, s, v, eps, _ = _factors(out)
-        error = abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), eps, truth, mask)
+        error = _error(out, truth, mask)
         rows.append({"label": label, "seconds": seconds, "error": error,
                      "default": label == "defaults"})
         print(f"enlarge {label}: {seconds:.1f} s, E {error:.4g}", file=sys.stderr)

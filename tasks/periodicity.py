@@ -127,7 +127,7 @@ def _subpixel(corr: np.ndarray, y: int, x: int) -> tuple[float, float, float]:
     return y + dy, x + dx, float(corr[y, x])
 
 
-def _reduce(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def reduce_basis(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lagrange-Gauss reduction: the shortest basis of the lattice spanned by ``u``, ``v``."""
     u, v = u.astype(float), v.astype(float)
     for _ in range(64):
@@ -192,7 +192,7 @@ def detect_lattice(gray: np.ndarray) -> Lattice:
         for j in range(i + 1, len(lags)):
             area = abs(lags[i, 0] * lags[j, 1] - lags[i, 1] * lags[j, 0])
             if area >= MIN_AREA:
-                u, v = _reduce(lags[i], lags[j])
+                u, v = reduce_basis(lags[i], lags[j])
                 bases.append((_score(peaks, u, v), area, u, v))
     if not bases:
         return Lattice((0.0, 0.0), (0.0, 0.0), 0.0)
@@ -201,7 +201,7 @@ def detect_lattice(gray: np.ndarray) -> Lattice:
         return Lattice((0.0, 0.0), (0.0, 0.0), max(best, 0.0))
     _, _, u, v = min((b for b in bases if b[0] >= SAME_CORRELATION * best),
                      key=lambda b: (round(b[1], 6), -b[0]))
-    refined = _reduce(*_refine(corr, peaks, u, v))
+    refined = reduce_basis(*_refine(corr, peaks, u, v))
     if abs(np.linalg.det(np.stack(refined))) >= MIN_AREA:
         u, v = refined
     u, v = _canonical(u), _canonical(v)

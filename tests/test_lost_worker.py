@@ -129,34 +129,31 @@ def test_generate_survives_a_lost_worker(tmp_path, two_workers):
         assert np.array_equal(a[name][:], b[name][:]), name
 
 
+def _same_as_synchronous(tmp_path, workers, address, stage, src, options, names):
+    """Run ``btf stage src OUT options`` on the cluster losing a worker, and synchronously."""
+    from pipeline.cli import main
+
+    out = tmp_path / f"cluster_{stage}.zarr"
+    run = _run_and_kill([stage, src, out, *options, "--scheduler", address], out, workers)
+    assert run.returncode == 0, run.stderr
+    local = tmp_path / f"local_{stage}.zarr"
+    assert main([stage, str(src), str(local), *options, "--scheduler", "synchronous",
+                 "--quiet"]) == 0
+    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
+    for name in names:
+        assert np.array_equal(a[name][:], b[name][:]), name
+
+
 def test_compress_survives_a_lost_worker(tmp_path, two_workers):
     address, workers = two_workers
     src = generate_store(tmp_path / "src.zarr", *GENERATE)
-    out = tmp_path / "cluster_svd.zarr"
-    run = _run_and_kill(["compress", src, out, "--rank", "16", "--scheduler", address], out,
-                        workers)
-    assert run.returncode == 0, run.stderr
-    local = tmp_path / "local_svd.zarr"
-    from pipeline.cli import main
-
-    assert main(["compress", str(src), str(local), "--rank", "16", "--scheduler",
-                 "synchronous", "--quiet"]) == 0
-    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
-    for name in ("U", "S", "V"):
-        assert np.array_equal(a[name][:], b[name][:]), name
+    _same_as_synchronous(tmp_path, workers, address, "compress", src, ["--rank", "16"],
+                         ("U", "S", "V"))
 
 
 def test_quilt_application_survives_a_lost_worker(tmp_path, two_workers):
     address, workers = two_workers
     src = generate_store(tmp_path / "src.zarr", *GENERATE)
-    options = ["--block", "32", "--overlap", "8", "--size", "480,480"]
-    out = tmp_path / "cluster_q.zarr"
-    run = _run_and_kill(["quilt", src, out, *options, "--scheduler", address], out, workers)
-    assert run.returncode == 0, run.stderr
-    local = tmp_path / "local_q.zarr"
-    from pipeline.cli import main
-
-    assert main(["quilt", str(src), str(local), *options, "--scheduler", "synchronous",
-                 "--quiet"]) == 0
-    a, b = zarr.open_group(out, mode="r"), zarr.open_group(local, mode="r")
-    assert np.array_equal(a["radiance"][:], b["radiance"][:])
+    _same_as_synchronous(tmp_path, workers, address, "quilt", src,
+                         ["--block", "32", "--overlap", "8", "--size", "480,480"],
+                         ("radiance",))
