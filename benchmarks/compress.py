@@ -11,7 +11,9 @@ threaded scheduler everywhere:
   plus the same pass's matrix products on in-memory blocks, both measured in this run;
 - error relative to the optimal rank-K error, on a smaller store where numpy's exact SVD is
   feasible (every method run again there);
-- a scaling table: time and peak memory of ``btf compress`` for growing stores.
+- a scaling table: time and peak memory of ``btf compress`` for growing stores;
+- a texel scaling table: the same at equal rows for growing textures, with the sketches on the
+  row side (the default for such stores) and, where it fits, on the texel side.
 
 Stores are generated once into ``--data-dir`` and reused by later runs.
 """
@@ -48,6 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--power-iters", type=int, default=2)
     parser.add_argument("--scaling", default="1,2,4,8",
                         help="approximate input sizes in GB for the scaling table ('' to skip)")
+    parser.add_argument("--texel-scaling", default="512,1024,2048,4096",
+                        help="texels per side for the texel scaling table ('' to skip)")
+    parser.add_argument("--texel-sampling", default="abtf:12,4",
+                        help="sampling (hence rows) of the texel scaling stores")
+    parser.add_argument("--texel-side-up-to", type=int, default=1024,
+                        help="largest size also run with --sketch texels (its client memory "
+                             "grows with the texels)")
+    parser.add_argument("--parts", default="timed,errors,scaling,texels",
+                        help="which tables to measure (comma-separated)")
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs of btf compress and of the bound's parts, interleaved so "
                              "that both see the same machine (best kept; default 3); other "
@@ -300,6 +311,28 @@ def scaling(args, data: Path, tmp: Path) -> list[dict]:
     return rows
 
 
+def texel_scaling(args, data: Path, tmp: Path) -> list[dict]:
+    """``btf compress`` at equal rows on growing textures: time, peak memory, passes."""
+    import zarr
+
+    rows = []
+    for size in (int(v) for v in args.texel_scaling.split(",") if v):
+        store = ensure_store(data, args.material, size, args.texel_sampling)
+        m_rows, n_cols = matrix_shape(store)
+        sides = ["rows"] + (["texels"] if size <= args.texel_side_up_to else [])
+        for side in sides:
+            out = tmp / "texels.zarr"
+            m = measure([btf_executable(), "compress", str(store), str(out), "--rank",
+                         str(args.rank), "--oversample", str(args.oversample), "--power-iters",
+                         str(args.power_iters), "--sketch", side, "--quiet", "--overwrite"])
+            attrs = zarr.open_group(out, mode="r").attrs
+            rows.append({"size": size, "rows": m_rows, "cols": n_cols, "sketch": side,
+                         "gigabytes": m_rows * n_cols * 4 / 1e9, "seconds": m.seconds,
+                         "peak_rss": m.peak_rss, "passes": attrs["svd"]["passes"],
+                         "error": attrs["error"]["log_relative_frobenius"]})
+    return rows
+
+
 def _have_sklearn() -> bool:
     try:
         import sklearn  # noqa: F401
@@ -320,30 +353,71 @@ def run(args: argparse.Namespace) -> dict:
     """All measurements of the suite, in one run."""
     data = Path(args.data_dir)
     data.mkdir(parents=True, exist_ok=True)
-    store = ensure_store(data, args.material, args.size, args.sampling)
-    small_size, small_sampling = args.small.split(",", 1)
-    small = ensure_store(data, args.material, int(small_size), small_sampling)
+    parts = set(args.parts.split(","))
     with tempfile.TemporaryDirectory(prefix="btf-bench-") as tmp:
         tmp = Path(tmp)
         started = time.perf_counter()
-        result = {
-            "suite": SUITE, "store": str(store), "shape": matrix_shape(store),
-            "small_shape": matrix_shape(small),
-            "rank": args.rank, "oversample": args.oversample, "power_iters": args.power_iters,
-            "timed": timed_methods(store, args, tmp),
-            "errors": errors(small, args, tmp),
-            "scaling": scaling(args, data, tmp) if args.scaling else [],
-            "machine": machine(),
-        }
-        ours, bound = ours_and_bound(store, args, tmp)
-        result["timed"].insert(0, ours)
-        result["bound"] = bound
+        result = {"suite": SUITE, "rank": args.rank, "oversample": args.oversample,
+                  "power_iters": args.power_iters, "timed": [], "errors": [], "scaling": [],
+                  "texel_scaling": [], "machine": machine()}
+        if "timed" in parts:
+            store = ensure_store(data, args.material, args.size, args.sampling)
+            result.update(store=str(store), shape=matrix_shape(store),
+                          timed=timed_methods(store, args, tmp))
+            ours, bound = ours_and_bound(store, args, tmp)
+            result["timed"].insert(0, ours)
+            result["bound"] = bound
+        if "errors" in parts:
+            small_size, small_sampling = args.small.split(",", 1)
+            small = ensure_store(data, args.material, int(small_size), small_sampling)
+            result.update(small_shape=matrix_shape(small), errors=errors(small, args, tmp))
+        if "scaling" in parts and args.scaling:
+            result["scaling"] = scaling(args, data, tmp)
+        if "texels" in parts and args.texel_scaling:
+            result["texel_scaling"] = texel_scaling(args, data, tmp)
         result["bench_seconds"] = time.perf_counter() - started
     return result
 
 
 def report(result: dict) -> str:
     """Markdown tables of a result."""
+    gib = 1 << 30
+    lines = []
+    if result["timed"]:
+        lines += [*_timed_report(result), ""]
+    if result["errors"]:
+        lines += [f"Errors on the {result['small_shape'][0]} x {result['small_shape'][1]} store "
+                  "(exact SVD feasible), relative to the optimal rank-K error:", "",
+                  "| method | error / optimal |", "|---|---|"]
+        for r in result["errors"]:
+            extra = (f" (reported: {r['reported_error_vs_optimal']:.3f})"
+                     if "reported_error_vs_optimal" in r else "")
+            lines.append(f"| {r['method']} | {r['error_vs_optimal']:.3f}{extra} |")
+        lines.append("")
+    if result["scaling"]:
+        lines += ["Scaling of btf compress (same K, P, Q):", "",
+                  "| input | matrix | wall s | peak RSS |", "|---|---|---|---|"]
+        for r in result["scaling"]:
+            lines.append(f"| {r['gigabytes']:.2f} GB | {r['rows']} x {r['cols']} | "
+                         f"{r['seconds']:.1f} | {r['peak_rss'] / gib:.2f} GiB |")
+        lines.append("")
+    if result["texel_scaling"]:
+        base = {side: next(r for r in result["texel_scaling"] if r["sketch"] == side)
+                for side in {r["sketch"] for r in result["texel_scaling"]}}
+        lines += [f"Texel scaling of btf compress at equal rows (K={result['rank']}, "
+                  f"P={result['oversample']}, Q={result['power_iters']}):", "",
+                  "| texels | matrix | input | sketch side | passes | wall s | peak RSS | "
+                  "RSS vs smallest | log rel. error |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in result["texel_scaling"]:
+            lines.append(f"| {r['size']}^2 | {r['rows']} x {r['cols']} | {r['gigabytes']:.2f} GB "
+                         f"| {r['sketch']} | {r['passes']} | {r['seconds']:.1f} | "
+                         f"{r['peak_rss'] / gib:.2f} GiB | "
+                         f"{r['peak_rss'] / base[r['sketch']]['peak_rss']:.2f}x | "
+                         f"{r['error']:.4g} |")
+    return "\n".join(lines).rstrip()
+
+
+def _timed_report(result: dict) -> list[str]:
     gib = 1 << 30
     m, n = result["shape"]
     k, p, q = result["rank"], result["oversample"], result["power_iters"]
@@ -367,18 +441,5 @@ def report(result: dict) -> str:
               f"{ours['seconds'] / b['bound']:.2f}x the bound "
               f"({ours['seconds'] / b['bound_with_start']:.2f}x counting start-up); best of "
               f"{len(ours.get('all_seconds', [0]))} runs alternating with the bound's, all: "
-              + ", ".join(f"{t:.1f}" for t in ours.get("all_seconds", [])) + " s.", "",
-              f"Errors on the {result['small_shape'][0]} x {result['small_shape'][1]} store "
-              "(exact SVD feasible), relative to the optimal rank-K error:", "",
-              "| method | error / optimal |", "|---|---|"]
-    for r in result["errors"]:
-        extra = (f" (reported: {r['reported_error_vs_optimal']:.3f})"
-                 if "reported_error_vs_optimal" in r else "")
-        lines.append(f"| {r['method']} | {r['error_vs_optimal']:.3f}{extra} |")
-    if result["scaling"]:
-        lines += ["", "Scaling of btf compress (same K, P, Q):", "",
-                  "| input | matrix | wall s | peak RSS |", "|---|---|---|---|"]
-        for r in result["scaling"]:
-            lines.append(f"| {r['gigabytes']:.2f} GB | {r['rows']} x {r['cols']} | "
-                         f"{r['seconds']:.1f} | {r['peak_rss'] / gib:.2f} GiB |")
-    return "\n".join(lines)
+              + ", ".join(f"{t:.1f}" for t in ours.get("all_seconds", [])) + " s."]
+    return lines

@@ -229,8 +229,27 @@ class Session:
         import dask
 
         if self.client is not None:
-            return self.client.scatter(value, broadcast=True, hash=False)
+            return self._scatter(value)
         return dask.delayed(value, pure=False)
+
+    def _scatter(self, value: Any, attempts: int = 3) -> Any:
+        """Scatter ``value`` to every worker, again if a worker is lost on the way.
+
+        A worker that dies while it receives the value fails the whole scatter with a comm
+        error; the scheduler then drops it, so scattering again reaches the workers left.
+        Once scattered the value has a replica on every worker, so losing one later is
+        survived like any lost result.
+        """
+        from distributed.comm.core import CommClosedError
+
+        for attempt in range(attempts):
+            try:
+                return self.client.scatter(value, broadcast=True, hash=False)
+            except (CommClosedError, OSError):
+                if attempt == attempts - 1:
+                    raise
+                self.log("a worker was lost while data was sent to it: sending again")
+                time.sleep(1.0)  # let the scheduler notice the lost worker
 
     def _compute_distributed(self, collections) -> tuple:
         futures = self.client.compute(list(collections))

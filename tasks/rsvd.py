@@ -11,6 +11,15 @@ matrix's row blocks, for one of three kinds:
 - ``"sketch"``: the one-view sketch of ``omega``, ``phi`` and ``psi`` (whose columns follow the
   matrix rows): ``rows["y"] = A omega``, ``rows["z"] = A phi``, ``sums["w"] = psi A``.
 
+For a wide matrix (fewer rows than texels) :func:`randomized_svd_rows` keeps its sketches on
+the row side instead, so that nothing on the client grows with the texels; its passes are
+
+- ``"row-power"`` (float32) and ``"row-gram"`` (float64, the last): for the rows x columns
+  basis ``q``, ``Z = A^T q`` by texel tiles and ``sums["y"] = A Z``; ``"row-gram"`` also gives
+  ``sums["g"] = Z^T Z`` and ``frobenius2 = ||A||_F^2``;
+- ``"row-vectors"``: ``V = A^T q M`` for the small map ``m``, formed tile by tile (the pipeline
+  writes it to the store and returns no ``sums["v"]``; a test returns it).
+
 The pipeline streams a store in its ``run_pass``; a test can pass one over a numpy matrix.
 """
 
@@ -30,6 +39,7 @@ from tasks.svd import (
     Sketch,
     error_from_identity,
     estimated_error,
+    factors_from_gram,
     factors_from_projection,
     factors_from_sketch,
     gaussian,
@@ -38,6 +48,7 @@ from tasks.svd import (
 )
 
 RunPass = Callable[..., PassPart]
+SIDES = ("texels", "rows")
 
 
 @dataclass(frozen=True)
@@ -109,3 +120,37 @@ def _one_pass(run_pass: RunPass, *, rows, texels, rank, extra, iterations, seed
              "frobenius_norm": math.sqrt(part.frobenius2)}
     return Factorization(u, s, v, error,
                          {f"sketch_{k}": v for k, v in dataclasses.asdict(sketch).items()})
+
+
+def randomized_svd_rows(run_pass: RunPass, *, rows: int, texels: int, rank: int, extra: int,
+                        iterations: int, seed: int) -> Factorization:
+    """:func:`randomized_svd` with row-side sketches: client memory ``O(rows x l)``.
+
+    From an orthonormal Gaussian basis ``Q_0`` (rows x l), each pass computes ``A (A^T Q)`` in
+    one read of the data (texel tile by texel tile: ``A_t (A_t^T Q)``; a tile's ``A_t^T Q``
+    never leaves its task) and re-orthonormalises it. There are ``iterations + 1`` such passes,
+    the last in float64 with the Gram matrix of ``Z = A^T Q``, from which ``U``, ``S`` and the
+    map to ``V`` follow (:func:`tasks.svd.factors_from_gram`); a last pass forms ``V`` tile by
+    tile. That is ``iterations + 2`` passes, one more than on the texel side, for a subspace of
+    one degree more in ``A A^T`` (``(A A^T)^(q+1) Q_0`` against ``A (A^T A)^q X_0``).
+    """
+    width = rank + extra
+    q = orthonormalize(gaussian(rows, width, seed=seed, stream=4))
+    for _ in range(iterations):
+        y = run_pass("row-power", q=q.astype(np.float32)).sums["y"]
+        q = orthonormalize(y)
+        del y
+    last = run_pass("row-gram", q=q)
+    u, s, to_v = factors_from_gram(last.sums["y"], last.sums["g"], rank)
+    v = run_pass("row-vectors", q=q, m=to_v).sums.get("v")
+    relative = error_from_identity(last.frobenius2, s)
+    error = {"log_relative_frobenius": max(relative, 0.0),
+             "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact in exact "
+                       "arithmetic for the projection A X X^T onto the texel-side basis "
+                       "X = A^T Q (Gram-orthonormalised) of the last row-side pass",
+             "resolution": IDENTITY_RESOLUTION,
+             "frobenius_norm": math.sqrt(last.frobenius2)}
+    if relative < IDENTITY_RESOLUTION:
+        error["note"] = (f"below the identity's resolution ({IDENTITY_RESOLUTION:g}) in floating "
+                         "point: an upper bound; --verify measures it directly")
+    return Factorization(u, s, v, error, {"sketch_columns": width})

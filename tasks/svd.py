@@ -176,6 +176,45 @@ def power_step(a: np.ndarray, x: np.ndarray) -> np.ndarray:
     return a.T @ inner
 
 
+def co_project(a: np.ndarray, q: np.ndarray, *, exact: bool = False) -> np.ndarray:
+    """A block's share ``a^T q`` (texels x l, float64) for its rows ``q`` of a row-side basis.
+
+    Float32 products (the block's rows make short sums), or with ``exact`` float64 ones: the
+    last pass of the row-side SVD forms a Gram matrix of these, which squares their rounding.
+    """
+    if exact:
+        return np.asarray(a, np.float64).T @ np.asarray(q, np.float64)
+    return (blas_ready(a).T @ blas_ready(q)).astype(np.float64)
+
+
+def row_product(a: np.ndarray, z: np.ndarray, *, exact: bool = False) -> np.ndarray:
+    """``a z`` (rows x l, float64) for a block and a texel-side share ``z`` of the same texels."""
+    if exact:
+        return np.asarray(a, np.float64) @ np.asarray(z, np.float64)
+    return project(a, z.astype(np.float32))
+
+
+def factors_from_gram(y: np.ndarray, gram: np.ndarray, rank: int
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``U``, ``S`` and the map to ``V`` from a row-side pass ``Z = A^T Q``, ``y = A Z``.
+
+    ``gram = Z^T Z = W diag(lambda) W^T``, so ``X = Z W lambda^(-1/2)`` is an orthonormal
+    texel-side basis and ``A X = y W lambda^(-1/2)``: with its small SVD ``P diag(s) R^T``,
+    ``A ~ A X X^T = P diag(s) (X R)^T`` as in :func:`factors_from_projection`. Returns ``U``,
+    ``S`` and ``M`` with ``V = Z M`` (the caller forms ``V`` tile by tile). Directions of ``Z``
+    with no energy (``lambda`` below ``1e-14`` of the largest: a rank-deficient matrix) are
+    left out, so their singular values are 0 and their columns of ``V`` are 0.
+    """
+    evals, w = np.linalg.eigh(np.asarray(gram, np.float64))
+    order = np.argsort(evals)[::-1]
+    evals, w = evals[order], w[:, order]
+    scale = np.zeros_like(w)
+    kept = evals > (evals[0] * 1e-14 if evals.size and evals[0] > 0 else np.inf)
+    scale[:, kept] = w[:, kept] / np.sqrt(evals[kept])
+    p, s, rt = np.linalg.svd(np.asarray(y, np.float64) @ scale, full_matrices=False)
+    return p[:, :rank], s[:rank], scale @ rt[:rank].T
+
+
 def orthonormalize(w: np.ndarray) -> np.ndarray:
     """Orthonormal basis of the columns of ``w`` (reduced Householder QR, float64).
 

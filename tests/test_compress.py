@@ -71,27 +71,31 @@ def _compress(btf, src, out, *args):
 SHAPE = (3, 16, 24, 32, 3)  # 144 rows x 768 texels
 
 
-def test_error_is_within_two_percent_of_the_optimum_for_fast_decaying_spectra(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_error_is_within_two_percent_of_the_optimum_for_fast_decaying_spectra(sketch, tmp_path,
+                                                                               btf):
     m, n = 3 * 16 * 3, 24 * 32
     s = 40 * np.exp(-np.arange(min(m, n)) / 6.0) + 1e-3
     store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
     a = store_matrix(store)
     exact = np.linalg.svd(a, compute_uv=False)
     for k in (5, 12, 20):
-        u, sv, v, attrs = _compress(btf, store, tmp_path / f"c{k}.zarr", "--rank", str(k),
-                                    "--power-iters", "2")
+        u, sv, v, attrs = _compress(btf, store, tmp_path / f"c{k}.zarr", "--sketch", sketch,
+                                    "--rank", str(k), "--power-iters", "2")
         approx = (u.reshape(m, k) * sv) @ v.reshape(n, k).T
         err = np.linalg.norm(a - approx)
         optimal = np.sqrt(np.sum(exact[k:] ** 2))
         assert err <= 1.02 * optimal, (k, err / optimal)
-        assert attrs["svd"]["passes"] == 3
+        assert attrs["svd"]["passes"] == {"texels": 3, "rows": 4}[sketch]
+        assert attrs["svd"]["sketch_side"] == sketch
         # the error stored from the identity is the true error
         rel = err / np.linalg.norm(a)
         assert attrs["error"]["log_relative_frobenius"] == pytest.approx(rel, rel=1e-3)
         assert np.allclose(sv, exact[:k], rtol=1e-3)
 
 
-def test_a_wrong_algorithm_would_fail_the_accuracy_test(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_a_wrong_algorithm_would_fail_the_accuracy_test(sketch, tmp_path, btf):
     # Without power iterations (Q=0) on a slowly decaying spectrum the error is clearly worse
     # than optimal: the tolerance above is not loose enough to pass a plain sketch.
     m, n = 144, 768
@@ -99,8 +103,8 @@ def test_a_wrong_algorithm_would_fail_the_accuracy_test(tmp_path, btf):
     store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
     a = store_matrix(store)
     exact = np.linalg.svd(a, compute_uv=False)
-    u, sv, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--rank", "10", "--power-iters",
-                            "0", "--oversample", "2")
+    u, sv, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--sketch", sketch, "--rank", "10",
+                            "--power-iters", "0", "--oversample", "2")
     err = np.linalg.norm(a - (u.reshape(m, 10) * sv) @ v.reshape(n, 10).T)
     assert err > 1.02 * np.sqrt(np.sum(exact[10:] ** 2))
 
@@ -112,7 +116,8 @@ def _orthonormal(q, tol=1e-5):
 
 @pytest.mark.parametrize("case", ["ill-conditioned", "rank-deficient", "constant layers",
                                   "zero texels", "hdr"])
-def test_factors_stay_finite_orthonormal_and_float32(tmp_path, btf, case):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_factors_stay_finite_orthonormal_and_float32(sketch, tmp_path, btf, case):
     m, n = 144, 768
     rng = np.random.default_rng(1)
     if case == "ill-conditioned":
@@ -128,10 +133,13 @@ def test_factors_stay_finite_orthonormal_and_float32(tmp_path, btf, case):
     else:  # radiance from 1e-6 to 1e6
         a = rng.uniform(np.log(1e-6 + EPS), np.log(1e6), (m, n)) * np.linspace(0, 1, n)
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
-    u, s, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--rank", "8")
+    u, s, v, _ = _compress(btf, store, tmp_path / "c.zarr", "--sketch", sketch, "--rank", "8")
     for f in (u, s, v):
         assert f.dtype == np.float32 and np.isfinite(f).all()
-    assert _orthonormal(u) and _orthonormal(v)
+    used = s > 0  # the row side leaves V's columns of singular values exactly 0 at 0
+    assert used.sum() >= (3 if case == "rank-deficient" else 8)
+    assert _orthonormal(u) and _orthonormal(v[..., used])
+    assert not np.any(v[..., ~used])
     assert np.all(np.diff(s) <= 0) and s.min() >= 0
     rebuilt = open_compressed(tmp_path / "c.zarr")[RADIANCE]
     assert rebuilt.dtype == np.float32 and np.isfinite(rebuilt.values).all()
@@ -144,7 +152,8 @@ def test_rank_larger_than_the_matrix_is_refused(tmp_path, btf):
     assert "min(144, 768) = 144" in result.err and not (tmp_path / "c.zarr").exists()
 
 
-def test_nan_and_negative_radiance_are_refused_with_count_and_place(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_path, btf):
     a = spectrum_matrix(144, 768, np.exp(-np.arange(10.0)))
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
     rad = zarr.open_array(store, path=RADIANCE, mode="r+")
@@ -152,15 +161,18 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(tmp_path, bt
     block[1, 5, 6, 2] = np.nan
     block[3, 0, 0, 0] = np.inf
     rad[1, 4:8] = block
-    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet")
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet",
+                 "--sketch", sketch)
     assert result.code == 1 and "2 NaN or Inf value(s)" in result.err
     assert "the first at view=1, light=5, y=5, x=6, channel=2" in result.err
     block[1, 5, 6, 2], block[3, 0, 0, 0] = -0.5, -0.25
     rad[1, 4:8] = block
-    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet")
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet",
+                 "--sketch", sketch)
     assert result.code == 1 and "2 negative value(s)" in result.err and "--clamp" in result.err
     assert not (tmp_path / "c.zarr").exists()
-    _, s, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "4", "--clamp")
+    _, s, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "4", "--clamp",
+                               "--sketch", sketch)
     assert np.isfinite(s).all() and attrs["transform"]["clamp"] is True
 
 
@@ -184,6 +196,49 @@ def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, 
     assert np.allclose(seeded[1], reference[1], rtol=1e-3)  # same spectrum, other test matrix
 
 
+@pytest.mark.parametrize("scheduler", ["threads", "processes",
+                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+def test_the_row_side_gives_the_same_bits_on_every_scheduler(tmp_path, btf, scheduler, request):
+    a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    args = ("--rank", "6", "--sketch", "rows", "--verify")
+    reference = _compress(btf, store, tmp_path / "ref.zarr", *args, "--scheduler", "synchronous")
+    if scheduler == "cluster":
+        scheduler = request.getfixturevalue("local_cluster")
+    other = _compress(btf, store, tmp_path / "other.zarr", *args, "--scheduler", scheduler)
+    for x, y in zip(reference[:3], other[:3], strict=True):
+        assert np.array_equal(x, y)
+    assert reference[3]["error"] == other[3]["error"]
+    assert reference[3]["svd"]["passes"] == 5  # 2 power, the projection, V, verification
+
+
+def test_auto_keeps_the_sketch_on_the_side_that_fits(tmp_path, btf, monkeypatch):
+    a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    *_, attrs = _compress(btf, store, tmp_path / "small.zarr", "--rank", "6")
+    assert attrs["svd"]["sketch_side"] == "texels"  # 768 texels: a tiny texel-side sketch
+    monkeypatch.setattr("pipeline.stages.compress.TEXEL_SIDE_BYTES", 1 << 10)
+    *_, attrs = _compress(btf, store, tmp_path / "wide.zarr", "--rank", "6")
+    assert attrs["svd"]["sketch_side"] == "rows" and attrs["svd"]["passes"] == 4
+    *_, attrs = _compress(btf, store, tmp_path / "exact.zarr", "--rank", "6", "--passes", "3")
+    assert attrs["svd"]["sketch_side"] == "texels"  # an exact pass count: the texel side
+    tall = store_from_log_matrix(tmp_path / "t.zarr", a[:, :48], (3, 16, 6, 8, 3))
+    *_, attrs = _compress(btf, tall, tmp_path / "tall.zarr", "--rank", "6")
+    assert attrs["svd"]["sketch_side"] == "texels"  # fewer texels than rows
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--sketch", "rows", "--passes", "1"), "--sketch: the one-view sketch"),
+    (("--sketch", "rows", "--passes", "3", "--power-iters", "2"), "take 4 passes"),
+    (("--sketch", "columns"), "must be auto, texels or rows"),
+])
+def test_bad_sketch_options_are_refused(tmp_path, btf, args, message):
+    store = store_from_log_matrix(tmp_path / "s.zarr", np.zeros((144, 768)), SHAPE)
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet", *args)
+    assert result.code != 0 and message in result.err, result.err
+    assert not (tmp_path / "c.zarr").exists()
+
+
 def test_one_pass_reports_an_honest_error_estimate(tmp_path, btf):
     m, n = 144, 768
     s = 30 * np.exp(-np.arange(min(m, n)) / 8.0)
@@ -199,11 +254,13 @@ def test_one_pass_reports_an_honest_error_estimate(tmp_path, btf):
     assert _orthonormal(u) and _orthonormal(v)
 
 
-def test_verify_reports_the_average_abrdf_rmse_of_paper_000(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_verify_reports_the_average_abrdf_rmse_of_paper_000(sketch, tmp_path, btf):
     a = spectrum_matrix(144, 768, 3 * np.exp(-np.arange(40) / 4.0))
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
-    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "5", "--verify")
-    assert attrs["svd"]["passes"] == 4
+    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--sketch", sketch,
+                               "--rank", "5", "--verify")
+    assert attrs["svd"]["passes"] == {"texels": 4, "rows": 5}[sketch]
     original = matrix_rows(zarr.open_array(store, path=RADIANCE)[:]).astype(np.float64)
     approx = np.exp((u.reshape(144, 5).astype(np.float64) * s) @ v.reshape(768, 5).T) - EPS
     expected = np.mean(np.sqrt(np.sum((original - approx) ** 2, axis=0) / 144))  # eq. (11)
@@ -341,24 +398,28 @@ def test_the_krylov_projection_beats_plain_subspace_iteration(tmp_path, btf):
     assert err <= 1.01 * optimal, err / optimal
 
 
-def test_the_identity_floor_is_reported_and_verify_measures_below_it(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_the_identity_floor_is_reported_and_verify_measures_below_it(sketch, tmp_path, btf):
     # A rank-3 matrix around a typical log-radiance level: the rank-8 error is ~1e-7, far
     # below what the identity can resolve in floating point.
     m, n = 144, 768
     a = spectrum_matrix(m, n, np.array([30.0, 10.0, 3.0])) - 3.0
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
-    _, _, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "8", "--verify")
+    _, _, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--sketch", sketch,
+                               "--rank", "8", "--verify")
     error = attrs["error"]
     assert error["log_relative_frobenius"] <= error["resolution"] and "note" in error
     assert error["log_relative_frobenius_measured"] < 1e-5
 
 
-def test_verify_measures_the_log_domain_error(tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_verify_measures_the_log_domain_error(sketch, tmp_path, btf):
     m, n = 144, 768
     store = store_from_log_matrix(tmp_path / "s.zarr",
                                   spectrum_matrix(m, n, 5 * np.exp(-np.arange(60) / 6.0)), SHAPE)
     a = store_matrix(store)
-    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "6", "--verify")
+    u, s, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--sketch", sketch,
+                               "--rank", "6", "--verify")
     true = np.linalg.norm(a - (u.reshape(m, 6).astype(np.float64) * s) @ v.reshape(n, 6).T)
     measured = attrs["error"]["log_relative_frobenius_measured"] * attrs["error"][
         "frobenius_norm"]

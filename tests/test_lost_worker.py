@@ -151,9 +151,6 @@ def test_compress_survives_a_lost_worker(tmp_path, two_workers):
                          ("U", "S", "V"))
 
 
-@pytest.mark.xfail(strict=False, reason="known bug: a worker lost while the client scatters the "
-                   "quilting plan to it fails the run with CommClosedError (seen once in CI); "
-                   "a kill at any other moment is survived")
 def test_quilt_application_survives_a_lost_worker(tmp_path, two_workers):
     address, workers = two_workers
     src = generate_store(tmp_path / "src.zarr", *GENERATE)

@@ -25,12 +25,10 @@ from tasks.svd import (
     combine_parts,
     frobenius2,
     log_rows,
-    log_transform,
     matrix_rows,
     power_step,
     project,
     sketch_rows,
-    verification,
 )
 
 ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
@@ -91,26 +89,31 @@ def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int
             + FAN_IN * 2 * share}
 
 
-def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,
-               clamp: bool = False) -> tuple[np.ndarray, BlockCheck]:
+def read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,
+              clamp: bool = False, region: tuple[slice, slice] | None = None
+              ) -> tuple[np.ndarray, BlockCheck]:
     """The block's BTF matrix rows (float32), range-reduced if ``eps`` is given.
 
-    With ``check``, also what the radiance holds besides good values (first pass only).
+    ``region`` restricts the columns to a (y, x) window of texels (default: all). With
+    ``check``, also what the radiance holds besides good values (first pass only).
     """
     import zarr
 
     array = zarr.open_array(store, path=RADIANCE, mode="r")
     nc = array.shape[-1]
-    rows = np.empty((block.rows, array.shape[2] * array.shape[3]), np.float32)
+    ys, xs = region or (slice(0, array.shape[2]), slice(0, array.shape[3]))
+    texels = (ys.stop - ys.start) * (xs.stop - xs.start)
+    rows = np.empty((block.rows, texels), np.float32)
     found, r = BlockCheck(), 0
     for v, l0, l1 in block.units:
         try:
-            layers = array[v : v + 1, l0:l1]
+            layers = array[v : v + 1, l0:l1, ys, xs]
         except Exception as exc:  # re-raised with the unit's key, whatever the codec raised
-            raise BTFError(f"{store}: variable 'radiance', block [view {v}, lights {l0}:{l1}] "
-                           f"is unreadable: {type(exc).__name__}: {exc}") from None
+            raise BTFError(f"{store}: variable 'radiance', block [view {v}, lights {l0}:{l1}, "
+                           f"y {ys.start}:{ys.stop}, x {xs.start}:{xs.stop}] is unreadable: "
+                           f"{type(exc).__name__}: {exc}") from None
         if check:
-            found = found.merge(check_block(layers, (v, l0, 0, 0, 0)))
+            found = found.merge(check_block(layers, (v, l0, ys.start, xs.start, 0)))
         n = (l1 - l0) * nc
         if eps is None:
             rows[r : r + n] = matrix_rows(layers)
@@ -120,13 +123,14 @@ def _read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = 
     return rows, found
 
 
-def _transformed(store: str, block: RowBlock, *, eps: float, clamp: bool, first: bool,
-                 norm: bool) -> tuple[np.ndarray | None, BlockCheck, float]:
+def transformed_rows(store: str, block: RowBlock, *, eps: float, clamp: bool, first: bool,
+                     norm: bool, region: tuple[slice, slice] | None = None
+                     ) -> tuple[np.ndarray | None, BlockCheck, float]:
     """Range-reduced rows of a block; None if the first pass finds data that must be refused.
 
     Data is checked in the first pass only (the caller stops after it if anything is wrong).
     """
-    a, check = _read_rows(store, block, check=first, eps=eps, clamp=clamp)
+    a, check = read_rows(store, block, check=first, eps=eps, clamp=clamp, region=region)
     if check.nonfinite or (check.negative and not clamp):
         return None, check, 0.0
     return a, check, (frobenius2(a) if norm else 0.0)
@@ -134,21 +138,21 @@ def _transformed(store: str, block: RowBlock, *, eps: float, clamp: bool, first:
 
 def _power_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
                 first: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=False)
+    a, check, f2 = transformed_rows(store, block, eps=eps, clamp=clamp, first=first, norm=False)
     w = power_step(a, x) if a is not None else np.zeros_like(x)
     return PassPart({"w": w}, {}, check, f2)
 
 
 def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, clamp: bool,
                   first: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
+    a, check, f2 = transformed_rows(store, block, eps=eps, clamp=clamp, first=first, norm=True)
     z = project(a, x) if a is not None else np.zeros((block.rows, x.shape[1]))
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
 def _sketch_task(store: str, block: RowBlock, omega, phi, psi_rows, *, eps: float,
                  clamp: bool, first: bool) -> PassPart:
-    a, check, f2 = _transformed(store, block, eps=eps, clamp=clamp, first=first, norm=True)
+    a, check, f2 = transformed_rows(store, block, eps=eps, clamp=clamp, first=first, norm=True)
     if a is None:
         y = np.zeros((block.rows, omega.shape[1]))
         z = np.zeros((block.rows, phi.shape[1]))
@@ -156,17 +160,6 @@ def _sketch_task(store: str, block: RowBlock, omega, phi, psi_rows, *, eps: floa
     else:
         y, z, w = sketch_rows(a, omega, phi, psi_rows)
     return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
-
-
-def _verify_task(store: str, block: RowBlock, u, s, v, *, eps: float, clamp: bool,
-                 first: bool) -> PassPart:
-    raw, check = _read_rows(store, block, check=first)
-    if clamp:
-        np.maximum(raw, 0.0, out=raw)
-    log_a = log_transform(raw, eps=eps)  # a copy: raw stays linear for eq. (11)
-    linear, log_residual = verification(raw, log_a, u[block.row0 : block.row0 + block.rows], s,
-                                        v, eps=eps)
-    return PassPart({"sse": linear}, {}, check, log_residual)
 
 
 def tree_sum(parts: list) -> Any:
@@ -180,10 +173,9 @@ def tree_sum(parts: list) -> Any:
     return level[0]
 
 
-# the pass kinds of tasks.rsvd, plus the verification pass: (task, arguments sliced by rows)
+# the texel-side pass kinds of tasks.rsvd: (task, arguments read whole, sliced by rows)
 _TASKS = {"power": (_power_task, ("x",), ()), "project": (_project_task, ("x",), ()),
-          "sketch": (_sketch_task, ("omega", "phi"), ("psi",)),
-          "verify": (_verify_task, ("u", "s", "v"), ())}
+          "sketch": (_sketch_task, ("omega", "phi"), ("psi",))}
 
 
 def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[str, Any],

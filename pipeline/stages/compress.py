@@ -1,13 +1,19 @@
 """``btf compress``: out-of-core randomized SVD of a radiance store (paper 000, section 2.1).
 
-The store is streamed in row blocks of the BTF matrix (:mod:`pipeline.graphs.row_passes`), one
-pass at a time as the driver :func:`tasks.rsvd.randomized_svd` asks for them. Between passes
-only the sketch (texels x (rank + oversampling)) lives on the client, where it is
-re-orthonormalised. Memory is therefore a few row blocks plus a few sketches, whatever the size
-of the store.
+The store is streamed one pass at a time as the driver (:mod:`tasks.rsvd`) asks for passes;
+between passes only a sketch lives on the client, where it is re-orthonormalised. The sketch is
+kept on one side of the BTF matrix (``--sketch``):
 
-Passes over the data: ``power_iters + 1`` (fused ``A^T A`` passes, then the projection), or 1
-with ``--passes 1`` (a one-view sketch), plus one with ``--verify``.
+- texels (:func:`tasks.rsvd.randomized_svd`): texels x (rank + oversampling), streamed in row
+  blocks (:mod:`pipeline.graphs.row_passes`); ``power_iters + 1`` passes, or 1 with
+  ``--passes 1`` (a one-view sketch). Client memory grows with the texels.
+- rows (:func:`tasks.rsvd.randomized_svd_rows`): rows x (rank + oversampling), streamed in
+  texel tiles (:mod:`pipeline.graphs.tile_passes`), ``V`` written tile by tile;
+  ``power_iters + 2`` passes. Client memory grows with the rows only.
+
+``auto`` keeps the texel side (one pass fewer) while its sketches stay under
+:data:`TEXEL_SIDE_BYTES`, and takes the row side beyond that when there are fewer rows than
+texels. ``--verify`` adds one pass, by texel tiles, against the stored factors.
 """
 
 from __future__ import annotations
@@ -28,14 +34,23 @@ from pipeline.graphs.row_passes import (
     plan_row_blocks,
     raise_on_bad_data,
 )
+from pipeline.graphs.tile_passes import (
+    TexelTile,
+    plan_tile_rows,
+    plan_tiles,
+    tile_memory,
+    tile_pass_graph,
+)
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, location, open_group, read_channels, read_directions
 from pipeline.stores.compressed import create_compressed_store
 from pipeline.stores.radiance import check_radiance
-from tasks.rsvd import randomized_svd
-from tasks.svd import PassPart, average_abrdf_rmse
+from tasks.rsvd import SIDES, randomized_svd, randomized_svd_rows
+from tasks.svd import PassPart
+
+TEXEL_SIDE_BYTES = 256 << 20  # auto: the texel side while its client sketches stay below this
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,8 +69,15 @@ class CompressParams:
         None, metavar="Q", help="power iterations, each one fused pass over the data "
                                 "(default: 2, i.e. 3 passes)")
     passes: str = option("auto", metavar="auto|N", numbers_as_text=True,
-                         help="passes over the data: auto (power iterations + 1), 1 (a one-view "
-                              "sketch, for stores too large to read twice) or N >= 2")
+                         help="passes over the data: auto (power iterations + 1, or + 2 with the "
+                              "row-side sketch), 1 (a one-view sketch, for stores too large to "
+                              "read twice; texel side only) or N >= 2")
+    sketch: str = option("auto", metavar="auto|texels|rows",
+                         help="which side of the BTF matrix the sketches live on: texels "
+                              "(client memory grows with the texels), rows (it grows with the "
+                              "textures only; one pass more) or auto (texels while that stays "
+                              "under 256 MiB, else the smaller side; an explicit --passes "
+                              "keeps the texel side)")
     eps: float = option(1e-3, help="range reduction log(radiance + eps)")
     seed: int = option(0, metavar="S", help="seed of the random test matrices")
     clamp: bool = option(False, help="clamp negative radiance to 0 instead of refusing it")
@@ -73,16 +95,22 @@ class CompressParams:
         if not self.eps > 0:
             raise ParamError("eps", f"must be positive (it keeps log finite), got {self.eps}")
         check_seed(self.seed)
+        if self.sketch not in ("auto", *SIDES):
+            raise ParamError("sketch", f"must be auto, texels or rows, got {self.sketch!r}")
+        if self.sketch == "rows" and self.passes == "1":
+            raise ParamError("sketch", "the one-view sketch (--passes 1) keeps its sketches on "
+                                       "the texel side; use --sketch texels or auto")
         if self.passes != "auto":
             if not self.passes.isdigit() or int(self.passes) < 1:
                 raise ParamError("passes", f"must be auto or a positive integer, got "
                                            f"{self.passes!r}")
             if int(self.passes) == 1 and self.power_iters:
                 raise ParamError("power_iters", "cannot be combined with --passes 1")
+            more = 2 if self.sketch == "rows" else 1  # the projection (and the V pass)
             if (int(self.passes) > 1 and self.power_iters is not None
-                    and self.power_iters != int(self.passes) - 1):
+                    and self.power_iters != int(self.passes) - more):
                 raise ParamError("power_iters", f"{self.power_iters} power iterations take "
-                                                f"{self.power_iters + 1} passes, not "
+                                                f"{self.power_iters + more} passes, not "
                                                 f"{self.passes}")
 
     @property
@@ -90,12 +118,20 @@ class CompressParams:
         """Whether to use the one-view sketch."""
         return self.passes == "1"
 
-    @property
-    def iterations(self) -> int:
-        """Power iterations (fused passes before the projection pass)."""
+    def iterations(self, side: str = "texels") -> int:
+        """Power iterations: passes before the projection pass (and the V pass on the rows)."""
         if self.passes != "auto":
-            return max(int(self.passes) - 1, 0)
+            return max(int(self.passes) - (2 if side == "rows" else 1), 0)
         return 2 if self.power_iters is None else self.power_iters
+
+    def side(self, rows: int, texels: int) -> str:
+        """The side of the ``rows x texels`` BTF matrix the sketches live on."""
+        if self.sketch != "auto":
+            return self.sketch
+        if self.passes != "auto" or texels <= rows:  # an exact pass count means the texel side
+            return "texels"
+        return "texels" if 6 * 8 * texels * (self.rank + self.extra) <= TEXEL_SIDE_BYTES \
+            else "rows"
 
     @property
     def extra(self) -> int:
@@ -106,27 +142,38 @@ class CompressParams:
 
 
 class _Passes:
-    """The ``run_pass`` of :func:`tasks.rsvd.randomized_svd`: one pass over the store each call.
+    """The ``run_pass`` of :mod:`tasks.rsvd`: one pass over the store each call.
 
     Counts the passes, logs them, and stops after the first if the data must be refused.
+    Texel-side kinds run over row blocks, row-side kinds and the verification over texel tiles.
     """
 
-    def __init__(self, store: str, blocks: list[RowBlock], params: CompressParams,
+    def __init__(self, store: str, blocks: list[RowBlock], tiles: list[TexelTile],
+                 tile_rows: list[RowBlock], out: str, planned: int, params: CompressParams,
                  session: Session):
         self.store, self.blocks, self.params, self.session = store, blocks, params, session
+        self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
         self.count = 0
-        self.planned = (1 if params.one_pass else params.iterations + 1) + params.verify
 
     def __call__(self, kind: str, **arrays: np.ndarray) -> PassPart:
         self.count += 1
         what = {"power": f"power iteration {self.count}", "project": "projection",
-                "sketch": "one-view sketch", "verify": "verification"}[kind]
+                "sketch": "one-view sketch", "verify": "verification",
+                "row-power": f"power iteration {self.count}", "row-gram": "projection",
+                "row-vectors": "eigentextures"}[kind]
+        by_tiles = kind.startswith("row-") or kind == "verify"
         self.session.log(f"compress: pass {self.count}/{self.planned} ({what}, "
-                         f"{len(self.blocks)} row blocks)")
+                         + (f"{len(self.tiles)} texel tiles)" if by_tiles
+                            else f"{len(self.blocks)} row blocks)"))
         by_rows = {k: v for k, v in arrays.items() if k == "psi"}
         shared = {k: self.session.share(v) for k, v in arrays.items() if k not in by_rows}
-        graph = pass_graph(kind, self.store, self.blocks, shared=shared, by_rows=by_rows,
-                           eps=self.params.eps, clamp=self.params.clamp, first=self.count == 1)
+        common = {"eps": self.params.eps, "clamp": self.params.clamp, "first": self.count == 1}
+        if by_tiles:
+            graph = tile_pass_graph(kind, self.store, self.tiles, self.tile_rows, shared=shared,
+                                    out=self.out, **common)
+        else:
+            graph = pass_graph(kind, self.store, self.blocks, shared=shared, by_rows=by_rows,
+                               **common)
         (result,) = self.session.compute(graph, reads=True)
         if self.count == 1:
             raise_on_bad_data(result.check, self.params.store, self.params.clamp)
@@ -144,9 +191,13 @@ def compress(params: CompressParams, session: Session) -> Path:
         raise BTFError(f"{params.store}: --rank {params.rank} is larger than the BTF matrix "
                        f"allows: min(rows, columns) = min({m}, {n}) = {min(m, n)}")
     extra = min(params.extra, min(m, n) - params.rank)  # the sketch cannot outgrow the matrix
-    dir_chunk = group[RADIANCE].chunks[1]
+    side = params.side(m, n)
+    iterations = params.iterations(side)
+    array = group[RADIANCE]
+    dir_chunk, chunk = array.chunks[1], array.chunks[2]
     blocks = plan_row_blocks(shape, dir_chunk)
-    passes = _Passes(location(params.store), blocks, params, session)
+    v_chunk = (min(chunk, ny), min(chunk, nx))  # the V chunks of create_compressed_store
+    tiles, tile_rows = plan_tiles(ny, nx, v_chunk), plan_tile_rows(shape, dir_chunk, v_chunk)
     source_attrs = dict(group.attrs)
     attrs = {
         "source": "compress",
@@ -160,47 +211,61 @@ def compress(params: CompressParams, session: Session) -> Path:
         if key in source_attrs:
             attrs[f"source_{key}"] = source_attrs[key]
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
-                f"rank {params.rank} -> {params.out}")
-    memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra,
-                             one_pass=params.one_pass, workers=(os.cpu_count() or 1) + 1)
+                f"rank {params.rank}, sketches on the {side} side -> {params.out}")
+    workers = (os.cpu_count() or 1) + 1
+    if side == "rows":
+        width = params.rank + extra
+        client = 8 * 6 * m * width
+        task = tile_memory(m, tiles[0].texels, width, tile_rows)
+        memory = {"client": client, "task": task, "total": client + workers * task}
+    else:
+        memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra,
+                                 one_pass=params.one_pass, workers=workers)
     session.log(f"compress: expected peak memory ~{memory['total'] / 2**30:.2f} GiB "
                 f"(sketches {memory['client'] / 2**30:.2f} GiB, each task "
                 f"{memory['task'] / 2**30:.2f} GiB)")
+    planned = (1 if params.one_pass else iterations + (2 if side == "rows" else 1)) \
+        + params.verify
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
             session.blas_pinned_in_tasks():
-        f = randomized_svd(passes, rows=m, texels=n, rank=params.rank, extra=extra,
-                           iterations=params.iterations, seed=params.seed,
-                           one_pass=params.one_pass)
-        u, s, v, error = f.u, f.s, f.v, f.error
-        attrs["svd"] = {"rank": params.rank, "oversample": extra, **f.widths,
-                        "power_iterations": 0 if params.one_pass else params.iterations,
-                        "passes": passes.count, "seed": params.seed,
-                        "method": "one-view sketch" if params.one_pass else
-                                  "randomized SVD with fused power iterations, projected on "
-                                  "the block Krylov space of the last two iterates"}
-        attrs["error"] = error
+        out = create_compressed_store(
+            tmp, directions=read_directions(group), channels=read_channels(group),
+            ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
+        passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),
+                         planned, params, session)
+        if side == "rows":
+            f = randomized_svd_rows(passes, rows=m, texels=n, rank=params.rank, extra=extra,
+                                    iterations=iterations, seed=params.seed)
+        else:
+            f = randomized_svd(passes, rows=m, texels=n, rank=params.rank, extra=extra,
+                               iterations=iterations, seed=params.seed,
+                               one_pass=params.one_pass)
+            out["V"][...] = f.v.reshape(ny, nx, params.rank).astype(np.float32)
+        u, s, error = f.u.astype(np.float32), f.s.astype(np.float32), f.error
+        out["U"][...] = u.reshape(nv, nl, nc, params.rank)
+        out["S"][...] = s
+        svd = {"rank": params.rank, "oversample": extra, **f.widths, "sketch_side": side,
+               "power_iterations": 0 if params.one_pass else iterations,
+               "passes": passes.count, "seed": params.seed,
+               "method": "one-view sketch" if params.one_pass else
+                         "randomized SVD with fused power iterations, projected on "
+                         "the block Krylov space of the last two iterates" if side == "texels"
+                         else "randomized SVD with row-side fused power iterations (A A^T Q), "
+                              "projected on the Gram-orthonormalised A^T Q of the last"}
         if params.verify:
-            part = passes("verify", u=u.astype(np.float32), s=s.astype(np.float32),
-                          v=v.astype(np.float32))
-            attrs["error"]["abrdf_rmse"] = average_abrdf_rmse(part.sums["sse"], m)
-            norm = attrs["error"]["frobenius_norm"]
-            attrs["error"]["log_relative_frobenius_measured"] = (
+            part = passes("verify", u=u, s=s)
+            error["abrdf_rmse"] = float(part.sums["rmse"][0]) / n
+            norm = error["frobenius_norm"]
+            error["log_relative_frobenius_measured"] = (
                 math.sqrt(part.frobenius2) / norm if norm else 0.0)
-            attrs["error"]["abrdf_rmse_definition"] = (
+            error["abrdf_rmse_definition"] = (
                 "paper 000 eq. 11: mean over texels of the RMS difference of the texel's "
                 "ABRDF (all view x light x channel values), linear radiance")
-            attrs["svd"]["passes"] = passes.count
-        attrs["singular_values_energy"] = float(np.sum(s**2))
-        out = create_compressed_store(
-            tmp, directions=read_directions(group),
-            channels=read_channels(group),
-            ny=ny, nx=nx, rank=params.rank, chunk=group[RADIANCE].chunks[2],
-            dir_chunk=dir_chunk, attrs=attrs)
-        out["U"][...] = u.reshape(nv, nl, nc, params.rank).astype(np.float32)
-        out["S"][...] = s.astype(np.float32)
-        out["V"][...] = v.reshape(ny, nx, params.rank).astype(np.float32)
+            svd["passes"] = passes.count
+        out.attrs.update({"svd": svd, "error": error,
+                          "singular_values_energy": float(np.sum(f.s**2))})
         session.log(f"compress: relative error in the log domain "
                     f"{error['log_relative_frobenius']:.4g}"
-                    + (f", average ABRDF RMSE {attrs['error']['abrdf_rmse']:.4g}"
+                    + (f", average ABRDF RMSE {error['abrdf_rmse']:.4g}"
                        if params.verify else ""))
     return Path(params.out)

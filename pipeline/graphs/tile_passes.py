@@ -1,0 +1,180 @@
+"""Passes over a radiance store's BTF matrix by texel tiles (compression of wide matrices).
+
+A texel tile is one chunk of the output's eigentextures ``V`` (so a task writing its tile of
+``V`` writes whole chunks: no two tasks share a file). One task per tile reads the tile's
+columns of the BTF matrix, row block by row block (each read one stored chunk, or a few), and
+returns its share of the pass (:class:`tasks.svd.PassPart`), summed by the same fixed tree as
+the row-block passes. A tile's texel-side products (``A_t^T Q``, tile texels x l) never leave
+its task, so nothing the size of the texels is ever gathered: memory is a few row blocks of a
+tile, a tile's products and the row-side sketch (rows x l), whatever the number of texels.
+
+The row-side passes read each tile's rows twice (``Z = A_t^T Q``, then ``A_t Z``) unless the
+tile's whole column fits in :data:`TILE_CACHE_BYTES`, in which case it is kept between the two.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from pipeline.graphs.row_passes import (
+    ROW_BLOCK_BYTES,
+    RowBlock,
+    plan_row_blocks,
+    read_rows,
+    transformed_rows,
+    tree_sum,
+)
+from tasks.svd import (
+    BlockCheck,
+    PassPart,
+    co_project,
+    log_transform,
+    row_product,
+    verification,
+)
+
+TILE_CACHE_BYTES = 256 << 20  # a tile's whole column of the matrix is kept if it fits
+
+
+@dataclasses.dataclass(frozen=True)
+class TexelTile:
+    """A (y, x) window of texels: one chunk of ``V``."""
+
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+
+    @property
+    def region(self) -> tuple[slice, slice]:
+        """The (y, x) slices of the tile."""
+        return slice(self.y0, self.y1), slice(self.x0, self.x1)
+
+    @property
+    def texels(self) -> int:
+        """Texels in the tile."""
+        return (self.y1 - self.y0) * (self.x1 - self.x0)
+
+
+def plan_tiles(ny: int, nx: int, chunk: tuple[int, int]) -> list[TexelTile]:
+    """The tiles of a ``ny x nx`` texture in ``chunk``-sized windows, in C order."""
+    cy, cx = chunk
+    return [TexelTile(y, min(y + cy, ny), x, min(x + cx, nx))
+            for y in range(0, ny, cy) for x in range(0, nx, cx)]
+
+
+def plan_tile_rows(shape: tuple[int, ...], dir_chunk: int, tile: tuple[int, int]
+                   ) -> list[RowBlock]:
+    """Row blocks of one tile's column: whole stored light chunks, within the block budget."""
+    nv, nl, _, _, nc = shape
+    return plan_row_blocks((nv, nl, *tile, nc), dir_chunk, budget=ROW_BLOCK_BYTES, minimum=1)
+
+
+def _row_power_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np.ndarray, *,
+                    exact: bool, eps: float, clamp: bool, first: bool) -> PassPart:
+    """A tile's share ``A_t (A_t^T q)`` of a row-side pass (with ``exact``: and ``Z^T Z``)."""
+    rows = sum(b.rows for b in blocks)
+    keep = rows * tile.texels * 4 <= TILE_CACHE_BYTES
+    z = np.zeros((tile.texels, q.shape[1]))
+    cached, check, f2 = [], BlockCheck(), 0.0
+    for b in blocks:
+        a, found, f = transformed_rows(store, b, eps=eps, clamp=clamp, first=first,
+                                       norm=exact, region=tile.region)
+        check = check.merge(found)
+        if a is None:  # data to refuse: the caller raises after this pass
+            return PassPart({"y": np.zeros((rows, q.shape[1]))} | (
+                {"g": np.zeros((q.shape[1],) * 2)} if exact else {}), {}, check, 0.0)
+        f2 += f
+        z += co_project(a, q[b.row0 : b.row0 + b.rows], exact=exact)
+        cached.append(a if keep else None)
+    y = np.empty((rows, q.shape[1]))
+    for b, a in zip(blocks, cached, strict=True):
+        if a is None:
+            a, _, _ = transformed_rows(store, b, eps=eps, clamp=clamp, first=False, norm=False,
+                                       region=tile.region)
+        y[b.row0 : b.row0 + b.rows] = row_product(a, z, exact=exact)
+    sums = {"y": y}
+    if exact:
+        sums["g"] = z.T @ z
+    return PassPart(sums, {}, check, f2)
+
+
+def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np.ndarray,
+                      to_v: np.ndarray, out: str, *, eps: float, clamp: bool,
+                      first: bool) -> PassPart:
+    """Write the tile's eigentextures ``V_t = A_t^T q M`` (float64 products) to ``out``."""
+    import zarr
+
+    z = np.zeros((tile.texels, q.shape[1]))
+    for b in blocks:
+        a, _, _ = transformed_rows(store, b, eps=eps, clamp=clamp, first=False, norm=False,
+                                   region=tile.region)
+        z += co_project(a, q[b.row0 : b.row0 + b.rows], exact=True)
+    v = (z @ to_v).astype(np.float32)
+    target = zarr.open_array(out, path="V", mode="r+")
+    target[tile.region] = v.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, -1)
+    return PassPart({}, {}, BlockCheck(), 0.0)
+
+
+def _verify_task(store: str, tile: TexelTile, blocks: list[RowBlock], u: np.ndarray,
+                 s: np.ndarray, out: str, *, eps: float, clamp: bool, first: bool) -> PassPart:
+    """The tile's sum of per-texel ABRDF RMSEs (eq. 11) and squared log residual.
+
+    ``V`` is read back from the output being written (``out``), so the figures are those of
+    the stored, float32 factors.
+    """
+    import zarr
+
+    v = zarr.open_array(out, path="V", mode="r")[tile.region]
+    v = v.reshape(tile.texels, v.shape[-1])
+    sse = np.zeros(tile.texels)
+    residual, rows = 0.0, 0
+    for b in blocks:
+        raw, _ = read_rows(store, b, check=False, region=tile.region)
+        if clamp:
+            np.maximum(raw, 0.0, out=raw)
+        log_a = log_transform(raw, eps=eps)  # a copy: raw stays linear for eq. (11)
+        linear, log_residual = verification(raw, log_a, u[b.row0 : b.row0 + b.rows], s, v,
+                                            eps=eps)
+        sse += linear
+        residual += log_residual
+        rows += b.rows
+    return PassPart({"rmse": np.array([np.sum(np.sqrt(sse / rows))])}, {}, BlockCheck(),
+                    residual)
+
+
+# pass kind: (task, arguments every task reads whole, whether it takes the output's path)
+_TASKS = {"row-power": (_row_power_task, ("q",), False),
+          "row-gram": (_row_power_task, ("q",), False),
+          "row-vectors": (_row_vectors_task, ("q", "m"), True),
+          "verify": (_verify_task, ("u", "s"), True)}
+
+
+def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[RowBlock], *,
+                    shared: dict, out: str | None, eps: float, clamp: bool, first: bool):
+    """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the texel tiles.
+
+    ``blocks`` are the row blocks of a full tile (:func:`plan_tile_rows`); ``shared`` are
+    handles of the arrays every task reads whole; ``out`` the compressed store being written
+    (its ``V`` for ``row-vectors`` and ``verify``).
+    """
+    import dask
+
+    task, whole, writes = _TASKS[kind]
+    extra = {"exact": kind == "row-gram"} if kind.startswith("row-") and kind != "row-vectors" \
+        else {}
+    parts = [dask.delayed(task, pure=True)(
+                 store, tile, blocks, *(shared[name] for name in whole),
+                 *((out,) if writes else ()), eps=eps, clamp=clamp, first=first, **extra)
+             for tile in tiles]
+    return tree_sum(parts)
+
+
+def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock]) -> int:
+    """Bytes one row-side task holds at most: a row block or the cached column, and its sums."""
+    column = rows * tile_texels * 4
+    block = max(b.rows for b in blocks) * tile_texels * 4
+    held = column if column <= TILE_CACHE_BYTES else block
+    return held + 2 * block + 8 * (2 * tile_texels * width + rows * width)
