@@ -13,7 +13,7 @@ from pathlib import Path
 
 from benchmarks.harness import to_json
 
-SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff")
+SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):

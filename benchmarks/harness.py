@@ -100,3 +100,32 @@ def machine() -> dict:
 def to_json(result: dict) -> str:
     """JSON of a result."""
     return json.dumps(result, indent=2, default=str)
+
+
+def run_until(argv: list, log: Path, *, mark: str, kill_at: float | None = None
+              ) -> tuple[bool, float, float]:
+    """Run ``argv`` (stderr to ``log``), timing from when ``mark`` shows in its log.
+
+    With ``kill_at``, SIGKILL it that many seconds after ``mark`` showed. Returns whether it
+    was killed (False: it finished first), when ``mark`` showed and when it ended (seconds from
+    the start). A run that fails raises ``RuntimeError`` with its log.
+    """
+    import signal
+
+    start = time.perf_counter()
+    seen = None
+    with Path(log).open("w") as err:
+        proc = subprocess.Popen([str(a) for a in argv], stdout=subprocess.DEVNULL, stderr=err)
+        while proc.poll() is None:
+            now = time.perf_counter() - start
+            if seen is None and mark in Path(log).read_text():
+                seen = now
+            if seen is not None and kill_at is not None and now >= seen + kill_at:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+                return True, seen, time.perf_counter() - start
+            time.sleep(0.01)
+    end = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(map(str, argv))} failed:\n{Path(log).read_text()}")
+    return False, end if seen is None else seen, end

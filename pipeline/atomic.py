@@ -6,10 +6,16 @@ tasks first, see :meth:`pipeline.session.Session.compute`). An existing output i
 with ``overwrite``, only once the new one is complete, and only if it is the same kind of thing
 (file or folder) and, for a folder, something btf wrote: a store with btf metadata or a folder of
 exported layers. A good output is never lost: if the final swap fails, it is put back.
+
+With ``resume`` (the stage's provenance record) the partial output is named after that record,
+``.NAME.resume-KEY``, so a rerun of the same command after the stage was killed (``kill -9``,
+the out-of-memory killer, a lost machine) continues in it (:mod:`pipeline.resume`); partial
+outputs of the same NAME made with other parameters are removed then.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -19,6 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pipeline.errors import BTFError
+from pipeline.resume import DONE, Progress
 
 _EXPORTED = {".exr", ".png", ".csv"}
 
@@ -30,10 +37,26 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _sibling(path: Path, tag: str) -> Path:
+def _sibling(path: Path, tag: str, key: str | None = None) -> Path:
     suffix = "".join(path.suffixes[-1:])
     stem = path.name[: len(path.name) - len(suffix)] if suffix else path.name
-    return path.with_name(f".{stem}.{tag}-{uuid.uuid4().hex[:8]}{suffix}")
+    return path.with_name(f".{stem}.{tag}-{key or uuid.uuid4().hex[:8]}{suffix}")
+
+
+def _resumable(path: Path, record: dict) -> Path:
+    """The partial output of ``path`` for the provenance ``record``; stale ones removed.
+
+    A partial output whose skeleton was never completed (killed while it was being created)
+    is started over.
+    """
+    key = hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()
+    tmp = _sibling(path, "resume", key[:16])
+    for stale in path.parent.glob(_sibling(path, "resume", "*").name):
+        if stale != tmp:
+            _remove(stale)
+    if tmp.exists() and not Progress(tmp).created:
+        _remove(tmp)
+    return tmp
 
 
 def written_by_btf(path: Path) -> bool:
@@ -80,8 +103,8 @@ def consolidate(store: Path) -> None:
 
 
 @contextmanager
-def atomic_output(path: str | os.PathLike, *, directory: bool,
-                  overwrite: bool = False) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool = False,
+                  resume: dict | None = None) -> Iterator[Path]:
     """Yield a temporary path to write to; move it to ``path`` when the block succeeds.
 
     Parameters
@@ -92,6 +115,9 @@ def atomic_output(path: str | os.PathLike, *, directory: bool,
         Whether the output is a folder (a store, exported layers) rather than a file.
     overwrite
         Replace an existing output (of the same kind, written by btf).
+    resume
+        The stage's provenance record: name the partial output after it, so that a rerun of
+        a killed stage continues where it stopped (see the module).
 
     Raises
     ------
@@ -105,7 +131,7 @@ def atomic_output(path: str | os.PathLike, *, directory: bool,
             raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
         _check_replaceable(path, shown, directory)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _sibling(path, "partial")
+    tmp = _sibling(path, "partial") if resume is None else _resumable(path, resume)
     try:
         yield tmp
     except BaseException as exc:
@@ -116,6 +142,8 @@ def atomic_output(path: str | os.PathLike, *, directory: bool,
         raise
     if not tmp.exists():
         raise BTFError(f"{shown}: the stage finished without writing its output")
+    if directory:
+        _remove(tmp / DONE)
     if directory and (tmp / "zarr.json").is_file():
         consolidate(tmp)
     if not (path.exists() or path.is_symlink()):

@@ -16,7 +16,8 @@ def generate_store(path: Path, *args: str) -> Path:
 def no_partial_outputs(path: Path) -> bool:
     """Neither the output nor any hidden partial sibling of it exists."""
     stem = path.name.split(".")[0]
-    leftovers = [p for p in path.parent.glob(f".{stem}*") if "partial" in p.name]
+    leftovers = [p for p in path.parent.glob(f".{stem}*")
+                 if "partial" in p.name or ".resume-" in p.name]
     return not path.exists() and not leftovers
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from helpers import generate_store
@@ -93,3 +95,46 @@ def test_a_plot_may_not_replace_a_store(tmp_path, btf):
     result = btf("inspect", store, "--plot", other)
     assert result.code == 1 and "is a folder; refusing to replace it with a file" in result.err
     assert (other / "zarr.json").is_file()
+
+
+def test_a_resumable_partial_output_is_found_again_and_cleaned_up(tmp_path):
+    import shutil
+
+    from pipeline.resume import DONE, Progress
+
+    out, kept = tmp_path / "o.zarr", tmp_path / "kept"
+    record = {"stage": "generate", "parameters": {"size": 8}}
+
+    class Killed(Exception):
+        pass
+
+    def killed_run(skeleton: bool) -> Path:
+        """The partial output a run killed after its skeleton and one unit leaves behind."""
+        with pytest.raises(Killed), atomic_output(out, directory=True, resume=record) as tmp:
+            tmp.mkdir()
+            (tmp / "data").write_text("block 0")
+            if skeleton:
+                Progress(tmp).mark_created()
+            assert Progress(tmp).memo("unit", lambda: 42) == (42, False)
+            shutil.copytree(tmp, kept)
+            raise Killed  # an error removes the partial output: put it back as a kill leaves it
+        shutil.copytree(kept, tmp)
+        shutil.rmtree(kept)
+        return tmp
+
+    partial = killed_run(skeleton=True)
+    with atomic_output(out, directory=True, resume=record) as tmp:
+        assert tmp == partial and Progress(tmp).created
+        assert Progress(tmp).memo("unit", lambda: 0) == (42, True)  # not computed again
+        assert Progress(tmp).count() == 1
+    assert (out / "data").is_file() and not (out / DONE).exists()  # markers go before the swap
+    shutil.rmtree(out)
+    partial = killed_run(skeleton=True)
+    with atomic_output(out, directory=True, resume={"other": "parameters"}) as tmp:
+        assert not partial.exists() and tmp != partial  # a stale partial output goes
+        tmp.mkdir()
+    shutil.rmtree(out)
+    partial = killed_run(skeleton=False)
+    with atomic_output(out, directory=True, resume=record) as tmp:
+        assert tmp == partial and not tmp.exists()  # no complete skeleton: started over
+        tmp.mkdir()

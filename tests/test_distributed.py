@@ -173,13 +173,15 @@ def _idle(address: str) -> bool:
 
 @pytest.mark.distributed
 def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
-    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "256",
+    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "512",
                          "--sampling", "abtf:12,4", "--seed", "3")
     out = tmp_path / "c.zarr"
-    with subprocess.Popen([BIN / "btf", "compress", src, out, "--rank", "8", "--scheduler",
-                           cluster], stderr=subprocess.PIPE, text=True, env=LOUD) as proc:
+    # ten passes (a second or more): the interrupt lands while they run on the workers
+    with subprocess.Popen([BIN / "btf", "compress", src, out, "--rank", "8", "--power-iters",
+                           "9", "--scheduler", cluster], stderr=subprocess.PIPE, text=True,
+                          env=LOUD) as proc:
         seen = ""
-        while "pass 1/3" not in seen:  # interrupt once the first pass runs on the workers
+        while "pass 1/10" not in seen:  # interrupt once the first pass runs on the workers
             line = proc.stderr.readline()
             assert line, seen
             seen += line

@@ -47,12 +47,15 @@ def read_chunks(group, name: str) -> dict[str, int]:
     return dict(zip(dims, task_block(array), strict=True))
 
 
-def store_aligned(sources: list, targets: list):
+def store_aligned(sources: list, targets: list, *, progress=None):
     """A delayed write of dask arrays into zarr arrays, refused unless aligned to write units.
 
     Every dask chunk boundary must fall on a shard boundary (or chunk boundary for unsharded
-    arrays), so no two tasks ever write into the same shard or chunk.
+    arrays), so no two tasks ever write into the same shard or chunk. With ``progress`` (a
+    :class:`pipeline.resume.Progress`) every block is a unit of work of its own: blocks an
+    earlier, killed run finished are skipped, and each block marks itself done once written.
     """
+    import dask
     import dask.array as da
 
     for source, target in zip(sources, targets, strict=True):
@@ -63,4 +66,25 @@ def store_aligned(sources: list, targets: list):
                     f"dask chunks {chunks} of axis {dim} split write units of {unit} in "
                     f"{target.path!r}: concurrent writes would lose data"
                 )
-    return da.store(sources, targets, lock=False, compute=False)
+    if progress is None:
+        return da.store(sources, targets, lock=False, compute=False)
+    units = []
+    for source, target in zip(sources, targets, strict=True):
+        starts = [np.cumsum((0, *c)) for c in source.chunks]
+        blocks = source.to_delayed()
+        for index in np.ndindex(blocks.shape):
+            region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
+                                                                           strict=True))
+            name = f"{target.path}/{'.'.join(map(str, index))}"
+            units.append((name, dask.delayed(_write_block, pure=False)(blocks[index], target,
+                                                                        region)))
+    todo, _ = progress.pending(units)
+    return dask.delayed(_count, pure=False)(todo)
+
+
+def _write_block(block: np.ndarray, target, region: tuple[slice, ...]) -> None:
+    target[region] = block
+
+
+def _count(done: list) -> int:
+    return len(done)

@@ -258,12 +258,15 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     ``out`` is the output group (at ``path``), ``sample`` the sample's coefficients and
     ``sample_values`` its constraint values, ``params`` the
     :class:`tasks.enlargement.EnlargementParams`. Computes on ``session``, one level at a time;
-    returns the report for the store's attrs.
+    returns the report for the store's attrs. Every tile task is a unit of
+    :class:`pipeline.resume.Progress`: a rerun after a kill runs only the tiles not finished
+    (the client's random state is replayed level by level, so the result is the same).
     """
     import time
 
     import dask
 
+    from pipeline.resume import Progress
     from pipeline.stores.base import add_array, location
     from tasks.constrained_blend import ConstraintProjector
     from tasks.statistical_synthesis import sample_statistics
@@ -282,6 +285,7 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         sample, side, params=params.statistics, channels=params.statistics_channels)
     report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
     coarse, coarse_shape, here = None, None, location(path)
+    progress = Progress(path)
     for level in range(to.levels - 1, -1, -1):
         start = time.perf_counter()
         factor = 2**level
@@ -289,36 +293,39 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
                              rotation, guide_weight, to, rng)
         name = "_coefficients" if level == 0 else f"_level{level}"
-        add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
-                  chunks=(tile, tile, rank))
+        if name not in out:
+            add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
+                      chunks=(tile, tile, rank))
         whole = max(shape) <= tile  # a level that fits in one tile is one task
         regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
         finish = None if level else (projector, noise, params, statistics)
         blend = level == 0 and not whole  # the finest level's tiles are blended
-        if blend:
+        if blend and "_grown" not in out:
             add_array(out, "_grown", shape=(len(regions), tile + 2 * halo, tile + 2 * halo,
                                             rank), dims=("tile", "gy", "gx", "component"),
                       chunks=(1, tile + 2 * halo, tile + 2 * halo, rank))
         shared = session.share(source)
-        tasks = [dask.delayed(level_task)(
+        tasks = [(f"level{level}-tile{k}", dask.delayed(level_task)(
                      here, "_grown" if blend else name, region, shape=shape, factor=factor,
                      coarse=coarse, coarse_shape=coarse_shape, source=shared, guide=guide,
                      params=to, halo=0 if whole else halo, finish=finish,
-                     slot=k if blend else None)
+                     slot=k if blend else None))
                  for k, region in enumerate(regions)]
+        done = sum(progress.done(name) for name, _ in tasks)
         session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
-                    f"task(s)")
-        reports = session.compute(*tasks)
+                    f"task(s)" + (f", {done} finished by the interrupted run" if done else ""))
+        reports = progress.run(session.compute, tasks)
         if blend:
             boxes = grown_boxes(regions, halo, shape)
-            session.compute(*[dask.delayed(blend_task)(here, "_grown", name, region, boxes,
-                                                       shape=shape, halo=halo)
-                              for region in regions])
+            progress.run(session.compute, [
+                (f"blend{k}", dask.delayed(blend_task)(here, "_grown", name, region, boxes,
+                                                       shape=shape, halo=halo))
+                for k, region in enumerate(regions)])
             del out["_grown"]
         report["levels"].append({"factor": factor, "tasks": len(tasks),
                                  "energy": [r["energy"] for r in reports]})
         report["seconds"][f"level_1/{factor}"] = time.perf_counter() - start
-        if coarse is not None:
+        if coarse is not None and coarse in out:
             del out[coarse]
         coarse, coarse_shape = name, shape
     residual2 = sum(r["residual2"] for r in reports)
@@ -339,15 +346,20 @@ def write_factors(out, path, u: np.ndarray, *, tile: int, session
     """
     import dask
 
+    from pipeline.resume import Progress
     from pipeline.stores.base import location
     from tasks.svd import refactor_gram
 
-    regions = tiles(out["_coefficients"].shape[:2], tile)
+    progress = Progress(path)
+    regions = tiles(out["V"].shape[:2], tile)
     here = location(path)
-    grams = session.compute(*[dask.delayed(gram_task)(here, "_coefficients", r)
-                              for r in regions])
+    grams = progress.run(session.compute, [
+        (f"gram{k}", dask.delayed(gram_task)(here, "_coefficients", r))
+        for k, r in enumerate(regions)])
     new_u, new_s, basis = refactor_gram(u, sum(grams))
-    session.compute(*[dask.delayed(factor_task)(here, "_coefficients", r, basis, new_s)
-                      for r in regions])
-    del out["_coefficients"]
+    progress.run(session.compute, [
+        (f"factor{k}", dask.delayed(factor_task)(here, "_coefficients", r, basis, new_s))
+        for k, r in enumerate(regions)])
+    if "_coefficients" in out:
+        del out["_coefficients"]
     return new_u, new_s

@@ -137,17 +137,26 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
 
     The one place both tile-set stages (quilting, the roller) end: the store is created
     (:func:`pipeline.stores.tileset.write_tileset_store`) in a partial output, filled by
-    :func:`apply_tileset` on the session's scheduler, and moved to ``out``.
+    :func:`apply_tileset` on the session's scheduler, and moved to ``out``. A run killed while
+    it applies the plan resumes with the groups of writes it had not finished
+    (:mod:`pipeline.resume`; the plan is made again, deterministically, by the rerun).
     """
     from pipeline.atomic import atomic_output
+    from pipeline.resume import Progress
     from pipeline.stores.base import open_group
     from pipeline.stores.tileset import write_tileset_store
 
     group = open_group(source)
-    with atomic_output(out, directory=True, overwrite=overwrite) as tmp:
-        write_tileset_store(tmp, tiles, source=source, source_group=group)
+    with atomic_output(out, directory=True, overwrite=overwrite,
+                       resume=tiles.attrs.get("provenance")) as tmp:
+        progress = Progress(tmp)
+        if not progress.created:
+            write_tileset_store(tmp, tiles, source=source, source_group=group)
+            progress.mark_created()
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism)
-        session.log(f"{label}: applying {what} -> {out}")
-        session.compute(*writes)
+        todo, done = progress.pending((f"write-{i}", w) for i, w in enumerate(writes))
+        session.log(f"{label}: applying {what} -> {out}"
+                    + (f" (resuming: {done} already written)" if done else ""))
+        session.compute(*todo)
     return Path(out)

@@ -14,6 +14,9 @@ kept on one side of the BTF matrix (``--sketch``):
 ``auto`` keeps the texel side (one pass fewer) while its sketches stay under
 :data:`TEXEL_SIDE_BYTES`, and takes the row side beyond that when there are fewer rows than
 texels. ``--verify`` adds one pass, by texel tiles, against the stored factors.
+
+Every pass's result is checkpointed in the partial output (:mod:`pipeline.resume`): a run
+killed between passes is resumed by the same command from the pass it was in.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from pipeline.graphs.tile_passes import (
 )
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, location, open_group, read_channels, read_directions
 from pipeline.stores.compressed import create_compressed_store
@@ -153,6 +157,7 @@ class _Passes:
                  session: Session):
         self.store, self.blocks, self.params, self.session = store, blocks, params, session
         self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
+        self.progress = Progress(out)
         self.count = 0
 
     def __call__(self, kind: str, **arrays: np.ndarray) -> PassPart:
@@ -162,6 +167,17 @@ class _Passes:
                 "row-power": f"power iteration {self.count}", "row-gram": "projection",
                 "row-vectors": "eigentextures"}[kind]
         by_tiles = kind.startswith("row-") or kind == "verify"
+        result, stored = self.progress.memo(f"pass-{self.count}-{kind}",
+                                            lambda: self._run(kind, what, by_tiles, arrays))
+        if stored:
+            self.session.log(f"compress: pass {self.count}/{self.planned} ({what}): kept from "
+                             "the interrupted run")
+        if self.count == 1:
+            raise_on_bad_data(result.check, self.params.store, self.params.clamp)
+        return result
+
+
+    def _run(self, kind: str, what: str, by_tiles: bool, arrays: dict) -> PassPart:
         self.session.log(f"compress: pass {self.count}/{self.planned} ({what}, "
                          + (f"{len(self.tiles)} texel tiles)" if by_tiles
                             else f"{len(self.blocks)} row blocks)"))
@@ -175,8 +191,6 @@ class _Passes:
             graph = pass_graph(kind, self.store, self.blocks, shared=shared, by_rows=by_rows,
                                **common)
         (result,) = self.session.compute(graph, reads=True)
-        if self.count == 1:
-            raise_on_bad_data(result.check, self.params.store, self.params.clamp)
         return result
 
 
@@ -226,11 +240,15 @@ def compress(params: CompressParams, session: Session) -> Path:
                 f"{memory['task'] / 2**30:.2f} GiB)")
     planned = (1 if params.one_pass else iterations + (2 if side == "rows" else 1)) \
         + params.verify
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
-            session.blas_pinned_in_tasks():
-        out = create_compressed_store(
-            tmp, directions=read_directions(group), channels=read_channels(group),
-            ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp, session.blas_pinned_in_tasks():
+        if Progress(tmp).created:  # a killed run's passes are kept (see _Passes)
+            out = Progress(tmp).group()
+        else:
+            out = create_compressed_store(
+                tmp, directions=read_directions(group), channels=read_channels(group),
+                ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
+            Progress(tmp).mark_created()
         passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),
                          planned, params, session)
         if side == "rows":

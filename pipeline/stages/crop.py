@@ -18,6 +18,7 @@ from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.params import check_region, option, parse_region
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, open_group, read_channels
 from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store, open_radiance
@@ -78,11 +79,19 @@ def crop(params: CropParams, session: Session) -> Path:
     ny, nx = selected.sizes["y"], selected.sizes["x"]
     session.log(f"crop: {d.views} x {d.lights} layers of {ny} x {nx} texels at "
                 f"({ys.start}, {xs.start}) -> {params.out}")
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-        out = create_radiance_store(tmp, directions=d, ny=ny, nx=nx,
-                                    channels=read_channels(group), layout=layout,
-                                    attrs=attrs, truth=len(truth) == len(TRUTH_DIMS))
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        progress = Progress(tmp)
+        if progress.created:
+            out = progress.group()
+            if progress.count():
+                session.log(f"crop: resuming: {progress.count()} blocks already written")
+        else:
+            out = create_radiance_store(tmp, directions=d, ny=ny, nx=nx,
+                                        channels=read_channels(group), layout=layout,
+                                        attrs=attrs, truth=len(truth) == len(TRUTH_DIMS))
+            progress.mark_created()
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
         sources = [selected[n].data.rechunk(aligned_chunks(out[n])) for n in names]
-        session.compute(store_aligned(sources, [out[n] for n in names]))
+        session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))
     return Path(params.out)

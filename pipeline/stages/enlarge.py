@@ -43,6 +43,7 @@ from pipeline.graphs.enlarge import (
 )
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import (
     RADIANCE,
@@ -330,12 +331,19 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     for key in ("source_sampling", "source_material"):
         if key in sample_group.attrs:
             attrs[key] = sample_group.attrs[key]
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp, \
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
-        out = create_compressed_store(
-            tmp, directions=read_directions(sample_group), channels=read_channels(sample_group),
-            ny=big_h, nx=big_w, rank=rank, chunk=tile or sample_group["V"].chunks[0],
-            dir_chunk=sample_group["U"].chunks[1], attrs=attrs)
+        if Progress(tmp).created:  # a killed run's finished tiles are kept (tiled runs only)
+            out = Progress(tmp).group()
+        else:
+            out = create_compressed_store(
+                tmp, directions=read_directions(sample_group),
+                channels=read_channels(sample_group), ny=big_h, nx=big_w, rank=rank,
+                chunk=tile or sample_group["V"].chunks[0],
+                dir_chunk=sample_group["U"].chunks[1], attrs=attrs)
+            if tile:
+                Progress(tmp).mark_created()
         if tile:
             report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
                                 sample_values, params=params.enlargement(),

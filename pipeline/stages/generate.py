@@ -24,6 +24,7 @@ from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, Directions, location
 from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
@@ -191,16 +192,23 @@ def generate(params: GenerateParams, session: Session) -> Path:
         "shading": {**dataclasses.asdict(model), "reference": model.reference, "halo": halo},
         "provenance": provenance("generate", params),
     }
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-        group = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
-                                      channels=CHANNELS, layout=params.layout(), attrs=attrs,
-                                      truth=True)
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        progress = Progress(tmp)
+        if progress.created:
+            group = progress.group()
+        else:
+            group = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
+                                          channels=CHANNELS, layout=params.layout(),
+                                          attrs=attrs, truth=True)
         truth = [group[name] for name in TRUTH_DIMS]
         vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
-        if photo is not None:  # a photo's fields fit in memory: written once, read per block
+        if photo is not None and not progress.created:  # fields fit in memory: written once
             for array, values in zip(truth, (photo.height, photo.albedo, photo.roughness,
                                              photo.specular), strict=True):
                 array[...] = values
+        progress.mark_created()
+        if photo is not None:  # read back per block
             windows = field_windows(location(tmp), ych, xch, halo)
         else:
             windows = field_windows(material, ych, xch, halo)
@@ -222,5 +230,8 @@ def generate(params: GenerateParams, session: Session) -> Path:
             targets += truth
         session.log(f"generate: {len(sampling.theta_view)} x {len(sampling.theta_light)} "
                     f"layers of {ny} x {nx} texels -> {params.out}")
-        session.compute(store_aligned(sources, targets))
+        if progress.count():
+            session.log(f"generate: resuming an interrupted run: {progress.count()} blocks "
+                        f"already written in {tmp}")
+        session.compute(store_aligned(sources, targets, progress=progress))
     return Path(params.out)

@@ -27,6 +27,7 @@ from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
 from pipeline.layer_files import MANIFEST, MANIFEST_COLUMNS, UTIA_NAME
 from pipeline.params import option
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, Directions, location
 from pipeline.stores.radiance import Layout, create_radiance_store
@@ -206,21 +207,33 @@ def ingest(params: IngestParams, session: Session) -> Path:
     info = check_headers(grid)
     attrs = {"btf_kind": directions.kind, "source": "ingest",
              "provenance": provenance("ingest", params)}
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
-        group = create_radiance_store(tmp, directions=directions, ny=info.height, nx=info.width,
-                                      channels=info.channels, layout=params.layout(),
-                                      attrs=attrs)
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        progress = Progress(tmp)
+        if progress.created:
+            group = progress.group()
+        else:
+            group = create_radiance_store(tmp, directions=directions, ny=info.height,
+                                          nx=info.width, channels=info.channels,
+                                          layout=params.layout(), attrs=attrs)
+            radiance = group[RADIANCE]
+            group.create_array(
+                STAGING, shape=radiance.shape, dtype="float32", fill_value=np.nan,
+                chunks=(1, 1, *radiance.chunks[2:]), compressors=radiance.compressors)
+            progress.mark_created()
         radiance = group[RADIANCE]
-        staging = group.create_array(
-            STAGING, shape=radiance.shape, dtype="float32", fill_value=np.nan,
-            chunks=(1, 1, *radiance.chunks[2:]), compressors=radiance.compressors)
-        stage = [dask.delayed(_stage_image, pure=True)(
-                     location(tmp), v, li, location(e.path), srgb=params.srgb, info=info)
+        stage = [(f"image/{v}.{li}", dask.delayed(_stage_image, pure=True)(
+                     location(tmp), v, li, location(e.path), srgb=params.srgb, info=info))
                  for v, row in enumerate(grid) for li, e in enumerate(row)]
         session.log(f"ingest: {len(grid)} x {len(grid[0])} layers of {info.height} x "
                     f"{info.width} texels ({','.join(info.channels)}) -> {params.out}")
-        session.compute(*stage)
-        staged = da.from_zarr(staging, chunks=aligned_chunks(radiance))
-        session.compute(store_aligned([staged], [radiance]))
-        del group[STAGING]
+        if progress.count():
+            session.log(f"ingest: resuming: {progress.count()} images and blocks already "
+                        "written")
+        if STAGING in group:  # else a killed run had finished with it
+            todo, _ = progress.pending(stage)
+            session.compute(*todo)
+            staged = da.from_zarr(group[STAGING], chunks=aligned_chunks(radiance))
+            session.compute(store_aligned([staged], [radiance], progress=progress))
+            del group[STAGING]
     return Path(params.out)

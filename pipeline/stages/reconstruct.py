@@ -19,6 +19,7 @@ from pipeline.images import write_exr
 from pipeline.layer_files import layer_name, write_manifest
 from pipeline.params import ParamError, check_region, option, parse_region
 from pipeline.provenance import provenance
+from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
 from pipeline.stores.compressed import open_compressed
@@ -82,7 +83,12 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
     nv, nl, ny, nx, _ = sel.shape
     session.log(f"reconstruct: {nv} x {nl} layers of {ny} x {nx} texels at rank "
                 f"{sel.attrs['rank_used']} -> {params.out}")
-    with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
+    attrs = {"btf_kind": d.kind, "source": "reconstruct",
+             "reconstructed_from": {"store": params.store, "rank": sel.attrs["rank_used"],
+                                    "error": sel.attrs.get("error")},
+             "provenance": provenance("reconstruct", params)}
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"] if params.format != "exr" else None) as tmp:
         if params.format == "exr":
             tmp.mkdir()
             rows, writes = [], []
@@ -97,14 +103,17 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             write_manifest(tmp, rows)
             session.compute(*writes)
         else:
-            attrs = {"btf_kind": d.kind, "source": "reconstruct",
-                     "reconstructed_from": {"store": params.store,
-                                            "rank": sel.attrs["rank_used"],
-                                            "error": sel.attrs.get("error")},
-                     "provenance": provenance("reconstruct", params)}
-            group = create_radiance_store(
-                tmp, directions=d, ny=ny, nx=nx, channels=channels,
-                layout=Layout(chunk=params.chunk, dir_chunk=params.dir_chunk), attrs=attrs)
+            progress = Progress(tmp)
+            if progress.created:
+                group = progress.group()
+                if progress.count():
+                    session.log(f"reconstruct: resuming: {progress.count()} blocks already "
+                                "written")
+            else:
+                group = create_radiance_store(
+                    tmp, directions=d, ny=ny, nx=nx, channels=channels,
+                    layout=Layout(chunk=params.chunk, dir_chunk=params.dir_chunk), attrs=attrs)
+                progress.mark_created()
             data = sel.data.rechunk(aligned_chunks(group[RADIANCE]))
-            session.compute(store_aligned([data], [group[RADIANCE]]))
+            session.compute(store_aligned([data], [group[RADIANCE]], progress=progress))
     return Path(params.out)

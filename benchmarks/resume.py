@@ -1,0 +1,127 @@
+"""Resuming after ``kill -9``: how long the rerun takes against the work left.
+
+Each stage runs once uninterrupted; then, for every fraction f, it is killed (SIGKILL) once a
+fraction f of its work has passed (work: from the stage's first log line of real work to its
+end; before it come start-up, reading the inputs and planning, which a rerun does again) and
+rerun to completion. A rerun that resumes well takes about start-up plus (1 - f) of the work.
+The resumed output is compared with the uninterrupted one, bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.harness import btf_executable, generate_store, git_revision, machine, run_until
+
+SUITE = "resume"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the suite."""
+    parser.add_argument("--fractions", default="0.25,0.5,0.75",
+                        help="fractions of the work after which the run is killed")
+    parser.add_argument("--size", type=int, default=1024,
+                        help="texels per side of the generated and compressed store")
+    parser.add_argument("--stages", default="generate,compress,quilt,enlarge")
+
+
+def _stages(tmp: Path, size: int) -> dict:
+    """``(arguments for an output, log mark of the work, arrays to compare)`` per stage."""
+    btf = btf_executable()
+    src = tmp / "src.zarr"
+    small = tmp / "small.zarr"
+    return {
+        "generate": (lambda out: [btf, "generate", out, "--material", "wood", "--size", size,
+                                  "--sampling", "abtf:12,4", "--chunk", "128", "--seed", "3"],
+                     "layers of", ("radiance",)),
+        "compress": (lambda out: [btf, "compress", src, out, "--rank", "32", "--sketch", "rows"],
+                     "pass 1/", ("U", "S", "V")),
+        "quilt": (lambda out: [btf, "quilt", small, out, "--block", "32", "--overlap", "8",
+                               "--size", "960,960"], "applying", ("radiance",)),
+        "enlarge": (lambda out: [btf, "enlarge", tmp / "S_svd.zarr", tmp / "C.zarr", out,
+                                 "--tile", "128"], "level 1/", ("U", "S", "V")),
+    }
+
+
+def _inputs(tmp: Path, size: int, stages: set[str]) -> None:
+    import zarr
+
+    from pipeline.cli import main
+
+    if stages & {"compress"}:
+        generate_store(tmp / "src.zarr", "wood", size, "abtf:12,4")
+    if stages & {"quilt"}:  # light chunks of 4: 48 blocks of layers to write
+        subprocess.run([btf_executable(), "generate", tmp / "small.zarr", "--material", "wood",
+                        "--size", "256", "--sampling", "abtf:24,8", "--dir-chunk", "4",
+                        "--quiet"], check=True)
+    if stages & {"enlarge"}:
+        m = generate_store(tmp / "M.zarr", "wood", 512, "abtf:12,4")
+        top = int(np.argmin(zarr.open_group(m)["theta_light"][...]))
+        for a in (["crop", m, tmp / "S.zarr", "--region", "192:320,192:320"],
+                  ["compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", "32"],
+                  ["crop", m, tmp / "C.zarr", "--light", str(top)]):
+            assert main([str(v) for v in a] + ["--quiet"]) == 0, a
+
+
+def _same(a: Path, b: Path, arrays) -> bool:
+    import zarr
+
+    ga, gb = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
+    return all(np.array_equal(ga[n][...], gb[n][...]) for n in arrays)
+
+
+def run(args: argparse.Namespace) -> dict:
+    """All measurements of the suite, in one run."""
+    fractions = [float(f) for f in args.fractions.split(",") if f]
+    wanted = [s for s in args.stages.split(",") if s]
+    result = {"suite": SUITE, "stages": {}, "machine": machine(), "git": git_revision()}
+    with tempfile.TemporaryDirectory(prefix="btf-bench-resume-") as tmp:
+        tmp = Path(tmp)
+        _inputs(tmp, args.size, set(wanted))
+        stages = _stages(tmp, args.size)
+        for name in wanted:
+            argv, mark, arrays = stages[name]
+            _, seen, total = run_until(argv(tmp / f"{name}-ref.zarr"), tmp / "log", mark=mark)
+            rows = []
+            for f in fractions:
+                out = tmp / f"{name}-{f}.zarr"
+                killed, _, _ = run_until(argv(out), tmp / "log", mark=mark,
+                                         kill_at=f * (total - seen))
+                if out.exists():  # it finished (moved its output into place) before the kill
+                    rows.append({"fraction": f, "killed": False,
+                                 "identical": _same(tmp / f"{name}-ref.zarr", out, arrays)})
+                    continue
+                _, _, rerun = run_until(argv(out), tmp / "log", mark=mark)
+                rows.append({"fraction": f, "killed": killed, "rerun_seconds": rerun,
+                             "identical": _same(tmp / f"{name}-ref.zarr", out, arrays),
+                             "resumed": "resum" in (tmp / "log").read_text()
+                             or "kept from" in (tmp / "log").read_text()
+                             or "finished by the interrupted" in (tmp / "log").read_text()})
+            result["stages"][name] = {"seconds": total, "before_work": seen, "runs": rows}
+    return result
+
+
+def report(result: dict) -> str:
+    """Markdown table of a result."""
+    lines = ["| stage | uninterrupted s | before the work s | killed after | rerun s | "
+             "rerun / uninterrupted | (before + work left) / uninterrupted | resumed | "
+             "identical |", "|---|---|---|---|---|---|---|---|---|"]
+    for name, stage in result["stages"].items():
+        total, before = stage["seconds"], stage["before_work"]
+        for r in stage["runs"]:
+            if not r["killed"]:
+                lines.append(f"| {name} | {total:.1f} | {before:.1f} | {r['fraction']:.0%} of "
+                             "the work | (finished before the kill) | | | | "
+                             f"{'yes' if r['identical'] else 'NO'} |")
+                continue
+            expected = (before + (1 - r["fraction"]) * (total - before)) / total
+            lines.append(f"| {name} | {total:.1f} | {before:.1f} | {r['fraction']:.0%} of the "
+                         f"work | {r['rerun_seconds']:.1f} | {r['rerun_seconds'] / total:.2f} | "
+                         f"{expected:.2f} | {'yes' if r['resumed'] else 'no'} | "
+                         f"{'yes' if r['identical'] else 'NO'} |")
+    return "\n".join(lines)

@@ -1,0 +1,102 @@
+"""Resuming, deterministically: a run that dies after N blocks, then the same command again.
+
+The crash is simulated in-process (the N+1-th block write fails and the partial output is kept,
+as a ``kill -9`` keeps it); tests/test_resume.py kills real processes at random moments. The
+rerun must write exactly the blocks the crashed run had not finished and give the bits of an
+uninterrupted run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+import pipeline.graphs.blocks as blocks
+from pipeline.cli import main
+from pipeline.resume import CREATED, DONE
+
+
+class Crash(Exception):
+    pass
+
+
+def _writes(monkeypatch, fail_after: int | None = None) -> list:
+    """Count block writes (and fail the one after ``fail_after``, keeping the partial output)."""
+    original, written = blocks._write_block, []
+
+    def write(block, target, region):
+        if fail_after is not None and len(written) >= fail_after:
+            raise Crash("killed")
+        original(block, target, region)
+        written.append(region)
+
+    monkeypatch.setattr(blocks, "_write_block", write)
+    if fail_after is not None:
+        monkeypatch.setattr("pipeline.atomic._remove", lambda path: None)
+    return written
+
+
+def _arrays(path: Path, names) -> dict:
+    g = zarr.open_group(path, mode="r")
+    return {n: g[n][...] for n in names}
+
+
+def _crash_then_resume(tmp_path, monkeypatch, capsys, args, names, crash_after=3):
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    with monkeypatch.context() as m:
+        total = _writes(m)
+        assert main([*args(ref), "--quiet"]) == 0
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        _writes(m, fail_after=crash_after)
+        main([*args(out), "--quiet"])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    markers = [p for p in (partial / DONE).iterdir()
+               if p.name != CREATED and not p.name.startswith("image~")]  # ingest's images
+    assert len(markers) == crash_after and not out.exists()
+    capsys.readouterr()
+    with monkeypatch.context() as m:
+        rerun = _writes(m)
+        assert main(args(out)) == 0
+    assert len(rerun) == len(total) - crash_after  # finished blocks are not written again
+    assert "resuming" in capsys.readouterr().err
+    expected, got = _arrays(ref, names), _arrays(out, names)
+    for n in names:
+        assert np.array_equal(expected[n], got[n]), n
+    assert not (out / DONE).exists() and not list(tmp_path.glob(".out.resume-*"))
+
+
+GENERATE = ["--material", "stone", "--size", "40", "--sampling", "hemi:3", "--chunk", "8",
+            "--dir-chunk", "2", "--seed", "11", "--scheduler", "synchronous"]
+
+
+def test_generate_resumes_with_the_blocks_left(tmp_path, monkeypatch, capsys, small_tasks):
+    _crash_then_resume(tmp_path, monkeypatch, capsys,
+                       lambda out: ["generate", str(out), *GENERATE],
+                       ("radiance", "height", "albedo"))
+
+
+def test_crop_and_reconstruct_resume_with_the_blocks_left(tmp_path, monkeypatch, capsys,
+                                                          small_abtf, small_tasks):
+    _crash_then_resume(tmp_path, monkeypatch, capsys,
+                       lambda out: ["crop", str(small_abtf), str(out), "--region",
+                                    "4:44,0:40", "--scheduler", "synchronous"],
+                       ("radiance", "albedo"))
+    compressed = tmp_path / "c.zarr"
+    assert main(["compress", str(small_abtf), str(compressed), "--rank", "4", "--quiet"]) == 0
+    (tmp_path / "r").mkdir()
+    _crash_then_resume(tmp_path / "r", monkeypatch, capsys,
+                       lambda out: ["reconstruct", str(compressed), str(out), "--chunk", "8",
+                                    "--scheduler", "synchronous"], ("radiance",))
+
+
+def test_ingest_resumes_with_the_images_and_blocks_left(tmp_path, monkeypatch, capsys,
+                                                        small_abtf, small_tasks):
+    layers = tmp_path / "layers"
+    assert main(["export", str(small_abtf), str(layers), "--quiet"]) == 0
+    (tmp_path / "i").mkdir()
+    _crash_then_resume(tmp_path / "i", monkeypatch, capsys,
+                       lambda out: ["ingest", str(layers), str(out), "--chunk", "8",
+                                    "--scheduler", "synchronous"], ("radiance",))
