@@ -46,4 +46,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(to_json(result) + "\n")
     print(suite.report(result))
+    rates = suite.rates(result) if hasattr(suite, "rates") else {}
+    if rates:  # what btf run --plan estimates times from
+        from pipeline.planning import record_rates
+
+        print(f"rates for btf run --plan stored in {record_rates(rates, suite.SUITE)}",
+              file=sys.stderr)
     return 0

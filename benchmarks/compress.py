@@ -443,3 +443,12 @@ def _timed_report(result: dict) -> list[str]:
               f"{len(ours.get('all_seconds', [0]))} runs alternating with the bound's, all: "
               + ", ".join(f"{t:.1f}" for t in ours.get("all_seconds", [])) + " s."]
     return lines
+
+
+def rates(result: dict) -> dict[str, float]:
+    """The rate ``btf run --plan`` uses: matrix bytes read per core-second and pass."""
+    if not result["timed"]:
+        return {}
+    ours, (m, n) = result["timed"][0], result["shape"]
+    return {"compress_bytes_per_core_second":
+            m * n * 4 * ours["passes"] / ours["seconds"] / result["machine"]["cpus"]}

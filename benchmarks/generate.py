@@ -134,3 +134,12 @@ def report(result: dict) -> str:
                      f"{r['texel_directions_per_s'] / 1e6:.1f} M | {shown} | "
                      f"{r['peak_rss'] / mib:.0f} MiB | {r['stored_bytes'] / mib:.0f} MiB |")
     return "\n".join(lines)
+
+
+def rates(result: dict) -> dict[str, float]:
+    """The rate ``btf run --plan`` uses: texel x directions per core-second (threads)."""
+    threads = [r for r in result["runs"] if r["scheduler"] == "threads"]
+    if not threads:
+        return {}
+    best = max(r["texel_directions_per_s"] for r in threads)
+    return {"generate_texel_directions_per_core_second": best / result["machine"]["cpus"]}

@@ -293,3 +293,23 @@ def report(result: dict) -> str:
               "", f"Render vs numpy.tile: {r['ratio']:.2f}x its speed; `btf render` peak RSS "
                   f"{r['cli_peak_rss'] / mib:.0f} MiB for a {r['bytes'] / mib:.0f} MiB region."]
     return "\n".join(lines + _seams_report(result))
+
+
+def rates(result: dict) -> dict[str, float]:
+    """The rates ``btf run --plan`` uses: planning time per tile texel (the client's, serial)
+    and float32 values written per core-second by ``btf quilt``'s application, end to end (its
+    wall time less the planning and a second of start-up).
+    """
+    from tasks.sampling import parse_sampling
+
+    if "planning" not in result:
+        return {}
+    largest = max(result["planning"], key=lambda r: r["size"])
+    tile = largest["tile"][0] * largest["tile"][1]
+    s = parse_sampling(result["sampling"])
+    values = tile * s.theta_view.size * s.theta_light.size * 3
+    applying = result["quilt_cli"]["seconds"] - largest["plan_seconds"] - 1.0
+    out = {"quilt_plan_seconds_per_tile_texel": largest["plan_seconds"] / tile}
+    if applying > 0:
+        out["quilt_values_per_core_second"] = values / applying / result["machine"]["cpus"]
+    return out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 from functools import partial
 from pathlib import Path
@@ -36,6 +37,19 @@ def _scheduler(text: str) -> str:
         return check_scheduler(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _bytes(text: str) -> int:
+    from dask.utils import parse_bytes
+
+    try:
+        value = parse_bytes(text)
+    except (ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"expected a size such as 8GiB or 500MB, got "
+                                         f"{text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return value
 
 
 def _positive(text: str) -> int:
@@ -96,8 +110,31 @@ def _run_config(args: argparse.Namespace) -> int:
             print("  " + command_line(step.name, step.params))
         return 0
     with Session(options) as session:
+        _check_plan(plan, options, session, args)
+        if args.plan:
+            return 0
         execute(plan, session)
     return 0
+
+
+def _check_plan(plan, options, session, args) -> None:
+    """Estimate every stage; print it with ``--plan``; refuse what cannot fit in memory."""
+    import psutil
+
+    from pipeline import planning
+
+    plans = planning.plan_stages(plan.stages)
+    if args.memory_limit is not None:
+        limit, threads, source = args.memory_limit, args.worker_threads, "--memory-limit"
+    else:
+        limit, threads, source = planning.worker_limit(options, session.client)
+    if args.plan:
+        cores = (sum(w.get("nthreads", 1) for w in session.client.scheduler_info()[
+            "workers"].values()) if session.client is not None else os.cpu_count() or 1)
+        print(f"{plan.path}: plan of {len(plan.stages)} stage(s) on {options.scheduler}\n")
+        print(planning.report(plans, cores=cores, limit=limit, threads=threads,
+                              source=source))
+    planning.check_memory(plans, limit, threads, source, psutil.virtual_memory().available)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,6 +164,18 @@ def build_parser() -> argparse.ArgumentParser:
                           "generate.size=64 (repeatable)")
     run.add_argument("--check", action="store_true",
                      help="validate the config and print its commands without running them")
+    run.add_argument("--plan", action="store_true",
+                     help="print, per stage, the bytes read and written, tasks, passes, peak "
+                          "memory per task and on the client, and an estimated time (from "
+                          "rates btf bench measured here), without running anything; refuse "
+                          "(exit 1) a plan that does not fit the workers' memory (checked "
+                          "before every run too)")
+    run.add_argument("--memory-limit", type=_bytes, default=None, metavar="SIZE",
+                     help="memory per worker to plan for, e.g. 4GiB (default: the cluster's "
+                          "workers' limit, or this machine's memory)")
+    run.add_argument("--worker-threads", type=_positive, default=2, metavar="N",
+                     help="tasks a worker runs at once, with --memory-limit (default: 2, as "
+                          "docker-compose.yml's workers)")
     run.set_defaults(handler=_run_config)
     _add_plugins(sub)
     return parser

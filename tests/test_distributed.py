@@ -171,15 +171,21 @@ def _idle(address: str) -> bool:
     return not any(busy.values())
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.distributed
 def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
-    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "512",
+    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "256",
                          "--sampling", "abtf:12,4", "--seed", "3")
     out = tmp_path / "c.zarr"
-    # ten passes (a second or more): the interrupt lands while they run on the workers
+    # ten passes (a second or more): the interrupt lands while they run on the workers. A
+    # shell starting CI in the background ignores SIGINT in what it starts; the child would
+    # inherit that and never see the interrupt, so its default action is restored.
     with subprocess.Popen([BIN / "btf", "compress", src, out, "--rank", "8", "--power-iters",
                            "9", "--scheduler", cluster], stderr=subprocess.PIPE, text=True,
-                          env=LOUD) as proc:
+                          env=LOUD, preexec_fn=_default_sigint) as proc:
         seen = ""
         while "pass 1/10" not in seen:  # interrupt once the first pass runs on the workers
             line = proc.stderr.readline()

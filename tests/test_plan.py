@@ -1,0 +1,83 @@
+"""``btf run --plan``: estimates before anything runs, checked against runs and arithmetic."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import zarr
+
+from pipeline import planning
+from pipeline.config import load
+from pipeline.errors import BTFError
+
+ROOT = Path(__file__).resolve().parents[1]
+TERABYTE = ROOT / "configs" / "terabyte.yaml"
+
+
+def _nbytes(path: Path, names) -> int:
+    g = zarr.open_group(path, mode="r")
+    return sum(g[n].nbytes for n in names)
+
+
+def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatch):
+    monkeypatch.setenv("BTF_RATES", str(tmp_path / "rates.json"))
+    plans = planning.plan_stages(load(TERABYTE).stages)
+    generate, compress, quilt = plans
+    rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
+    assert generate.written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
+    assert compress.note == "sketches on the rows side"  # the texel side would need 15 GB
+    # rows side: 2 power passes and the projection read each tile's column twice (68403 rows
+    # x 128^2 texels do not fit the cache), then the V pass: 7 reads of the 1.1 TB matrix
+    assert compress.passes == 7 and compress.read == 7 * rows * texels * 4
+    assert compress.client_bytes < 1 << 30 and compress.task_bytes < 1 << 30
+    assert "16 tile(s)" in quilt.note and quilt.serial_seconds > 0
+    result = btf("run", TERABYTE, "--plan", "--memory-limit", "4GiB")
+    assert result.code == 0, result.err
+    assert "| compress | 8.0 TB | 1.1 GB |" in result.out and "cores finish it in an hour" \
+        in result.out and not (ROOT / "out" / "terabyte").exists()
+
+
+def test_a_plan_over_the_workers_memory_is_refused_naming_stage_and_option(btf):
+    result = btf("run", TERABYTE, "--plan", "--memory-limit", "1GiB")
+    assert result.code == 1
+    assert "terabyte.yaml:17: stages[1].compress: needs ~" in result.err
+    assert "more than --memory-limit allows (1.0 GiB); change --rank" in result.err
+    texel_side = planning.plan_stages(load(TERABYTE, ("compress.sketch=texels",)).stages)[1]
+    assert texel_side.client_bytes > 14e9  # 6 float64 sketches of 4.2 M texels x 74
+    with pytest.raises(BTFError, match=r"the client needs ~.* change --sketch rows"):
+        planning.check_memory([texel_side], 8 << 30, 2, "x", available=8 << 30)
+    assert btf("run", TERABYTE, "--plan", "--memory-limit", "lots").code == 2
+
+
+def test_estimated_bytes_match_a_real_run_and_a_refused_run_writes_nothing(tmp_path, btf):
+    config = tmp_path / "small.yaml"
+    out = tmp_path / "out"
+    config.write_text(f"""stages:
+  - generate: {{out: {out}/s.zarr, material: wood, size: 96, sampling: "abtf:6,2", chunk: 32}}
+  - crop: {{store: {out}/s.zarr, out: {out}/c.zarr, region: "8:72,0:64", light: [0, 3]}}
+  - compress: {{store: {out}/s.zarr, out: {out}/k.zarr, rank: 8}}
+""")
+    refused = btf("run", config, "--memory-limit", "310MiB", "--quiet")
+    assert refused.code == 1 and "stages[0].generate: needs" in refused.err
+    assert not out.exists()  # refused before anything ran
+    plans = planning.plan_stages(load(config).stages)
+    assert btf("run", config, "--quiet").code == 0
+    generate, crop, compress = plans
+    truth = ("radiance", "height", "albedo", "roughness", "specular")
+    assert generate.written == _nbytes(out / "s.zarr", truth)
+    assert crop.written == _nbytes(out / "c.zarr", ("radiance",))
+    assert compress.written == _nbytes(out / "k.zarr", ("U", "S", "V"))
+    k = zarr.open_group(out / "k.zarr", mode="r").attrs["svd"]
+    assert compress.passes == k["passes"] and compress.note.endswith(k["sketch_side"] + " side")
+
+
+def test_rates_measured_by_bench_replace_the_built_in_ones(tmp_path, monkeypatch):
+    monkeypatch.setenv("BTF_RATES", str(tmp_path / "rates.json"))
+    key = "compress_bytes_per_core_second"
+    assert planning.rate(key) == (planning.BUILT_IN_RATES[key], "built-in (the test machine's)")
+    planning.record_rates({key: 1e9}, "compress")
+    value, source = planning.rate(key)
+    assert value == 1e9 and source.startswith("measured by btf bench compress")
+    plan = planning.plan_stages(load(TERABYTE).stages)[1]
+    assert plan.core_seconds == pytest.approx(plan.read / 1e9)
