@@ -296,9 +296,9 @@ def report(result: dict) -> str:
 
 
 def rates(result: dict) -> dict[str, float]:
-    """The rates ``btf run --plan`` uses: planning time per tile texel (the client's, serial)
-    and float32 values written per core-second by ``btf quilt``'s application, end to end (its
-    wall time less the planning and a second of start-up).
+    """The rates ``btf run --plan`` uses: planning time per tile texel and sample texel (the
+    client's, serial) and float32 values written per core-second by ``btf quilt``'s
+    application, end to end (its wall time less the planning and a second of start-up).
     """
     from tasks.sampling import parse_sampling
 
@@ -309,7 +309,8 @@ def rates(result: dict) -> dict[str, float]:
     s = parse_sampling(result["sampling"])
     values = tile * s.theta_view.size * s.theta_light.size * 3
     applying = result["quilt_cli"]["seconds"] - largest["plan_seconds"] - 1.0
-    out = {"quilt_plan_seconds_per_tile_texel": largest["plan_seconds"] / tile}
+    out = {"quilt_plan_seconds_per_texel_pair":
+           largest["plan_seconds"] / (tile * largest["size"] ** 2)}
     if applying > 0:
         out["quilt_values_per_core_second"] = values / applying / result["machine"]["cpus"]
     return out

@@ -27,11 +27,11 @@ from pipeline.errors import BTFError
 
 GiB = 1 << 30
 BASE_PROCESS = 300 << 20  # interpreter, numpy, dask, zarr: a worker's memory before any task
-BUILT_IN_RATES = {  # per core, measured on the 2-core test VM (BENCHMARKS.md, 2026-11-21..23)
-    "generate_texel_directions_per_core_second": 18e6,
-    "compress_bytes_per_core_second": 0.23e9,
-    "quilt_plan_seconds_per_tile_texel": 2.55e-5,
-    "quilt_values_per_core_second": 43e6,
+BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM, 2026-11-23 (BENCHMARKS.md)
+    "generate_texel_directions_per_core_second": 6.2e6,
+    "compress_bytes_per_core_second": 0.37e9,
+    "quilt_plan_seconds_per_texel_pair": 5.45e-11,  # per (tile texel x sample texel)
+    "quilt_values_per_core_second": 3.1e6,
 }
 
 
@@ -196,7 +196,9 @@ def _quilt(params, shapes: dict) -> tuple[StagePlan, Shape]:
     tiles = params.corners**4
     values = src.rank if src.kind == "compressed" else nv * nl * nc
     out = tiles * th * tw * values * 4
-    plan_seconds, source = rate("quilt_plan_seconds_per_tile_texel")
+    # planning compares every tile position with every sample position: measured time grows
+    # with their product (16 tiles of 1008^2 on a 1024^2 sample: 14.5 min, estimated 16.9)
+    plan_seconds, source = rate("quilt_plan_seconds_per_texel_pair")
     per_core, _ = rate("quilt_values_per_core_second")
     side = _task_side(src.chunk)
     spatial = math.ceil(th / side) * math.ceil(tw / side)
@@ -207,7 +209,8 @@ def _quilt(params, shapes: dict) -> tuple[StagePlan, Shape]:
                      + th * tw * TERMS * 8,
                      client_bytes=ny * nx * 3 * 4 * 4 + tiles * th * tw * TERMS * 8,
                      core_seconds=tiles * th * tw * values / per_core,
-                     serial_seconds=tiles * th * tw * plan_seconds, rate_source=source,
+                     serial_seconds=tiles * th * tw * ny * nx * plan_seconds,
+                     rate_source=source,
                      option="--size (smaller tiles)",
                      note=f"{tiles} tile(s) of {th} x {tw}"
                      + (", compressed: V only" if src.kind == "compressed" else ""))

@@ -41,7 +41,8 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
 def test_a_plan_over_the_workers_memory_is_refused_naming_stage_and_option(btf):
     result = btf("run", TERABYTE, "--plan", "--memory-limit", "1GiB")
     assert result.code == 1
-    assert "terabyte.yaml:17: stages[1].compress: needs ~" in result.err
+    line = TERABYTE.read_text().splitlines().index("  - compress:") + 1
+    assert f"terabyte.yaml:{line}: stages[1].compress: needs ~" in result.err
     assert "more than --memory-limit allows (1.0 GiB); change --rank" in result.err
     texel_side = planning.plan_stages(load(TERABYTE, ("compress.sketch=texels",)).stages)[1]
     assert texel_side.client_bytes > 14e9  # 6 float64 sketches of 4.2 M texels x 74
