@@ -442,3 +442,33 @@ def refactor_gram(u: np.ndarray, gram: np.ndarray) -> tuple[np.ndarray, np.ndarr
     s = np.sqrt(np.maximum(evals[order], 0.0))
     w = w[:, order]
     return np.asarray(u, np.float64) @ w, s, w
+
+
+def projected_level(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, factor: int, eps: float,
+                    budget: int = 64 << 20) -> np.ndarray:
+    """Eigentextures of a level of detail: block-mean radiance, back in the basis ``U``.
+
+    ``v`` is a level-0 tile ``(y, x, k)`` whose sides are multiples of ``factor``. Its radiance
+    (:func:`reconstruct`, as many rows of ``U`` at a time as fit ``budget`` bytes) is averaged
+    over ``factor x factor`` blocks in linear radiance, range-reduced again and projected on
+    the orthonormal ``U``:
+    ``V = log(mean + eps) U / S``, the level's best approximation with the same ``U`` and
+    ``S`` in the log domain. (The block mean of ``V`` itself is the log-domain, geometric mean
+    of ``radiance + eps``.) Components with ``S = 0`` get 0.
+    """
+    ty, tx, k = v.shape
+    oy, ox = ty // factor, tx // factor
+    texels = np.ascontiguousarray(v, np.float32).reshape(ty * tx, k)
+    c = np.zeros((oy * ox, k))
+    rows = max(1, budget // (ty * tx * 4))
+    for r0 in range(0, u.shape[0], rows):
+        ur = np.asarray(u[r0 : r0 + rows], np.float32)
+        radiance = reconstruct(ur, s, texels, eps=eps)  # (rows, texels) float32
+        means = radiance.reshape(-1, oy, factor, ox, factor).mean(axis=(2, 4),
+                                                                  dtype=np.float64)
+        c += np.log(means.reshape(len(ur), -1) + eps).T @ ur.astype(np.float64)
+    s = np.asarray(s, np.float64)
+    out = np.zeros_like(c)
+    kept = s > 0
+    out[:, kept] = c[:, kept] / s[kept]
+    return out.reshape(oy, ox, k).astype(np.float32)

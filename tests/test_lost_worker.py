@@ -80,7 +80,8 @@ def _chunks(out: Path) -> int:
     """Chunk files written so far in OUT's partial sibling (-1 before it exists; it may vanish:
     it is renamed)."""
     try:
-        partial = list(out.parent.glob(f".{out.stem}*partial*"))
+        partial = [p for p in out.parent.glob(f".{out.stem}.*")
+                   if "partial" in p.name or ".resume-" in p.name]
         return sum(1 for p in partial for _ in p.rglob("c/*")) if partial else -1
     except OSError:
         return 0

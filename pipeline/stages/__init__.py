@@ -21,6 +21,7 @@ from pipeline.stages import (
     ingest,
     inspect,
     preview,
+    pyramid,
     quilt,
     reconstruct,
     reference,
@@ -132,6 +133,13 @@ STAGES: dict[str, Stage] = {
               "lights and lightness fitted, for every light rotation, by six parameters over "
               "elevation. Reports the fit error (RMSE and maximum, linear RGB) and the size "
               "ratio; the fitted store rebuilds radiance lazily.", makes_store=True),
+        Stage("pyramid", pyramid.PyramidParams, pyramid.pyramid,
+              "add levels of detail (OME-NGFF multiscales) to a store",
+              "Add levels of detail to a radiance or compressed store: level n is the mean of "
+              "2^n x 2^n texel blocks of level 0 (linear radiance; for a compressed store the "
+              "eigentextures V are averaged, a log-domain approximation), chunked like level 0, "
+              "stored under pyramid/N/ and described by OME-NGFF-style 'multiscales' metadata "
+              "so that other zarr tools see them. btf inspect lists them."),
         Stage("inspect", inspect.InspectParams, inspect.inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "

@@ -22,6 +22,7 @@ from pipeline.errors import BTFError
 from pipeline.graphs.reductions import read_array, statistics
 from pipeline.params import option
 from pipeline.session import Session
+from pipeline.stages.pyramid import levels_of
 from pipeline.stores import KINDS, kind_of
 from pipeline.stores.base import DIRECTION_COORDS, open_group, read_directions
 from pipeline.stores.compressed import NAME as COMPRESSED
@@ -92,6 +93,9 @@ def describe(path: str | Path) -> dict[str, Any]:
     kind = kind_of(group)
     if kind is not None:
         report.update(kind.summary(group))
+    levels = levels_of(group)
+    if levels:
+        report["levels"] = levels
     return report
 
 
@@ -172,6 +176,10 @@ def format_report(report: dict[str, Any]) -> str:
     kind = KINDS.get(report["kind"])
     if kind is not None:
         lines += kind.lines(report)
+    if report.get("levels"):
+        lines.append("levels of detail: " + ", ".join(
+            f"{v['level']}: {' x '.join(map(str, v['shape']))} ({v['path']})"
+            for v in report["levels"]))
     attrs = report["attrs"]
     for key in ("material", "shading"):
         if key in attrs:

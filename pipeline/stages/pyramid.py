@@ -1,0 +1,198 @@
+"""``btf pyramid``: levels of detail of a store, as OME-NGFF-style multiscales (issue 15).
+
+Level n halves level n - 1 in y and x: each texel is the mean of a 2^n x 2^n block of level 0
+(blocks that do not fit at the bottom and right edges are left out, as OME-NGFF viewers and
+dask's ``coarsen(trim_excess=True)`` do). Levels are stored under ``pyramid/N/`` in the same
+store, chunked like level 0, and described in the root group's ``multiscales`` attribute
+(datasets with scale and translation transforms), so other zarr tools see them; level 0 stays
+where it was, so every stage reads the store as before.
+
+- Radiance stores: levels of ``radiance``, block means in linear radiance (exact).
+- Compressed stores: levels of ``V``; ``U`` and ``S`` are shared, so a level is
+  ``exp(U S V_n^T) - eps``. With ``--method projected`` (the default) ``V_n`` is the exact
+  level's radiance (block means of the reconstructed radiance, linear) range-reduced and
+  projected back on ``U`` (:func:`tasks.svd.projected_level`): the best the shared basis can
+  do, at the cost of reconstructing level 0 once per level. ``--method mean-v`` averages ``V``
+  itself: cheap, but that is a mean in the log domain, the geometric mean of
+  ``radiance + eps``, lower than the arithmetic mean wherever a block's radiance varies
+  (Jensen's inequality). Measured on a generated leather, 256^2, 48 lights, rank 32, against
+  the exact levels: relative RMS error 1.8%, 3.3%, 4.9% (levels 1-3) projected, 8.9%, 13.9%,
+  18.5% (mean radiance 4-18% low) with mean-v; tests/test_pyramid.py checks both.
+
+Levels are written to a hidden subgroup and renamed into place once complete; the
+``multiscales`` attribute and the consolidated metadata are updated last.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import uuid
+from functools import partial
+from pathlib import Path
+
+from pipeline.atomic import consolidate
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, option
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, open_group
+
+PYRAMID = "pyramid"
+MIN_SIDE = 16  # default levels stop before the smaller side would fall below this
+
+
+@dataclasses.dataclass(frozen=True)
+class PyramidParams:
+    """Parameters of ``btf pyramid``."""
+
+    store: str = option(help="radiance or compressed store to add levels of detail to",
+                        positional=True, path="in")
+    levels: int | None = option(None, metavar="N",
+                                help="levels beyond level 0 (default: halve until the smaller "
+                                     f"side would fall below {MIN_SIDE} texels)")
+    method: str = option("projected", metavar="projected|mean-v",
+                         help="compressed stores: project each level's exact (linear) block "
+                              "means back on U (default), or average V (a log-domain, "
+                              "geometric mean: cheaper, biased low)")
+    overwrite: bool = option(False, record=False, help="replace the store's existing levels")
+
+    def __post_init__(self):
+        if self.levels is not None and self.levels < 1:
+            raise ParamError("levels", f"must be at least 1, got {self.levels}")
+        if self.method not in ("projected", "mean-v"):
+            raise ParamError("method", f"must be projected or mean-v, got {self.method!r}")
+
+
+def variable_of(group, path: str) -> str:
+    """The variable that has levels: ``radiance``, or ``V`` for a compressed store."""
+    kind = group.attrs.get("btf_kind")
+    if kind == "compressed":
+        return "V"
+    if kind in ("abtf", "btf") and RADIANCE in group:
+        return RADIANCE
+    raise BTFError(f"{path}: a {kind or 'non-btf'} store; btf pyramid takes a radiance or a "
+                   "compressed store")
+
+
+def levels_of(group) -> list[dict]:
+    """The store's levels from its ``multiscales`` attribute: path, factor, shape."""
+    scales = group.attrs.get("multiscales") or []
+    if not scales:
+        return []
+    out = []
+    for d in scales[0]["datasets"]:
+        scale = next(t["scale"] for t in d["coordinateTransformations"] if t["type"] == "scale")
+        factor = int(max(scale))
+        out.append({"path": d["path"], "factor": factor,
+                    "level": factor.bit_length() - 1, "shape": list(group[d["path"]].shape)})
+    return out
+
+
+def _axes(dims: tuple[str, ...]) -> list[dict]:
+    kinds = {"y": "space", "x": "space", "channel": "channel", "component": "other"}
+    return [{"name": d, "type": kinds.get(d, "other")} for d in dims]
+
+
+def _dataset(path: str, dims: tuple[str, ...], factor: int) -> dict:
+    scale = [float(factor) if d in ("y", "x") else 1.0 for d in dims]
+    shift = [(factor - 1) / 2 if d in ("y", "x") else 0.0 for d in dims]
+    transforms = [{"type": "scale", "scale": scale}]
+    if factor > 1:  # a level-n texel's centre sits at the centre of its level-0 block
+        transforms.append({"type": "translation", "translation": shift})
+    return {"path": path, "coordinateTransformations": transforms}
+
+
+def pyramid(params: PyramidParams, session: Session) -> list[dict]:
+    """Add the levels of ``params.store``; returns them (level 0 first)."""
+    import dask.array as da
+    import zarr
+
+    from pipeline.graphs.blocks import aligned_chunks, store_aligned
+    from pipeline.stores.base import add_array
+
+    group = open_group(params.store)
+    name = variable_of(group, params.store)
+    base = group[name]
+    dims = tuple(base.metadata.dimension_names)
+    ay, ax = dims.index("y"), dims.index("x")
+    ny, nx = base.shape[ay], base.shape[ax]
+    if PYRAMID in group and not params.overwrite:
+        raise BTFError(f"{params.store}: already has levels ({PYRAMID}/); pass --overwrite to "
+                       "replace them")
+    most = max(0, (min(ny, nx) // MIN_SIDE).bit_length() - 1)
+    count = params.levels if params.levels is not None else most
+    if min(ny, nx) >> count < 1:
+        raise BTFError(f"{params.store}: {count} levels would shrink {ny} x {nx} texels below "
+                       "one texel; use --levels " + str(max(1, min(ny, nx).bit_length() - 1)))
+    if count < 1:
+        raise BTFError(f"{params.store}: {ny} x {nx} texels are too small for levels of detail "
+                       f"(the smaller side halved would fall below {MIN_SIDE}); pass --levels")
+    root = Path(params.store)
+    partial = f"{PYRAMID}.partial-{uuid.uuid4().hex[:8]}"
+    try:
+        levels = zarr.open_group(str(root), path=partial, mode="w-", zarr_format=3)
+        previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
+        projected = name == "V" and params.method == "projected"
+        for n in range(1, count + 1):
+            if projected:
+                coarse = _projected(group, level0, 2**n)
+            else:
+                coarse = da.coarsen(_mean32, previous, {ay: 2, ax: 2}, trim_excess=True)
+            shape = coarse.shape
+            target = add_array(levels.require_group(str(n)), name, shape=shape, dims=dims,
+                               chunks=tuple(min(c, s) for c, s in zip(base.chunks, shape,
+                                                                      strict=True)),
+                               attrs=dict(base.attrs))
+            coarse = coarse.rechunk(aligned_chunks(target))
+            session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
+            session.compute(store_aligned([coarse], [target]))
+            previous = da.from_zarr(target, chunks=aligned_chunks(target))
+        if PYRAMID in group:
+            shutil.rmtree(root / PYRAMID)
+        (root / partial).rename(root / PYRAMID)
+    except BaseException:
+        shutil.rmtree(root / partial, ignore_errors=True)
+        raise
+    group = zarr.open_group(str(root), mode="r+", use_consolidated=False)
+    datasets = [_dataset(name, dims, 1)] + [_dataset(f"{PYRAMID}/{n}/{name}", dims, 2**n)
+                                            for n in range(1, count + 1)]
+    group.attrs["multiscales"] = [{
+        "version": "0.4", "name": name, "axes": _axes(dims), "datasets": datasets,
+        "type": "mean",
+        "metadata": {"method": "block mean of level 0 in linear radiance" if name == RADIANCE
+                     else "block mean of level 0's radiance, projected on U" if
+                     params.method == "projected" else
+                     "block mean of the eigentextures V: a log-domain (geometric) mean of "
+                     "radiance + eps",
+                     "edges": "blocks beyond the last whole 2^n x 2^n block are left out"}}]
+    consolidate(root)
+    found = levels_of(group)
+    session.log("pyramid: " + ", ".join(f"level {v['level']} {v['shape'][ay]} x "
+                                        f"{v['shape'][ax]}" for v in found))
+    return found
+
+
+def _projected(group, level0, factor: int):
+    """Level ``factor`` of a compressed store's ``V`` (dask), projected tile by tile."""
+    import numpy as np
+
+    from tasks.svd import projected_level
+
+    k = level0.shape[-1]
+    u = np.asarray(group["U"][...]).reshape(-1, k)
+    s = np.asarray(group["S"][...])
+    eps = float(group.attrs["transform"]["eps"])
+    ny, nx = (level0.shape[0] // factor) * factor, (level0.shape[1] // factor) * factor
+    # tiles whose sides are multiples of the factor (a partial edge block is left out)
+    side = max(factor, (level0.chunksize[0] // factor) * factor)
+    whole = level0[:ny, :nx].rechunk((side, side, k))
+    chunks = (*(tuple(c // factor for c in cs) for cs in whole.chunks[:2]), whole.chunks[2])
+    return whole.map_blocks(partial(projected_level, u=u, s=s, factor=factor, eps=eps),
+                            dtype=np.float32, chunks=chunks)
+
+
+def _mean32(block, axis=None):
+    """Block means accumulated in float64, stored as float32."""
+    import numpy as np
+
+    return np.mean(block, axis=axis, dtype=np.float64).astype(np.float32)
