@@ -9,8 +9,10 @@ exported layers. A good output is never lost: if the final swap fails, it is put
 
 With ``resume`` (the stage's provenance record) the partial output is named after that record,
 ``.NAME.resume-KEY``, so a rerun of the same command after the stage was killed (``kill -9``,
-the out-of-memory killer, a lost machine) continues in it (:mod:`pipeline.resume`); partial
-outputs of the same NAME made with other parameters are removed then.
+the out-of-memory killer) continues in it (:mod:`pipeline.resume`); partial outputs of the
+same NAME made with other parameters are removed then. A run holds an exclusive lock
+(``.NAME.lock``, :func:`fcntl.flock`) while it writes, so a second run of the same output
+fails at once instead of writing into the first one's partial output.
 """
 
 from __future__ import annotations
@@ -131,7 +133,35 @@ def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool =
             raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
         _check_replaceable(path, shown, directory)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _sibling(path, "partial") if resume is None else _resumable(path, resume)
+    lock = None if resume is None else _lock(path, shown)
+    try:
+        tmp = _sibling(path, "partial") if resume is None else _resumable(path, resume)
+        yield from _fill(tmp, path, shown, directory)
+    finally:
+        if lock is not None:
+            _unlock(lock)
+
+
+def _lock(path: Path, shown: Path):
+    import fcntl
+
+    lock = path.with_name(f".{path.name}.lock").open("w")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        lock.close()
+        raise BTFError(f"{shown}: another btf run is writing this output (it holds "
+                       f"{lock.name}); wait for it to end") from None
+    return lock
+
+
+def _unlock(lock) -> None:
+    Path(lock.name).unlink(missing_ok=True)
+    lock.close()
+
+
+def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]:
+    """The body of :func:`atomic_output` once ``tmp`` is chosen: yield it, then swap."""
     try:
         yield tmp
     except BaseException as exc:

@@ -80,6 +80,13 @@ class Shape:
     chunk: int
     dir_chunk: int
     rank: int | None = None
+    unit: int = 0  # texels per side of a write unit (the shard, else the chunk)
+    truth: bool = False  # ground-truth fields (generated stores, and crops of them)
+
+    @property
+    def side(self) -> int:
+        """Texels per side of a task block (as :func:`pipeline.graphs.blocks.task_block`)."""
+        return _task_side(self.unit or self.chunk)
 
 
 @dataclasses.dataclass
@@ -92,6 +99,7 @@ class StagePlan:
     written: int = 0
     tasks: int = 0
     passes: int = 0
+    reads: int = 0  # reads of the input (a pass may read it twice)
     task_bytes: int = 0
     client_bytes: int = 0
     core_seconds: float | None = None  # work that parallelises over the workers' cores
@@ -112,7 +120,8 @@ def shape_of(path: str) -> Shape | None:
     kind = group.attrs.get("btf_kind")
     if "radiance" in group and kind in ("abtf", "btf"):
         a = group["radiance"]
-        return Shape(kind, tuple(a.shape), a.chunks[2], a.chunks[1])
+        return Shape(kind, tuple(a.shape), a.chunks[2], a.chunks[1],
+                     unit=(a.shards or a.chunks)[2], truth="height" in group)
     if kind == "compressed":
         u, v = group["U"], group["V"]
         return Shape(kind, (u.shape[0], u.shape[1], v.shape[0], v.shape[1], u.shape[2]),
@@ -132,18 +141,18 @@ def _generate(params, shapes: dict) -> tuple[StagePlan, Shape]:
     s = parse_sampling(params.sampling)
     nv, nl, n = s.theta_view.size, s.theta_light.size, params.size**2
     nc = 3
-    side = min(_task_side(params.chunk), params.size)
+    side = min(_task_side(params.shard or params.chunk), params.size)
     spatial = math.ceil(params.size / side) ** 2
     light_blocks = math.ceil(nl / params.dir_chunk)
     block = side * side * min(params.dir_chunk, nl) * nc * 4
     per_core, source = rate("generate_texel_directions_per_core_second")
     plan = StagePlan("generate", "", written=nv * nl * n * nc * 4 + n * 6 * 4,
-                     tasks=nv * light_blocks * spatial + spatial, passes=1,
+                     tasks=nv * light_blocks * spatial + spatial, passes=1, reads=0,
                      task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
                      client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
                      option="--chunk / --dir-chunk (smaller task blocks)")
     return plan, Shape("btf", (nv, nl, params.size, params.size, nc), params.chunk,
-                       params.dir_chunk)
+                       params.dir_chunk, unit=params.shard or params.chunk, truth=True)
 
 
 def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
@@ -163,6 +172,7 @@ def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
         texels = tile[0] * tile[1]
         rows = plan_tile_rows(src.radiance, src.dir_chunk, tile)
         twice = m * texels * 4 > TILE_CACHE_BYTES  # a tile's column read twice per pass
+        passes = iterations + 2 + params.verify
         reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
         tasks = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
         task = tile_memory(m, texels, width, rows)
@@ -171,7 +181,7 @@ def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
                   "tile's rows)")
     else:
         blocks = plan_row_blocks(src.radiance, src.dir_chunk)
-        reads = (1 if params.one_pass else iterations + 1) + params.verify
+        passes = reads = (1 if params.one_pass else iterations + 1) + params.verify
         tasks = len(blocks)
         memory = memory_estimate(src.radiance, blocks, rank=params.rank, extra=extra,
                                  one_pass=params.one_pass, workers=1)
@@ -179,10 +189,12 @@ def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
         option = "--sketch rows (client memory then grows with the rows only)"
     per_core, source = rate("compress_bytes_per_core_second")
     plan = StagePlan("compress", "", read=reads * matrix, written=(m + n + 1) * params.rank * 4,
-                     tasks=tasks * reads, passes=reads, task_bytes=task, client_bytes=client,
+                     tasks=tasks * passes, passes=passes, reads=reads, task_bytes=task,
+                     client_bytes=client,
                      core_seconds=reads * matrix / per_core, rate_source=source, option=option,
                      note=f"sketches on the {side} side")
-    return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank)
+    return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
+                       unit=src.chunk)
 
 
 def _quilt(params, shapes: dict) -> tuple[StagePlan, Shape]:
@@ -200,11 +212,11 @@ def _quilt(params, shapes: dict) -> tuple[StagePlan, Shape]:
     # with their product (16 tiles of 1008^2 on a 1024^2 sample: 14.5 min, estimated 16.9)
     plan_seconds, source = rate("quilt_plan_seconds_per_texel_pair")
     per_core, _ = rate("quilt_values_per_core_second")
-    side = _task_side(src.chunk)
+    side = src.side
     spatial = math.ceil(th / side) * math.ceil(tw / side)
     groups = 1 if src.kind == "compressed" else max(1, math.ceil(nl / src.dir_chunk)) * nv
     plan = StagePlan("quilt", "", read=ny * nx * 3 * 4 + out, written=out,
-                     tasks=tiles * spatial * groups, passes=1,
+                     tasks=tiles * spatial * groups, passes=1, reads=1,
                      task_bytes=3 * side * side * min(values, src.dir_chunk * nc) * 4
                      + th * tw * TERMS * 8,
                      client_bytes=ny * nx * 3 * 4 * 4 + tiles * th * tw * TERMS * 8,
@@ -226,16 +238,20 @@ def _crop(params, shapes: dict) -> tuple[StagePlan, Shape]:
 
         ys, xs = parse_region(params.region)
         ny, nx = ys.stop - ys.start, xs.stop - xs.start
-    nv = len(params.view) if params.view else nv
-    nl = len(params.light) if params.light else nl
+    nv = len(set(params.view)) if params.view else nv
+    nl = len(set(params.light)) if params.light else nl
     size = nv * nl * ny * nx * nc * 4
-    side = _task_side(src.chunk)
+    truth = ny * nx * 6 * 4 if src.truth else 0  # height, albedo (3), roughness, specular
+    chunk = params.chunk or src.chunk
+    dir_chunk = params.dir_chunk or src.dir_chunk
+    side = _task_side(chunk)
     per_core, source = rate("compress_bytes_per_core_second")  # a read-and-write pass
-    plan = StagePlan("crop", "", read=size, written=size, tasks=max(1, size // (side * side
-                     * src.dir_chunk * nc * 4)), passes=1,
-                     task_bytes=2 * side * side * src.dir_chunk * nc * 4,
+    plan = StagePlan("crop", "", read=size + truth, written=size + truth,
+                     tasks=max(1, size // (side * side * dir_chunk * nc * 4)), passes=1, reads=1,
+                     task_bytes=2 * max(side, src.side) ** 2 * dir_chunk * nc * 4,
                      core_seconds=size / per_core, rate_source=source, option="--chunk")
-    return plan, Shape(src.kind, (nv, nl, ny, nx, nc), src.chunk, src.dir_chunk)
+    return plan, Shape(src.kind, (nv, nl, ny, nx, nc), chunk, dir_chunk, unit=chunk,
+                       truth=src.truth)
 
 
 ESTIMATORS = {"generate": _generate, "compress": _compress, "quilt": _quilt, "crop": _crop}
@@ -330,8 +346,9 @@ def report(plans: list[StagePlan], *, cores: int, limit: int, threads: int,
         total += p.core_seconds
         serial += p.serial_seconds
         sources.add(p.rate_source)
+        passes = f"{p.passes} ({p.reads} reads)" if p.reads > p.passes else str(p.passes)
         lines.append(f"| {p.name} | {_size(p.read)} | {_size(p.written)} | {p.tasks} | "
-                     f"{p.passes} | {_size(p.task_bytes)} | {_size(p.client_bytes)} | "
+                     f"{passes} | {_size(p.task_bytes)} | {_size(p.client_bytes)} | "
                      f"{_duration(p.serial_seconds + p.core_seconds / cores)} | {p.note} |")
     hour = (f"{math.ceil(total / (3600 - serial))} cores finish it in an hour if it scales "
             "linearly" if serial < 3600 else "the client's serial part alone takes over an hour")

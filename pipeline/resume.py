@@ -2,7 +2,9 @@
 
 A stage that may be resumed writes into a partial output named after its provenance
 (:func:`pipeline.atomic.atomic_output` with ``resume``), so a rerun of the same command after a
-``kill -9``, a lost machine or the out-of-memory killer finds it again. Inside it,
+``kill -9`` or the out-of-memory killer finds it again. (Chunk files are not fsynced: after a
+power loss a marker may outlive its unit's data, so resuming is for killed processes, not for
+crashed machines.) One run at a time writes a partial output: it holds a lock on it. Inside it,
 :class:`Progress` keeps one empty marker file per finished unit of work (a block of a store, a
 pass of the SVD) in ``.btf-done/``. A marker is written only after its unit's data is written,
 so a unit cut off in the middle is simply done again; units are deterministic (seeded per
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -79,12 +82,16 @@ class Progress:
         Each unit's result is kept in its marker (pickled; small results only), so units a
         killed run finished give their results without running again.
         """
-        results = [None] * len(units)
-        todo, where = self.pending(units)[0], []
-        for i, (name, _) in enumerate(units):
-            if self.done(name):
-                results[i] = _load(self.dir / _file(name))
+        import dask
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        results, todo, where = [None] * len(units), [], []
+        for i, (name, unit) in enumerate(units):  # one look at the markers
+            path = self.dir / _file(name)
+            if path.is_file():
+                results[i] = _load(path)
             else:
+                todo.append(dask.delayed(_keep, pure=True)(unit, str(path)))
                 where.append(i)
         for i, value in zip(where, compute(*todo) if todo else (), strict=True):
             results[i] = value
@@ -117,7 +124,7 @@ def _keep(result: Any, marker: str) -> Any:
     Runs after the unit it depends on: its data is written, so it is done.
     """
     path = Path(marker)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")  # a retried task: its own
     with tmp.open("wb") as f:
         pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
         f.flush()

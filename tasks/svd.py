@@ -41,6 +41,7 @@ import numpy as np
 
 TILE = 16384  # columns per float32 product; longer sums are accumulated in float64
 IDENTITY_RESOLUTION = 1e-3  # relative errors the identity resolves (measured floor ~2e-4)
+GRAM_FLOOR = 1e-10  # Gram eigenvalues kept, relative to the largest (see factors_from_gram)
 
 
 @dataclass(frozen=True)
@@ -201,15 +202,17 @@ def factors_from_gram(y: np.ndarray, gram: np.ndarray, rank: int
     ``gram = Z^T Z = W diag(lambda) W^T``, so ``X = Z W lambda^(-1/2)`` is an orthonormal
     texel-side basis and ``A X = y W lambda^(-1/2)``: with its small SVD ``P diag(s) R^T``,
     ``A ~ A X X^T = P diag(s) (X R)^T`` as in :func:`factors_from_projection`. Returns ``U``,
-    ``S`` and ``M`` with ``V = Z M`` (the caller forms ``V`` tile by tile). Directions of ``Z``
-    with no energy (``lambda`` below ``1e-14`` of the largest: a rank-deficient matrix) are
-    left out, so their singular values are 0 and their columns of ``V`` are 0.
+    ``S`` and ``M`` with ``V = Z M`` (the caller forms ``V`` tile by tile). Forming the Gram
+    matrix squares the condition number: a direction with ``lambda`` below :data:`GRAM_FLOOR`
+    of the largest (singular values below 1e-5 of the largest, under the float32 data's own
+    resolution) would come out with orthogonality errors above ~1e-6, so such directions are
+    left out: their singular values are 0 and their columns of ``V`` are 0.
     """
     evals, w = np.linalg.eigh(np.asarray(gram, np.float64))
     order = np.argsort(evals)[::-1]
     evals, w = evals[order], w[:, order]
     scale = np.zeros_like(w)
-    kept = evals > (evals[0] * 1e-14 if evals.size and evals[0] > 0 else np.inf)
+    kept = evals > (evals[0] * GRAM_FLOOR if evals.size and evals[0] > 0 else np.inf)
     scale[:, kept] = w[:, kept] / np.sqrt(evals[kept])
     p, s, rt = np.linalg.svd(np.asarray(y, np.float64) @ scale, full_matrices=False)
     return p[:, :rank], s[:rank], scale @ rt[:rank].T

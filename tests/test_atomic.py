@@ -138,3 +138,14 @@ def test_a_resumable_partial_output_is_found_again_and_cleaned_up(tmp_path):
     with atomic_output(out, directory=True, resume=record) as tmp:
         assert tmp == partial and not tmp.exists()  # no complete skeleton: started over
         tmp.mkdir()
+
+
+def test_a_second_run_of_the_same_resumable_output_is_refused_while_the_first_writes(tmp_path):
+    out, record = tmp_path / "o.zarr", {"stage": "generate"}
+    with atomic_output(out, directory=True, resume=record) as tmp:
+        with pytest.raises(BTFError, match=r"another btf run is writing this output .*\.lock"):
+            with atomic_output(out, directory=True, resume=record):
+                pass
+        assert tmp.parent == tmp_path  # the first run's partial output is untouched
+        tmp.mkdir()
+    assert out.is_dir() and not list(tmp_path.glob(".o.zarr.lock"))  # the lock goes too

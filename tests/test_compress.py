@@ -10,6 +10,7 @@ import zarr
 from hypothesis import given
 from hypothesis import strategies as st
 
+import pipeline.graphs.tile_passes as tile_passes
 from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
@@ -210,6 +211,28 @@ def test_the_row_side_gives_the_same_bits_on_every_scheduler(tmp_path, btf, sche
         assert np.array_equal(x, y)
     assert reference[3]["error"] == other[3]["error"]
     assert reference[3]["svd"]["passes"] == 5  # 2 power, the projection, V, verification
+
+
+def test_the_row_side_reads_a_tile_twice_when_its_column_does_not_fit(tmp_path, btf,
+                                                                      monkeypatch):
+    a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
+    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
+    args = ("--rank", "6", "--sketch", "rows", "--verify")
+    cached = _compress(btf, store, tmp_path / "cached.zarr", *args)
+    reads = []
+    original = tile_passes.transformed_rows
+
+    def counting(*a, **k):
+        reads.append(1)
+        return original(*a, **k)
+
+    monkeypatch.setattr(tile_passes, "TILE_CACHE_BYTES", 0)  # the terabyte case: no cache
+    monkeypatch.setattr(tile_passes, "transformed_rows", counting)
+    again = _compress(btf, store, tmp_path / "again.zarr", *args)
+    for x, y in zip(cached[:3], again[:3], strict=True):
+        assert np.array_equal(x, y)  # the same products of the same rows
+    blocks, tiles = len(tile_passes.plan_tile_rows(SHAPE, 4, (8, 8))), 12
+    assert len(reads) == tiles * blocks * (3 * 2 + 1)  # 3 power-type passes twice, V once
 
 
 def test_auto_keeps_the_sketch_on_the_side_that_fits(tmp_path, btf, monkeypatch):

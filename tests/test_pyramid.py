@@ -129,3 +129,24 @@ def test_projected_levels_are_several_times_closer_to_the_exact_ones(leather_svd
     g = zarr.open_group(leather_svd, mode="r")
     assert "projected on U" in g.attrs["multiscales"][0]["metadata"]["method"]
     assert g["pyramid/2/V"].shape == (16, 16, 12)
+
+
+def test_projected_levels_of_many_tiles_equal_the_kernel_on_the_whole(tmp_path, btf,
+                                                                      small_tasks):
+    """Odd size, small task blocks: the tiles, their rounding and the edge trimming."""
+    from tasks.svd import projected_level
+
+    store = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "75",
+                           "--sampling", "abtf:4,2", "--chunk", "8", "--seed", "6")
+    c = tmp_path / "c.zarr"
+    assert btf("compress", store, c, "--rank", "6", "--quiet").code == 0
+    assert btf("pyramid", c, "--levels", "2", "--quiet").code == 0
+    g = zarr.open_group(c, mode="r")
+    u, s, v0 = g["U"][...].reshape(-1, 6), g["S"][...], g["V"][...]
+    eps = g.attrs["transform"]["eps"]
+    for n in (1, 2):
+        f = 2**n
+        whole = projected_level(v0[: 75 // f * f, : 75 // f * f], u=u, s=s, factor=f, eps=eps)
+        level = g[f"pyramid/{n}/V"]
+        assert level.shape == (75 >> n, 75 >> n, 6) and level.chunks == (8, 8, 6)
+        assert np.allclose(level[...], whole, rtol=1e-5, atol=1e-6)

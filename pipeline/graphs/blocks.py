@@ -69,9 +69,10 @@ def store_aligned(sources: list, targets: list, *, progress=None):
     if progress is None:
         return da.store(sources, targets, lock=False, compute=False)
     units = []
-    for source, target in zip(sources, targets, strict=True):
+    # optimised together, as da.store would: work the sources share stays shared
+    for source, target in zip(dask.optimize(*sources), targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
-        blocks = source.to_delayed()
+        blocks = source.to_delayed(optimize_graph=False)
         for index in np.ndindex(blocks.shape):
             region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
                                                                            strict=True))

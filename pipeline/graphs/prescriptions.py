@@ -155,7 +155,11 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
             progress.mark_created()
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism)
-        todo, done = progress.pending((f"write-{i}", w) for i, w in enumerate(writes))
+        # how the writes are grouped depends on the session (tile_groups): a rerun with
+        # other workers groups them otherwise, and then keeps nothing of the killed run's
+        grouping = f"{len(writes)}x{session.parallelism}"
+        todo, done = progress.pending((f"write-{grouping}-{i}", w)
+                                      for i, w in enumerate(writes))
         session.log(f"{label}: applying {what} -> {out}"
                     + (f" (resuming: {done} already written)" if done else ""))
         session.compute(*todo)

@@ -173,8 +173,12 @@ def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[
 
 
 def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock]) -> int:
-    """Bytes one row-side task holds at most: a row block or the cached column, and its sums."""
+    """Bytes one row-side task holds at most.
+
+    The cached column (or a row block), a block being read, the float64 copy of a block in the
+    last pass, and its sums (also the verification's raw and range-reduced copies of a block).
+    """
     column = rows * tile_texels * 4
     block = max(b.rows for b in blocks) * tile_texels * 4
     held = column if column <= TILE_CACHE_BYTES else block
-    return held + 2 * block + 8 * (2 * tile_texels * width + rows * width)
+    return held + 3 * block + 8 * (2 * tile_texels * width + rows * width)

@@ -136,10 +136,10 @@ STAGES: dict[str, Stage] = {
         Stage("pyramid", pyramid.PyramidParams, pyramid.pyramid,
               "add levels of detail (OME-NGFF multiscales) to a store",
               "Add levels of detail to a radiance or compressed store: level n is the mean of "
-              "2^n x 2^n texel blocks of level 0 (linear radiance; for a compressed store the "
-              "eigentextures V are averaged, a log-domain approximation), chunked like level 0, "
-              "stored under pyramid/N/ and described by OME-NGFF-style 'multiscales' metadata "
-              "so that other zarr tools see them. btf inspect lists them."),
+              "2^n x 2^n texel blocks of level 0 in linear radiance (for a compressed store, "
+              "projected back on U; --method mean-v averages V instead, a log-domain "
+              "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "
+              "OME-NGFF-style 'multiscales' attribute. btf inspect lists them."),
         Stage("inspect", inspect.InspectParams, inspect.inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "

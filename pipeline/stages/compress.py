@@ -31,6 +31,7 @@ import numpy as np
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.row_passes import (
+    FAN_IN,
     RowBlock,
     memory_estimate,
     pass_graph,
@@ -229,7 +230,7 @@ def compress(params: CompressParams, session: Session) -> Path:
     workers = (os.cpu_count() or 1) + 1
     if side == "rows":
         width = params.rank + extra
-        client = 8 * 6 * m * width
+        client = 8 * 6 * m * width + FAN_IN * 8 * m * width  # sketches; shares being summed
         task = tile_memory(m, tiles[0].texels, width, tile_rows)
         memory = {"client": client, "task": task, "total": client + workers * task}
     else:

@@ -1,11 +1,14 @@
-"""``btf pyramid``: levels of detail of a store, as OME-NGFF-style multiscales (issue 15).
+"""``btf pyramid``: levels of detail of a store, described OME-NGFF-style (issue 15).
 
 Level n halves level n - 1 in y and x: each texel is the mean of a 2^n x 2^n block of level 0
-(blocks that do not fit at the bottom and right edges are left out, as OME-NGFF viewers and
-dask's ``coarsen(trim_excess=True)`` do). Levels are stored under ``pyramid/N/`` in the same
-store, chunked like level 0, and described in the root group's ``multiscales`` attribute
-(datasets with scale and translation transforms), so other zarr tools see them; level 0 stays
-where it was, so every stage reads the store as before.
+(blocks that do not fit at the bottom and right edges are left out, as dask's
+``coarsen(trim_excess=True)`` does). Levels are stored under ``pyramid/N/`` in the same store,
+chunked like level 0 (not sharded), and listed in the root group's ``multiscales`` attribute:
+the layout of OME-NGFF 0.4 (datasets with scale and translation transforms), which tools can
+read to find the levels. It is not a valid OME-NGFF image: 0.5 keeps the metadata under
+``ome`` for zarr v3, and our axes (view, light, y, x, channel) break 0.4's axis rules, so OME
+viewers will not open it as one. Level 0 stays where it was: every stage reads the store as
+before.
 
 - Radiance stores: levels of ``radiance``, block means in linear radiance (exact).
 - Compressed stores: levels of ``V``; ``U`` and ``S`` are shared, so a level is
@@ -28,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import uuid
-from functools import partial
 from pathlib import Path
 
 from pipeline.atomic import consolidate
@@ -83,8 +85,12 @@ def levels_of(group) -> list[dict]:
     for d in scales[0]["datasets"]:
         scale = next(t["scale"] for t in d["coordinateTransformations"] if t["type"] == "scale")
         factor = int(max(scale))
+        try:
+            shape = list(group[d["path"]].shape)
+        except KeyError:  # metadata naming a level that is not there (a store edited by hand)
+            shape = None
         out.append({"path": d["path"], "factor": factor,
-                    "level": factor.bit_length() - 1, "shape": list(group[d["path"]].shape)})
+                    "level": factor.bit_length() - 1, "shape": shape})
     return out
 
 
@@ -128,7 +134,9 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
         raise BTFError(f"{params.store}: {ny} x {nx} texels are too small for levels of detail "
                        f"(the smaller side halved would fall below {MIN_SIDE}); pass --levels")
     root = Path(params.store)
-    partial = f"{PYRAMID}.partial-{uuid.uuid4().hex[:8]}"
+    for stale in root.glob(f".{PYRAMID}.*"):  # left by a killed run
+        shutil.rmtree(stale, ignore_errors=True)
+    partial = f".{PYRAMID}.partial-{uuid.uuid4().hex[:8]}"
     try:
         levels = zarr.open_group(str(root), path=partial, mode="w-", zarr_format=3)
         previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
@@ -147,13 +155,14 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
             session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
             session.compute(store_aligned([coarse], [target]))
             previous = da.from_zarr(target, chunks=aligned_chunks(target))
-        if PYRAMID in group:
-            shutil.rmtree(root / PYRAMID)
-        (root / partial).rename(root / PYRAMID)
     except BaseException:
         shutil.rmtree(root / partial, ignore_errors=True)
         raise
     group = zarr.open_group(str(root), mode="r+", use_consolidated=False)
+    old = root / f".{PYRAMID}.old-{uuid.uuid4().hex[:8]}"
+    if (root / PYRAMID).exists():  # the old levels stay whole until the new are in place
+        (root / PYRAMID).rename(old)
+    (root / partial).rename(root / PYRAMID)
     datasets = [_dataset(name, dims, 1)] + [_dataset(f"{PYRAMID}/{n}/{name}", dims, 2**n)
                                             for n in range(1, count + 1)]
     group.attrs["multiscales"] = [{
@@ -166,6 +175,7 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
                      "radiance + eps",
                      "edges": "blocks beyond the last whole 2^n x 2^n block are left out"}}]
     consolidate(root)
+    shutil.rmtree(old, ignore_errors=True)
     found = levels_of(group)
     session.log("pyramid: " + ", ".join(f"level {v['level']} {v['shape'][ay]} x "
                                         f"{v['shape'][ax]}" for v in found))
@@ -174,9 +184,8 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
 
 def _projected(group, level0, factor: int):
     """Level ``factor`` of a compressed store's ``V`` (dask), projected tile by tile."""
+    import dask
     import numpy as np
-
-    from tasks.svd import projected_level
 
     k = level0.shape[-1]
     u = np.asarray(group["U"][...]).reshape(-1, k)
@@ -187,8 +196,15 @@ def _projected(group, level0, factor: int):
     side = max(factor, (level0.chunksize[0] // factor) * factor)
     whole = level0[:ny, :nx].rechunk((side, side, k))
     chunks = (*(tuple(c // factor for c in cs) for cs in whole.chunks[:2]), whole.chunks[2])
-    return whole.map_blocks(partial(projected_level, u=u, s=s, factor=factor, eps=eps),
+    basis = dask.delayed(u)  # one copy of U in the graph, not one per task
+    return whole.map_blocks(_projected_block, basis, s=s, factor=factor, eps=eps,
                             dtype=np.float32, chunks=chunks)
+
+
+def _projected_block(v, u, *, s, factor, eps):
+    from tasks.svd import projected_level
+
+    return projected_level(v, u=u, s=s, factor=factor, eps=eps)
 
 
 def _mean32(block, axis=None):
