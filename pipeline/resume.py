@@ -44,6 +44,18 @@ class Progress:
         self.dir.mkdir(parents=True, exist_ok=True)
         _touch(self.dir / CREATED)
 
+    def skeleton(self, create: Callable[[], Any]):
+        """The partial output's zarr group, made once.
+
+        ``create()`` makes it (the store's metadata and client-written arrays) and it is then
+        marked complete; when a killed run had completed it, it is opened as it is.
+        """
+        if self.created:
+            return self.group()
+        made = create()
+        self.mark_created()
+        return made
+
     def group(self):
         """The partial output's zarr group, opened for writing (a resumed run's store)."""
         import zarr

@@ -88,15 +88,8 @@ def _multi_pass(run_pass: RunPass, *, rows, texels, rank, extra, iterations, see
     del previous
     last = run_pass("project", x=x.astype(np.float32))
     u, s, v = factors_from_projection(stacked_rows(last.rows["z"]), x, rank)
-    relative = error_from_identity(last.frobenius2, s)
-    error = {"log_relative_frobenius": max(relative, 0.0),
-             "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact in exact "
-                       "arithmetic for the projection A X X^T computed in the last pass",
-             "resolution": IDENTITY_RESOLUTION,
-             "frobenius_norm": math.sqrt(last.frobenius2)}
-    if relative < IDENTITY_RESOLUTION:
-        error["note"] = (f"below the identity's resolution ({IDENTITY_RESOLUTION:g}) in floating "
-                         "point: an upper bound; --verify measures it directly")
+    error = _identity_error(last.frobenius2, s, "the projection A X X^T computed in the last "
+                                                "pass")
     return Factorization(u, s, v, error, {"sketch_columns": width,
                                           "projection_columns": x.shape[1]})
 
@@ -143,14 +136,20 @@ def randomized_svd_rows(run_pass: RunPass, *, rows: int, texels: int, rank: int,
     last = run_pass("row-gram", q=q)
     u, s, to_v = factors_from_gram(last.sums["y"], last.sums["g"], rank)
     v = run_pass("row-vectors", q=q, m=to_v).sums.get("v")
-    relative = error_from_identity(last.frobenius2, s)
+    error = _identity_error(last.frobenius2, s, "the projection A X X^T onto the texel-side "
+                            "basis X = A^T Q (Gram-orthonormalised) of the last row-side pass")
+    return Factorization(u, s, v, error, {"sketch_columns": width})
+
+
+def _identity_error(frobenius2: float, s: np.ndarray, projection: str) -> dict[str, Any]:
+    """The error record of a projection: relative error from ``||A||_F^2 - sum(S^2)``."""
+    relative = error_from_identity(frobenius2, s)
     error = {"log_relative_frobenius": max(relative, 0.0),
              "method": "identity ||A - U S V^T||_F^2 = ||A||_F^2 - sum(S^2), exact in exact "
-                       "arithmetic for the projection A X X^T onto the texel-side basis "
-                       "X = A^T Q (Gram-orthonormalised) of the last row-side pass",
+                       f"arithmetic for {projection}",
              "resolution": IDENTITY_RESOLUTION,
-             "frobenius_norm": math.sqrt(last.frobenius2)}
+             "frobenius_norm": math.sqrt(frobenius2)}
     if relative < IDENTITY_RESOLUTION:
         error["note"] = (f"below the identity's resolution ({IDENTITY_RESOLUTION:g}) in floating "
                          "point: an upper bound; --verify measures it directly")
-    return Factorization(u, s, v, error, {"sketch_columns": width})
+    return error

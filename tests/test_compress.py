@@ -197,22 +197,6 @@ def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, 
     assert np.allclose(seeded[1], reference[1], rtol=1e-3)  # same spectrum, other test matrix
 
 
-@pytest.mark.parametrize("scheduler", ["threads", "processes",
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
-def test_the_row_side_gives_the_same_bits_on_every_scheduler(tmp_path, btf, scheduler, request):
-    a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
-    store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
-    args = ("--rank", "6", "--sketch", "rows", "--verify")
-    reference = _compress(btf, store, tmp_path / "ref.zarr", *args, "--scheduler", "synchronous")
-    if scheduler == "cluster":
-        scheduler = request.getfixturevalue("local_cluster")
-    other = _compress(btf, store, tmp_path / "other.zarr", *args, "--scheduler", scheduler)
-    for x, y in zip(reference[:3], other[:3], strict=True):
-        assert np.array_equal(x, y)
-    assert reference[3]["error"] == other[3]["error"]
-    assert reference[3]["svd"]["passes"] == 5  # 2 power, the projection, V, verification
-
-
 def test_the_row_side_reads_a_tile_twice_when_its_column_does_not_fit(tmp_path, btf,
                                                                       monkeypatch):
     a = spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0))
@@ -451,14 +435,16 @@ def test_verify_measures_the_log_domain_error(sketch, tmp_path, btf):
         attrs["error"]["log_relative_frobenius_measured"], rel=1e-3)
 
 
-@pytest.mark.parametrize("scheduler", ["processes",
+@pytest.mark.parametrize("scheduler", ["threads", "processes",
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
-def test_one_pass_and_verify_are_identical_on_every_scheduler(tmp_path, btf, scheduler,
-                                                               request, monkeypatch):
+@pytest.mark.parametrize(("mode", "passes"), [(("--passes", "1"), 2),
+                                              (("--sketch", "rows"), 5)])
+def test_one_pass_row_side_and_verify_are_identical_on_every_scheduler(
+        tmp_path, btf, scheduler, request, monkeypatch, mode, passes):
     monkeypatch.setattr("pipeline.graphs.row_passes.MIN_ROW_BLOCKS", 5)
     store = store_from_log_matrix(tmp_path / "s.zarr",
                                   spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE)
-    args = ("--rank", "6", "--passes", "1", "--verify")
+    args = ("--rank", "6", *mode, "--verify")
     reference = _compress(btf, store, tmp_path / "ref.zarr", *args, "--scheduler", "synchronous")
     if scheduler == "cluster":
         scheduler = request.getfixturevalue("local_cluster")
@@ -466,6 +452,8 @@ def test_one_pass_and_verify_are_identical_on_every_scheduler(tmp_path, btf, sch
     for x, y in zip(reference[:3], other[:3], strict=True):
         assert np.array_equal(x, y)
     assert reference[3]["error"] == other[3]["error"]
+    # one view (+ verification); rows: 2 power, the projection, V, verification
+    assert reference[3]["svd"]["passes"] == passes
 
 
 @pytest.mark.parametrize("scheduler", ["threads",

@@ -150,9 +150,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
     with atomic_output(out, directory=True, overwrite=overwrite,
                        resume=tiles.attrs.get("provenance")) as tmp:
         progress = Progress(tmp)
-        if not progress.created:
-            write_tileset_store(tmp, tiles, source=source, source_group=group)
-            progress.mark_created()
+        progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
+                                                      source_group=group))
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism)
         # how the writes are grouped depends on the session (tile_groups): a rerun with

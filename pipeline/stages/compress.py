@@ -243,13 +243,9 @@ def compress(params: CompressParams, session: Session) -> Path:
         + params.verify
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp, session.blas_pinned_in_tasks():
-        if Progress(tmp).created:  # a killed run's passes are kept (see _Passes)
-            out = Progress(tmp).group()
-        else:
-            out = create_compressed_store(
-                tmp, directions=read_directions(group), channels=read_channels(group),
-                ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
-            Progress(tmp).mark_created()
+        out = Progress(tmp).skeleton(lambda: create_compressed_store(  # passes: see _Passes
+            tmp, directions=read_directions(group), channels=read_channels(group),
+            ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs))
         passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),
                          planned, params, session)
         if side == "rows":

@@ -82,15 +82,11 @@ def crop(params: CropParams, session: Session) -> Path:
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
         progress = Progress(tmp)
-        if progress.created:
-            out = progress.group()
-            if progress.count():
-                session.log(f"crop: resuming: {progress.count()} blocks already written")
-        else:
-            out = create_radiance_store(tmp, directions=d, ny=ny, nx=nx,
-                                        channels=read_channels(group), layout=layout,
-                                        attrs=attrs, truth=len(truth) == len(TRUTH_DIMS))
-            progress.mark_created()
+        out = progress.skeleton(lambda: create_radiance_store(
+            tmp, directions=d, ny=ny, nx=nx, channels=read_channels(group), layout=layout,
+            attrs=attrs, truth=len(truth) == len(TRUTH_DIMS)))
+        if progress.count():
+            session.log(f"crop: resuming: {progress.count()} blocks already written")
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
         sources = [selected[n].data.rechunk(aligned_chunks(out[n])) for n in names]
         session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))

@@ -334,16 +334,12 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
-        if Progress(tmp).created:  # a killed run's finished tiles are kept (tiled runs only)
-            out = Progress(tmp).group()
-        else:
-            out = create_compressed_store(
-                tmp, directions=read_directions(sample_group),
-                channels=read_channels(sample_group), ny=big_h, nx=big_w, rank=rank,
-                chunk=tile or sample_group["V"].chunks[0],
-                dir_chunk=sample_group["U"].chunks[1], attrs=attrs)
-            if tile:
-                Progress(tmp).mark_created()
+        # a killed tiled run's finished tiles are kept (see synthesize)
+        out = Progress(tmp).skeleton(lambda: create_compressed_store(
+            tmp, directions=read_directions(sample_group),
+            channels=read_channels(sample_group), ny=big_h, nx=big_w, rank=rank,
+            chunk=tile or sample_group["V"].chunks[0], dir_chunk=sample_group["U"].chunks[1],
+            attrs=attrs))
         if tile:
             report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
                                 sample_values, params=params.enlargement(),

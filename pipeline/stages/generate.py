@@ -194,20 +194,21 @@ def generate(params: GenerateParams, session: Session) -> Path:
     }
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
+        def create():
+            made = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
+                                         channels=CHANNELS, layout=params.layout(),
+                                         attrs=attrs, truth=True)
+            if photo is not None:  # a photo's fields fit in memory: written once
+                for name, values in zip(TRUTH_DIMS, (photo.height, photo.albedo,
+                                                     photo.roughness, photo.specular),
+                                        strict=True):
+                    made[name][...] = values
+            return made
+
         progress = Progress(tmp)
-        if progress.created:
-            group = progress.group()
-        else:
-            group = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
-                                          channels=CHANNELS, layout=params.layout(),
-                                          attrs=attrs, truth=True)
+        group = progress.skeleton(create)
         truth = [group[name] for name in TRUTH_DIMS]
         vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
-        if photo is not None and not progress.created:  # fields fit in memory: written once
-            for array, values in zip(truth, (photo.height, photo.albedo, photo.roughness,
-                                             photo.specular), strict=True):
-                array[...] = values
-        progress.mark_created()
         if photo is not None:  # read back per block
             windows = field_windows(location(tmp), ych, xch, halo)
         else:

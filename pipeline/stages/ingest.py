@@ -209,18 +209,18 @@ def ingest(params: IngestParams, session: Session) -> Path:
              "provenance": provenance("ingest", params)}
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
+        def create():
+            made = create_radiance_store(tmp, directions=directions, ny=info.height,
+                                         nx=info.width, channels=info.channels,
+                                         layout=params.layout(), attrs=attrs)
+            target = made[RADIANCE]
+            made.create_array(
+                STAGING, shape=target.shape, dtype="float32", fill_value=np.nan,
+                chunks=(1, 1, *target.chunks[2:]), compressors=target.compressors)
+            return made
+
         progress = Progress(tmp)
-        if progress.created:
-            group = progress.group()
-        else:
-            group = create_radiance_store(tmp, directions=directions, ny=info.height,
-                                          nx=info.width, channels=info.channels,
-                                          layout=params.layout(), attrs=attrs)
-            radiance = group[RADIANCE]
-            group.create_array(
-                STAGING, shape=radiance.shape, dtype="float32", fill_value=np.nan,
-                chunks=(1, 1, *radiance.chunks[2:]), compressors=radiance.compressors)
-            progress.mark_created()
+        group = progress.skeleton(create)
         radiance = group[RADIANCE]
         stage = [(f"image/{v}.{li}", dask.delayed(_stage_image, pure=True)(
                      location(tmp), v, li, location(e.path), srgb=params.srgb, info=info))

@@ -104,16 +104,11 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             session.compute(*writes)
         else:
             progress = Progress(tmp)
-            if progress.created:
-                group = progress.group()
-                if progress.count():
-                    session.log(f"reconstruct: resuming: {progress.count()} blocks already "
-                                "written")
-            else:
-                group = create_radiance_store(
-                    tmp, directions=d, ny=ny, nx=nx, channels=channels,
-                    layout=Layout(chunk=params.chunk, dir_chunk=params.dir_chunk), attrs=attrs)
-                progress.mark_created()
+            group = progress.skeleton(lambda: create_radiance_store(
+                tmp, directions=d, ny=ny, nx=nx, channels=channels,
+                layout=Layout(chunk=params.chunk, dir_chunk=params.dir_chunk), attrs=attrs))
+            if progress.count():
+                session.log(f"reconstruct: resuming: {progress.count()} blocks already written")
             data = sel.data.rechunk(aligned_chunks(group[RADIANCE]))
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress))
     return Path(params.out)
