@@ -38,24 +38,37 @@ def corner_code(top_left, top_right, bottom_left, bottom_right, *, corners: int)
     return ((top_left * corners + top_right) * corners + bottom_left) * corners + bottom_right
 
 
-def gather(tiles: np.ndarray, y0: int, x0: int, ny: int, nx: int, *, seed: int,
-           corners: int) -> np.ndarray:
-    """Pixels ``[y0, y0+ny) x [x0, x0+nx)`` of the surface covered by ``tiles``.
-
-    ``tiles`` is ``(n, ty, tx, ...)``. Coordinates may be negative: the surface is unbounded.
-    Each lattice cell the region overlaps is one rectangular slice copy from its tile.
-    """
-    _, ty, tx = tiles.shape[:3]
+def region_tiles(y0: int, x0: int, ny: int, nx: int, *, tile_shape: tuple[int, int],
+                 seed: int, corners: int) -> np.ndarray:
+    """Tile indices (:func:`cell_tiles` order) of every cell the region overlaps."""
+    ty, tx = tile_shape
     cy0, cx0 = y0 // ty, x0 // tx
     cy1, cx1 = (y0 + ny - 1) // ty, (x0 + nx - 1) // tx
-    ids = cell_tiles(cy0, cx0, cy1 - cy0 + 1, cx1 - cx0 + 1, seed=seed, corners=corners)
-    out = np.empty((ny, nx, *tiles.shape[3:]), tiles.dtype)
-    for i, cy in enumerate(range(cy0, cy1 + 1)):
+    return cell_tiles(cy0, cx0, cy1 - cy0 + 1, cx1 - cx0 + 1, seed=seed, corners=corners)
+
+
+def gather(tiles, y0: int, x0: int, ny: int, nx: int, *, seed: int, corners: int
+           ) -> np.ndarray:
+    """Pixels ``[y0, y0+ny) x [x0, x0+nx)`` of the surface covered by ``tiles``.
+
+    ``tiles`` is ``(n, ty, tx, ...)``, or a mapping from tile index to ``(ty, tx, ...)`` arrays
+    holding at least the tiles the region shows (:func:`region_tiles`). Coordinates may be
+    negative: the surface is unbounded. Each lattice cell the region overlaps is one
+    rectangular slice copy from its tile.
+    """
+    first = tiles[next(iter(tiles))] if isinstance(tiles, dict) else tiles[0]
+    ty, tx = first.shape[:2]
+    ids = region_tiles(y0, x0, ny, nx, tile_shape=(ty, tx), seed=seed, corners=corners)
+    cy0, cx0 = y0 // ty, x0 // tx
+    out = np.empty((ny, nx, *first.shape[2:]), first.dtype)
+    for i in range(ids.shape[0]):
+        cy = cy0 + i
         ya, yb = max(y0, cy * ty), min(y0 + ny, (cy + 1) * ty)
-        for j, cx in enumerate(range(cx0, cx1 + 1)):
+        for j in range(ids.shape[1]):
+            cx = cx0 + j
             xa, xb = max(x0, cx * tx), min(x0 + nx, (cx + 1) * tx)
-            out[ya - y0 : yb - y0, xa - x0 : xb - x0] = tiles[
-                ids[i, j], ya - cy * ty : yb - cy * ty, xa - cx * tx : xb - cx * tx]
+            out[ya - y0 : yb - y0, xa - x0 : xb - x0] = tiles[int(ids[i, j])][
+                ya - cy * ty : yb - cy * ty, xa - cx * tx : xb - cx * tx]
     return out
 
 

@@ -27,6 +27,7 @@ from pipeline.stages import (
     reference,
     render,
     roller,
+    scene,
 )
 
 
@@ -140,6 +141,15 @@ STAGES: dict[str, Stage] = {
               "projected back on U; --method mean-v averages V instead, a log-domain "
               "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "
               "OME-NGFF-style 'multiscales' attribute. btf inspect lists them."),
+        Stage("scene", scene.SceneParams, scene.scene_stage,
+              "compute only what a scene needs: directions, region, level, rank",
+              "Write exactly what a scene spec (YAML, see configs/scenes/) asks of a store: "
+              "its light/view directions (measured or not: nearest or barycentric "
+              "interpolation over the measured ones), its texel region (a tile set: a surface "
+              "of any size at an origin), a level of detail (the store's pyramid level, or "
+              "block means of level 0 computed on the fly) and, for compressed sources, a "
+              "rank. Only the chunks the scene touches are read; the counts are logged and "
+              "recorded. Output: a .zarr store, or a folder of EXR or PNG images."),
         Stage("inspect", inspect.InspectParams, inspect.inspect,
               "describe a store (metadata; --scan reads the data)",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "

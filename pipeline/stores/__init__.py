@@ -11,11 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.errors import BTFError
-from pipeline.stores import compressed, fitted, radiance, surface, tileset
+from pipeline.stores import compressed, fitted, radiance, scene, surface, tileset
 from pipeline.stores.base import StoreKind, open_group
 
 KINDS: dict[str, StoreKind] = {name: module.KIND
-                               for module in (radiance, compressed, tileset, fitted, surface)
+                               for module in (radiance, compressed, tileset, fitted, surface, scene)
                                for name in module.KIND.names}
 
 

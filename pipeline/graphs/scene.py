@@ -1,0 +1,287 @@
+"""Graphs of ``btf scene``: only the chunks a scene touches, per kind of source.
+
+Every graph yields ``(direction, y, x, channel)`` float32 at the requested level, as a dask
+array in blocks of about ``chunk`` level-0 texels a side:
+
+- radiance stores: the requested layers' chunks of the region (dask culls the rest), from the
+  pyramid level when the store has it, else block means of level 0;
+- compressed stores: the ``V`` tiles of the region (of the pyramid level, else of level 0,
+  averaged after reconstruction, so in linear radiance) and only the ``U`` chunks holding the
+  needed layers; each block rebuilds just those layers (:func:`tasks.scene.compressed_block`);
+- tile sets: each output block depends on the tiles its lattice cells show (quilting's corner
+  placement is a hash, so they are known before anything is read); roller sets with several
+  tiles pick a tile per cell of a sheared lattice, and there every tile of the layer is read;
+- surface stores: one layer, read like a radiance store.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from pipeline.stores.base import RADIANCE, location
+from tasks.scene import compressed_block, surface_block
+
+LAYERS_PER_TASK = 16  # radiance tile sets: distinct layers one block task holds
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """A scene resolved against its source.
+
+    Attributes
+    ----------
+    layers
+        Distinct ``(view, light)`` store indices the scene needs.
+    weights
+        ``(direction, layer)`` interpolation weights over ``layers``.
+    window
+        ``(y0, y1, x0, x1)`` of the output in level-n texels (surface coordinates for tile
+        sets; may be negative there).
+    level
+        Level of detail n; ``factor`` = 2^n.
+    stored_level
+        Whether level n is read from the store's pyramid (else averaged from level 0).
+    chunk
+        Level-0 texels per side of an output block.
+    """
+
+    layers: list[tuple[int, int]]
+    weights: np.ndarray
+    window: tuple[int, int, int, int]
+    level: int
+    stored_level: bool
+    chunk: int
+    rank: int | None = None
+    seed: int | None = None
+
+    @property
+    def factor(self) -> int:
+        """Level-0 texels per level-n texel along each side."""
+        return 2**self.level
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Output texels ``(y, x)``."""
+        y0, y1, x0, x1 = self.window
+        return y1 - y0, x1 - x0
+
+    @property
+    def block(self) -> int:
+        """Level-n texels per side of an output block (level-0 footprint about ``chunk``)."""
+        return max(1, self.chunk // self.factor)
+
+    def level0(self) -> tuple[slice, slice]:
+        """The level-0 texels the window covers."""
+        y0, y1, x0, x1 = self.window
+        f = self.factor
+        return slice(y0 * f, y1 * f), slice(x0 * f, x1 * f)
+
+
+def _mean32(block, axis=None):
+    return np.mean(block, axis=axis, dtype=np.float64).astype(np.float32)
+
+
+def _coarsen(layer, factor: int):
+    """Block means of a dask ``(y, x, channel)`` layer whose sides are multiples of factor."""
+    import dask.array as da
+
+    if factor == 1:
+        return layer
+    side = max(factor, (layer.chunksize[0] // factor) * factor)
+    layer = layer.rechunk((side, side, -1))
+    return da.coarsen(_mean32, layer, {0: factor, 1: factor})
+
+
+def radiance_graph(data, request: Request):
+    """Scene from a radiance ``(view, light, y, x, channel)`` dask array.
+
+    ``data`` is level n itself when ``request.stored_level``, else level 0.
+    """
+    import dask.array as da
+
+    y0, y1, x0, x1 = request.window
+    ys, xs = (slice(y0, y1), slice(x0, x1)) if request.stored_level else request.level0()
+    factor = 1 if request.stored_level else request.factor
+    layers = [_coarsen(data[v, li, ys, xs], factor) for v, li in request.layers]
+    out = []
+    for w in request.weights:
+        used = np.flatnonzero(w)
+        if len(used) == 1 and w[used[0]] == 1.0:
+            out.append(layers[used[0]])
+        else:
+            out.append(sum(np.float32(w[k]) * layers[k] for k in used).astype(np.float32))
+    block = request.block
+    return da.stack(out).rechunk((1, block, block, -1))
+
+
+def read_u_rows(u, layers: list[tuple[int, int]], rank: int) -> np.ndarray:
+    """Rows ``(layer, channel, k)`` of a zarr ``U``, reading each chunk that holds one once."""
+    dl = u.chunks[1]
+    rows = {}
+    for v, li in layers:
+        c0 = (li // dl) * dl
+        if (v, c0) not in rows:
+            rows[(v, c0)] = np.asarray(u[v, c0 : c0 + dl, :, :rank])
+    return np.stack([rows[(v, (li // dl) * dl)][li % dl] for v, li in layers])
+
+
+def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: Request):
+    """Scene from a compressed store: ``v`` the dask ``V`` (level n if stored, else level 0).
+
+    Only the region's ``V`` tiles are read; each block rebuilds just the needed layers.
+    """
+    y0, y1, x0, x1 = request.window
+    ys, xs = (slice(y0, y1), slice(x0, x1)) if request.stored_level else request.level0()
+    factor = 1 if request.stored_level else request.factor
+    rank = u_rows.shape[-1]
+    region = v[ys, xs, :rank]
+    side = max(factor, (request.chunk // factor) * factor)
+    region = region.rechunk((side, side, -1))
+    nd, nc = len(request.weights), u_rows.shape[1]
+    chunks = ((nd,), tuple(c // factor for c in region.chunks[0]),
+              tuple(c // factor for c in region.chunks[1]), (nc,))
+    out = region.map_blocks(compressed_block, u=u_rows, s=np.asarray(s[:rank], np.float32),
+                            eps=eps, weights=request.weights, factor=factor, chunks=chunks,
+                            drop_axis=2, new_axis=[0, 3], dtype=np.float32,
+                            meta=np.empty((0, 0, 0, 0), np.float32))
+    return out
+
+
+def _blocks(request: Request) -> list[list[tuple[int, int, int, int]]]:
+    """Output blocks ``(y0, y1, x0, x1)`` in level-n surface texels, as a grid of rows."""
+    y0, y1, x0, x1 = request.window
+    b = request.block
+    return [[(ya, min(ya + b, y1), xa, min(xa + b, x1)) for xa in range(x0, x1, b)]
+            for ya in range(y0, y1, b)]
+
+
+def _tile_data(store: str, tile: int, layers, rank):
+    """One stored tile: ``(y, x, layer, channel)`` radiance of ``layers``.
+
+    For a compressed tile set (``layers`` None): its ``(y, x, k)`` eigentextures.
+    """
+    import zarr
+
+    group = zarr.open_group(store, mode="r", use_consolidated=False)
+    if layers is None:
+        return np.asarray(group["V"][tile, :, :, :rank])
+    return np.stack([group[RADIANCE][tile, v, li] for v, li in layers], axis=2)
+
+
+def _surface(tiles: dict, y0, x0, ny, nx, *, request: Request, placement: dict, u, s, eps,
+             weights):
+    from tasks.placement import gather, lattice_gather
+
+    f = request.factor
+    if placement["lattice"]:
+        stack = np.stack([tiles[t] for t in sorted(tiles)])
+        values = lattice_gather(stack, y0 * f, x0 * f, ny * f, nx * f, hnf=placement["hnf"],
+                                basis=placement["basis"],
+                                representative=placement["representative"],
+                                seed=placement["seed"])
+    else:
+        values = gather(tiles, y0 * f, x0 * f, ny * f, nx * f, seed=placement["seed"],
+                        corners=placement["corners"])
+    return surface_block(values, weights=weights, factor=f, u=u, s=s, eps=eps)
+
+
+def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape,
+                  placement: dict) -> list[int]:
+    """Stored tiles a level-n block of the surface shows (corner placement), else all."""
+    from tasks.placement import region_tiles
+
+    if placement["lattice"]:
+        return list(range(placement["tiles"]))
+    codes = region_tiles(y0 * factor, x0 * factor, ny * factor, nx * factor,
+                         tile_shape=tile_shape, seed=placement["seed"],
+                         corners=placement["corners"])
+    return sorted({int(c) for c in np.unique(codes)})
+
+
+def tileset_graph(store: str, group, request: Request, placement: dict, *, u_rows=None,
+                  s=None, eps: float = 0.0):
+    """Scene of the surface a tile set covers; returns the dask array and the tiles read.
+
+    Radiance tile sets are processed in groups of directions whose layers number at most
+    :data:`LAYERS_PER_TASK`, so a block task holds a bounded number of layers of its tiles.
+    """
+    import dask
+    import dask.array as da
+
+    compressed = u_rows is not None
+    tile_shape = tuple(group.attrs["tile_shape"])
+    order = placement["order"]  # placement code -> stored tile
+    groups = ([list(range(len(request.weights)))] if compressed
+              else _direction_groups(request.weights, LAYERS_PER_TASK))
+    read: set = set()
+    parts = []
+    for dirs in groups:
+        w = request.weights[dirs]
+        used = np.flatnonzero(w.any(axis=0))
+        layers = None if compressed else [request.layers[k] for k in used]
+        w = w if compressed else w[:, used]
+        tiles = {}
+        rows = []
+        for row in _blocks(request):
+            blocks = []
+            for y0, y1, x0, x1 in row:
+                codes = visible_tiles(y0, x0, y1 - y0, x1 - x0, factor=request.factor,
+                                      tile_shape=tile_shape, placement=placement)
+                for c in codes:
+                    if c not in tiles:
+                        tiles[c] = dask.delayed(_tile_data, pure=True)(
+                            location(store), int(order[c]), layers, request.rank)
+                        read.add((int(order[c]), None if layers is None else tuple(layers)))
+                block = dask.delayed(_surface, pure=True)(
+                    {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0, request=request,
+                    placement=placement, u=u_rows, s=s, eps=eps, weights=w)
+                nc = u_rows.shape[1] if compressed else group["channel"].shape[0]
+                blocks.append(da.from_delayed(block, (len(dirs), y1 - y0, x1 - x0, nc),
+                                              dtype=np.float32))
+            rows.append(blocks)
+        parts.append(da.block([[[[b] for b in r] for r in rows]]))
+    out = da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
+    order_back = np.argsort(np.concatenate(groups))
+    if not np.array_equal(order_back, np.arange(len(order_back))):
+        out = out[order_back]
+    return out, read
+
+
+def _direction_groups(weights: np.ndarray, most: int) -> list[list[int]]:
+    """Directions in groups whose distinct layers number at most ``most`` (greedy, in order)."""
+    groups, current, layers = [], [], set()
+    for d, w in enumerate(weights):
+        mine = set(np.flatnonzero(w).tolist())
+        if current and len(layers | mine) > most:
+            groups.append(current)
+            current, layers = [], set()
+        current.append(d)
+        layers |= mine
+    groups.append(current)
+    return groups
+
+
+def chunks_touched(shape, chunks, selection) -> int:
+    """Storage chunks of an array that a selection (per axis: a slice or indices) touches."""
+    total = 1
+    for n, c, sel in zip(shape, chunks, selection, strict=True):
+        if isinstance(sel, slice):
+            start, stop, _ = sel.indices(n)
+            total *= 0 if stop <= start else (stop - 1) // c - start // c + 1
+        else:
+            total *= len({i // c for i in sel})
+    return total
+
+
+def layer_chunks(layers: list[tuple[int, int]], light_chunk: int) -> int:
+    """Distinct ``(view, light chunk)`` pairs the layers fall in."""
+    return len({(v, li // light_chunk) for v, li in layers})
+
+
+def total_chunks(shape, chunks) -> int:
+    """Chunks of an array."""
+    return math.prod(-(-n // c) for n, c in zip(shape, chunks, strict=True))
+

@@ -1,0 +1,351 @@
+"""``btf scene SCENE.yaml OUT``: exactly the directions, region, level and rank a scene asks for.
+
+The spec (:mod:`pipeline.scene_spec`) is resolved against its source: requested directions
+become interpolation terms over the measured layers (:mod:`tasks.directions`), the region and
+level a window of level-n texels, and the graph (:mod:`pipeline.graphs.scene`) reads only the
+chunks those touch. The chunks read, out of all, are logged and recorded in the output's attrs
+(``reads``).
+
+Output: ``format: zarr`` writes a scene store (``direction, y, x, channel``), or a radiance
+store when the scene asks for ``all`` directions; ``exr`` and ``png`` write one image per
+direction into the folder OUT, named by its angles, with a ``manifest.csv`` of the angles
+(``btf ingest`` reads an EXR folder back when its directions form a full view x light grid,
+as ``all`` gives). PNGs are tone-mapped with one exposure for the whole scene. EXR and PNG
+output holds the images in memory; zarr output is written block by block.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shlex
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.params import option
+from pipeline.scene_spec import SceneSpec, load
+from pipeline.session import Session
+from pipeline.stores.base import RADIANCE, location, open_group
+
+SOURCE_KINDS = {"abtf": "radiance", "btf": "radiance", "compressed": "compressed",
+                "tileset": "tileset", "compressed-tileset": "tileset", "surface": "surface"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneParams:
+    """Parameters of ``btf scene``."""
+
+    scene: str = option(help="scene spec (YAML; see configs/scenes/)", positional=True,
+                        path="in", metavar="SCENE.yaml")
+    out: str = option(help="output: a .zarr store (format zarr) or a folder of images "
+                           "(exr, png)", positional=True, path="out")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+
+def scene_stage(params: SceneParams, session: Session) -> Path:
+    """``btf scene``: load the spec and write what it asks for."""
+    return write_scene(load(params.scene), params.out, session, overwrite=params.overwrite)
+
+
+def resolve(spec: SceneSpec, group) -> tuple[Any, np.ndarray, list]:
+    """Requested directions ``(n, 4)``, their ``(direction, layer)`` weights and the layers.
+
+    ``all`` gives every measured layer, view-major, with identity weights.
+    """
+    from pipeline.stores.base import read_directions
+    from tasks.directions import pair_weights
+
+    d = read_directions(group)
+    if spec.directions is None:
+        layers = [(v, li) for v in range(d.views) for li in range(d.lights)]
+        rows = np.array([[d.theta_light[li], d.phi_light[li], d.theta_view[v], d.phi_view[v]]
+                         for v, li in layers])
+        return rows, np.eye(len(layers)), layers
+    terms = pair_weights((d.theta_light, d.phi_light), (d.theta_view, d.phi_view),
+                         spec.directions, spec.interpolation)
+    layers = sorted({(v, li) for t in terms for v, li, _ in t})
+    column = {pair: k for k, pair in enumerate(layers)}
+    weights = np.zeros((len(terms), len(layers)))
+    for i, t in enumerate(terms):
+        for v, li, w in t:
+            weights[i, column[(v, li)]] = w
+    return spec.directions, weights, layers
+
+
+def _open_source(spec: SceneSpec):
+    source = Path(spec.source)
+    if not source.exists():
+        raise spec.error("source", f"{spec.source!r} does not exist")
+    try:
+        group = open_group(source)
+    except BTFError as exc:
+        raise spec.error("source", str(exc)) from None
+    kind = group.attrs.get("btf_kind")
+    if kind not in SOURCE_KINDS:
+        raise spec.error("source", f"{spec.source}: a {kind or 'non-btf'} store; a scene takes "
+                                   "a radiance, compressed (or enlarged), tile-set or surface "
+                                   "store")
+    return group, SOURCE_KINDS[kind]
+
+
+def _level_window(spec: SceneSpec, ny: int, nx: int, level: int) -> tuple[int, int, int, int]:
+    """Level-n texels of a bounded source's region (the whole store without one)."""
+    y0, y1, x0, x1 = spec.region or (0, ny, 0, nx)
+    if y1 > ny or x1 > nx:
+        raise spec.error("region", f"{list(spec.region)} reaches beyond the source's {ny} x "
+                                   f"{nx} texels")
+    f = 2**level
+    ly, lx = ny // f, nx // f
+    if ly < 1 or lx < 1:
+        raise spec.error("level", f"level {level} would shrink the source's {ny} x {nx} "
+                                  "texels below one texel")
+    window = (y0 // f, min(-(-y1 // f), ly), x0 // f, min(-(-x1 // f), lx))
+    if window[1] <= window[0] or window[3] <= window[2]:
+        raise spec.error("region", f"{list(spec.region)} lies in the edge texels that level "
+                                   f"{level} leaves out (its {ly} x {lx} texels cover "
+                                   f"{ly * f} x {lx * f} of level 0)")
+    return window
+
+
+def _pyramid_level(spec: SceneSpec, group, variable: str, session: Session) -> str | None:
+    """The path of the stored level, None for level 0 or a store without a pyramid."""
+    from pipeline.stages.pyramid import levels_of
+
+    if spec.level == 0:
+        return None
+    levels = [lv for lv in levels_of(group) if lv["shape"] is not None]
+    if not levels:
+        session.log(f"scene: {spec.source} has no pyramid (btf pyramid adds one); level "
+                    f"{spec.level} is computed on the fly from level 0, which reads "
+                    f"{4**spec.level}x the texels")
+        return None
+    most = max(lv["level"] for lv in levels)
+    if spec.level > most:
+        raise spec.error("level", f"level {spec.level} is beyond the pyramid of "
+                                  f"{spec.source} (levels 0 to {most}; btf pyramid --levels "
+                                  "N --overwrite makes more)")
+    return next(lv["path"] for lv in levels if lv["level"] == spec.level)
+
+
+def _check_keys(spec: SceneSpec, kind: str, group) -> None:
+    tiles = kind == "tileset"
+    if tiles and spec.region is not None:
+        raise spec.error("region", "a tile set covers an unbounded surface: give its part "
+                                   "with size: [H, W] and origin: [Y, X]")
+    if tiles and spec.size is None:
+        raise spec.error("size", "is required for a tile set (the surface's texels to "
+                                 "render, [H, W])")
+    if not tiles:
+        for key in ("size", "seed"):
+            if getattr(spec, key) is not None:
+                raise spec.error(key, f"applies to tile sets only; {spec.source} is a "
+                                      f"{group.attrs['btf_kind']} store (use region)")
+        if spec.origin != (0, 0):
+            raise spec.error("origin", f"applies to tile sets only; {spec.source} is a "
+                                       f"{group.attrs['btf_kind']} store (use region)")
+    if spec.rank is not None:
+        if "S" not in group.array_keys():
+            raise spec.error("rank", f"applies to compressed sources only; {spec.source} is "
+                                     f"a {group.attrs['btf_kind']} store")
+        stored = group["S"].shape[0]
+        if spec.rank > stored:
+            raise spec.error("rank", f"{spec.rank} is above the {stored} components "
+                                     f"{spec.source} holds")
+
+
+def build(spec: SceneSpec, session: Session):
+    """The scene's lazy ``(direction, y, x, channel)`` array and what it reads.
+
+    Returns ``(array, directions, info)``: ``info`` holds the source's kind, the channels,
+    the window, the layers, weights and the chunks read out of all (``reads``).
+    """
+    import dask.array as da
+    import zarr
+
+    from pipeline.graphs import scene as graphs
+    from pipeline.stores.base import read_channels
+
+    group, kind = _open_source(spec)
+    _check_keys(spec, kind, group)
+    directions, weights, layers = resolve(spec, group)
+    info: dict[str, Any] = {"kind": group.attrs["btf_kind"], "channels": read_channels(group),
+                            "layers": layers, "weights": weights, "level": spec.level}
+    path = location(spec.source)
+
+    def request(window, stored, **extra):
+        return graphs.Request(layers=layers, weights=weights, window=window, level=spec.level,
+                              stored_level=stored, chunk=spec.chunk, **extra)
+
+    if kind in ("radiance", "surface"):
+        rad = group[RADIANCE]
+        ny, nx = rad.shape[-3:-1]
+        stored = _pyramid_level(spec, group, RADIANCE, session) if kind == "radiance" else None
+        if kind == "surface" and spec.level:
+            session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
+        req = request(_level_window(spec, ny, nx, spec.level), stored is not None)
+        source = zarr.open_array(path, path=stored or RADIANCE, mode="r")
+        data = da.from_zarr(source)
+        if kind == "surface":
+            data = data[None, None]
+        out = graphs.radiance_graph(data, req)
+        ys, xs = (slice(req.window[0], req.window[1]), slice(req.window[2], req.window[3])
+                  ) if stored else req.level0()
+        if kind == "surface":
+            info["reads"] = {RADIANCE: [graphs.chunks_touched(
+                source.shape, source.chunks, (ys, xs, slice(None))),
+                graphs.total_chunks(source.shape, source.chunks)]}
+        else:
+            spatial = graphs.chunks_touched(source.shape[2:], source.chunks[2:],
+                                            (ys, xs, slice(None)))
+            info["reads"] = {source.path: [
+                graphs.layer_chunks(layers, source.chunks[1]) * spatial,
+                graphs.total_chunks(source.shape, source.chunks)]}
+    elif kind == "compressed":
+        rank = spec.rank or group["S"].shape[0]
+        ny, nx = group["V"].shape[:2]
+        stored = _pyramid_level(spec, group, "V", session)
+        req = request(_level_window(spec, ny, nx, spec.level), stored is not None, rank=rank)
+        u = group["U"]
+        u_rows = graphs.read_u_rows(u, layers, rank)
+        s = np.asarray(group["S"][:rank])
+        v = zarr.open_array(path, path=stored or "V", mode="r")
+        out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
+                                      float(group.attrs["transform"]["eps"]), req)
+        ys, xs = (slice(req.window[0], req.window[1]), slice(req.window[2], req.window[3])
+                  ) if stored else req.level0()
+        info["reads"] = {
+            v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
+                     graphs.total_chunks(v.shape, v.chunks)],
+            "U": [graphs.layer_chunks(layers, u.chunks[1]), graphs.total_chunks(u.shape,
+                                                                             u.chunks)]}
+    else:
+        out, info["reads"] = _tileset(spec, group, path, layers, request)
+    return out, directions, info
+
+
+def _tileset(spec: SceneSpec, group, path: str, layers, request):
+    from pipeline.graphs import scene as graphs
+    from pipeline.stores.tileset import corner_order, stored_seed
+
+    f = 2**spec.level
+    (h, w), (oy, ox) = spec.size, spec.origin
+    window = (oy // f, -(-(oy + h) // f), ox // f, -(-(ox + w) // f))
+    n = group["corners"].shape[0]
+    lattice = group.attrs.get("placement") == "lattice"
+    placement = {"lattice": lattice, "tiles": n,
+                 "seed": spec.seed if spec.seed is not None else stored_seed(group)}
+    if lattice:
+        lat = group.attrs["lattice"]
+        placement.update(order=np.arange(n), hnf=tuple(lat["hnf"]),
+                         basis=(tuple(lat["U"]), tuple(lat["V"])),
+                         representative=(group["representative"][...] if "representative"
+                                         in group.array_keys() else None))
+    else:
+        placement.update(order=corner_order(spec.source, group["corners"][...],
+                                            int(group.attrs["corner_types"])),
+                         corners=int(group.attrs["corner_types"]))
+    compressed = group.attrs["btf_kind"] == "compressed-tileset"
+    rank = spec.rank or (group["S"].shape[0] if compressed else None)
+    req = request(window, False, rank=rank, seed=placement["seed"])
+    extra = {}
+    if compressed:
+        from pipeline.graphs.scene import read_u_rows
+
+        extra = {"u_rows": read_u_rows(group["U"], layers, rank),
+                 "s": np.asarray(group["S"][:rank]),
+                 "eps": float(group.attrs["transform"]["eps"])}
+    out, read = graphs.tileset_graph(path, group, req, placement, **extra)
+    if compressed:
+        reads = {"V": [len(read), n], "U": [1, 1]}
+    else:
+        nv, nl = group[RADIANCE].shape[1:3]
+        chunks = sum(len(lay) for _, lay in read)
+        reads = {RADIANCE: [chunks, n * nv * nl]}
+    return out, reads
+
+
+def write_scene(spec: SceneSpec, out: str, session: Session, *, overwrite: bool = False
+                ) -> Path:
+    """Compute the scene of ``spec`` into ``out`` (see the module docstring)."""
+    from pipeline import __version__
+    from pipeline.provenance import digest
+
+    suffix = Path(out).suffix.lower()
+    if spec.format == "zarr" and suffix != ".zarr":
+        raise spec.error("format", f"zarr output goes to a .zarr path, got {out!r}")
+    if spec.format != "zarr" and suffix == ".zarr":
+        raise spec.error("format", f"{spec.format} output is a folder of images; {out!r} "
+                                   "ends in .zarr")
+    data, directions, info = build(spec, session)
+    nd, ny, nx, _ = data.shape
+    reads = ", ".join(f"{a}/{b} {name} chunks" for name, (a, b) in info["reads"].items())
+    session.log(f"scene: {nd} direction(s) from {len(info['layers'])} measured layer(s), "
+                f"{ny} x {nx} texels at level {spec.level} -> {out}; reads {reads}")
+    terms = [[[int(info["layers"][k][0]), int(info["layers"][k][1]), float(w[k])]
+              for k in np.flatnonzero(w)] for w in info["weights"]]
+    attrs = {"source": "scene", "source_store": spec.source, "level": spec.level,
+             "scene": spec.record(), "reads": info["reads"],
+             "provenance": {"stage": "scene", "command": shlex.join(["btf", "scene", spec.path,
+                                                                     str(out)]),
+                            "scene": spec.record(),
+                            "inputs": {spec.source: digest(spec.source)},
+                            "version": __version__}}
+    if spec.directions is not None:
+        attrs["terms"] = terms
+    channels = info["channels"]
+    if spec.format == "zarr":
+        with atomic_output(out, directory=True, overwrite=overwrite) as tmp:
+            target = _zarr_target(tmp, spec, directions, (ny, nx), channels, attrs, data,
+                                  source=spec.source)
+            _store(session, data, target, spec)
+        return Path(out)
+    images = session.compute(data)[0]
+    _write_images(out, images, directions, channels, spec.format, overwrite)
+    return Path(out)
+
+
+def _zarr_target(tmp, spec, directions, shape, channels, attrs, data, *, source):
+    if spec.directions is not None:
+        from pipeline.stores.scene import create_scene_store
+
+        return create_scene_store(tmp, directions=directions, shape=shape, channels=channels,
+                                  chunk=spec.chunk, attrs=attrs)
+    from pipeline.stores.base import read_directions
+    from pipeline.stores.radiance import Layout, create_radiance_store
+
+    d = read_directions(open_group(source))
+    group = create_radiance_store(tmp, directions=d, ny=shape[0], nx=shape[1],
+                                  channels=channels, layout=Layout(chunk=min(spec.chunk, 512)),
+                                  attrs=attrs)
+    return group[RADIANCE]
+
+
+def _store(session: Session, data, target, spec: SceneSpec) -> None:
+    from pipeline.graphs.blocks import aligned_chunks, store_aligned
+
+    if target.ndim == 5:
+        data = data.reshape(target.shape[0], target.shape[1], *data.shape[1:])
+    session.compute(store_aligned([data.rechunk(aligned_chunks(target))], [target]))
+
+
+def _write_images(out, images, directions, channels, fmt, overwrite) -> None:
+    from pipeline.images import write_exr, write_png
+    from pipeline.layer_files import layer_name, write_manifest
+    from tasks.tonemap import exposure, to_uint8, tonemap
+
+    scale = exposure(images[:, ::4, ::4]) if fmt == "png" else None
+    with atomic_output(out, directory=True, overwrite=overwrite) as tmp:
+        tmp.mkdir()
+        rows = []
+        for pixels, (tl, pl, tv, pv) in zip(images, directions, strict=True):
+            name = layer_name(tl, pl, tv, pv, fmt)
+            if fmt == "exr":
+                write_exr(tmp / name, pixels, channels)
+            else:
+                image = to_uint8(tonemap(pixels, scale=scale))
+                write_png(tmp / name, image[..., 0] if image.shape[-1] == 1 else image)
+            rows.append((name, tl, pl, tv, pv))
+        write_manifest(tmp, rows)

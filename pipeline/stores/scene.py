@@ -1,0 +1,67 @@
+"""Scene stores (``btf_kind: scene``): the layers a scene asked for, in its directions.
+
+``radiance`` float32 ``(direction, y, x, channel)``: one image per requested direction pair,
+interpolated from the measured layers (:mod:`tasks.directions`); the coordinates
+``theta_light``, ``phi_light``, ``theta_view``, ``phi_view`` (degrees) on ``direction`` and the
+``channel`` labels; attrs with the scene spec, the source, the level and the interpolation
+terms of every direction (``terms``: measured view, light and weight). A scene asking for
+``all`` directions is written as a radiance store instead (every measured layer, on the view
+and light grid), which every stage takes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import BTFError
+from pipeline.scene_spec import DIRECTION_FIELDS
+from pipeline.stores.base import RADIANCE, StoreKind, add_array, check_variables, create_store
+
+NAME = "scene"
+DIMS = ("direction", "y", "x", "channel")
+
+
+def create_scene_store(path, *, directions: np.ndarray, shape: tuple[int, int],
+                       channels: tuple[str, ...], chunk: int, attrs: dict[str, Any]):
+    """Create an empty scene store; returns its ``radiance`` array."""
+    group = create_store(path, kind=NAME, attrs=attrs, directions=None, channels=channels)
+    for k, name in enumerate(DIRECTION_FIELDS):
+        coord = group.create_array(name, shape=(len(directions),), dtype="float64",
+                                   dimension_names=("direction",), compressors=None)
+        coord[:] = directions[:, k]
+        coord.attrs["units"] = "degree"
+    ny, nx = shape
+    return add_array(group, RADIANCE, shape=(len(directions), ny, nx, len(channels)),
+                     dims=DIMS, chunks=(1, min(chunk, ny), min(chunk, nx), len(channels)),
+                     attrs={"coordinates": " ".join(DIRECTION_FIELDS),
+                            "long_name": "radiance in the requested directions"})
+
+
+def check_scene(group, path: str | Path) -> None:
+    """Raise :class:`BTFError` unless ``group`` holds a scene's radiance and directions."""
+    check_variables(group, path, {RADIANCE: DIMS})
+    n = group[RADIANCE].shape[0]
+    for name in DIRECTION_FIELDS:
+        if name not in group.array_keys() or group[name].shape != (n,):
+            raise BTFError(f"{path}: coordinate {name!r} is missing or not of length {n}")
+
+
+def _summary(group) -> dict[str, Any]:
+    attrs = group.attrs
+    return {"scene": {"directions": group[RADIANCE].shape[0],
+                      "shape": list(group[RADIANCE].shape[1:3]), "level": attrs.get("level"),
+                      "source": attrs.get("source_store"),
+                      "interpolation": (attrs.get("scene") or {}).get("interpolation")}}
+
+
+def _lines(summary: dict[str, Any]) -> list[str]:
+    s = summary["scene"]
+    return [f"scene: {s['directions']} direction(s) of {s['shape'][0]} x {s['shape'][1]} "
+            f"texels at level {s['level']}, {s['interpolation']} interpolation, from "
+            f"{s['source']}"]
+
+
+KIND = StoreKind((NAME,), check_scene, _summary, _lines)

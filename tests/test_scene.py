@@ -1,0 +1,274 @@
+"""btf scene: exactly the directions, region, level and rank asked for, reading only that."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from helpers import ROOT, generate_store, no_partial_outputs
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _block_means(a: np.ndarray, f: int) -> np.ndarray:
+    """Means of f x f blocks over the two axes before the last (float64)."""
+    *lead, ny, nx, nc = a.shape
+    return np.asarray(a, np.float64).reshape(*lead, ny // f, f, nx // f, f, nc).mean(
+        axis=(-4, -2))
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    """A small full BTF, its compression, and quilted tile sets of both."""
+    from pipeline.cli import main
+
+    root = tmp_path_factory.mktemp("scene")
+    m = generate_store(root / "m.zarr", "--material", "leather", "--size", "64", "--sampling",
+                       "hemi:9", "--chunk", "16", "--dir-chunk", "4", "--seed", "3")
+    assert main(["compress", str(m), str(root / "m_svd.zarr"), "--rank", "8", "-q"]) == 0
+    assert main(["quilt", str(m), str(root / "q.zarr"), "--corners", "2", "--size", "48",
+                 "-q"]) == 0
+    assert main(["quilt", str(root / "m_svd.zarr"), str(root / "q_svd.zarr"), "--corners",
+                 "2", "--size", "48", "-q"]) == 0
+    return root
+
+
+def _angles(store: Path, view: int, light: int) -> list[float]:
+    g = zarr.open_group(store, mode="r")
+    return [float(g["theta_light"][light]), float(g["phi_light"][light]),
+            float(g["theta_view"][view]), float(g["phi_view"][view])]
+
+
+def _radiance(path: Path) -> np.ndarray:
+    return zarr.open_group(path, mode="r")["radiance"][...]
+
+
+def test_measured_directions_are_the_layers_and_unmeasured_ones_their_weighted_sums(
+        stores, tmp_path, btf):
+    m = stores / "m.zarr"
+    spec = _write(tmp_path / "s.yaml", f"""source: {m}
+directions:
+  - {_angles(m, 2, 5)}
+  - [33, 40, 20, 100]
+region: [8, 40, 16, 64]
+""")
+    result = btf("scene", spec, tmp_path / "o.zarr")
+    assert result.code == 0, result.err
+    out = zarr.open_group(tmp_path / "o.zarr", mode="r")
+    level0 = _radiance(m)
+    assert np.array_equal(out["radiance"][0], level0[2, 5, 8:40, 16:64])
+    terms = out.attrs["terms"][1]
+    assert len(terms) > 1 and sum(w for *_, w in terms) == pytest.approx(1.0)
+    expected = sum(w * level0[v, li, 8:40, 16:64] for v, li, w in terms)
+    assert np.allclose(out["radiance"][1], expected, rtol=1e-5, atol=1e-7)
+    assert [float(out["theta_light"][1]), float(out["phi_view"][1])] == [33.0, 100.0]
+    assert "scene: 2 direction(s)" in btf("inspect", tmp_path / "o.zarr").out
+
+
+def test_compressed_scene_at_a_rank_equals_reconstruction(stores, tmp_path, btf):
+    c = stores / "m_svd.zarr"
+    spec = _write(tmp_path / "s.yaml", f"""source: {c}
+directions: [{_angles(c, 4, 1)}, {_angles(c, 0, 7)}]
+region: [16, 48, 0, 32]
+rank: 5
+""")
+    assert btf("scene", spec, tmp_path / "o.zarr").code == 0
+    assert btf("reconstruct", c, tmp_path / "r.zarr", "--rank", "5", "--region",
+               "16:48,0:32", "-q").code == 0
+    rec = _radiance(tmp_path / "r.zarr")
+    got = _radiance(tmp_path / "o.zarr")
+    for k, (v, li) in enumerate(((4, 1), (0, 7))):
+        assert np.allclose(got[k], rec[v, li], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["radiance", "compressed"])
+def test_levels_are_block_means_from_the_pyramid_or_on_the_fly(stores, tmp_path, btf, kind):
+    src = stores / ("m.zarr" if kind == "radiance" else "m_svd.zarr")
+    level0 = _radiance(src) if kind == "radiance" else None
+    if level0 is None:
+        assert btf("reconstruct", src, tmp_path / "r.zarr", "-q").code == 0
+        level0 = _radiance(tmp_path / "r.zarr")
+    exact = _block_means(level0[:, :, 8:40, 0:64], 4)  # region [10, 37, 3, 64] snapped out
+    text = "source: {}\ndirections: all\nregion: [10, 37, 3, 64]\nlevel: 2\n"
+    result = btf("scene", _write(tmp_path / "a.yaml", text.format(src)), tmp_path / "fly.zarr")
+    assert result.code == 0 and "no pyramid" in result.err and "on the fly" in result.err
+    fly = _radiance(tmp_path / "fly.zarr")
+    assert fly.shape == exact.shape  # a radiance store of every layer: directions 'all'
+    assert zarr.open_group(tmp_path / "fly.zarr").attrs["btf_kind"] == "btf"
+    assert np.allclose(fly, exact, rtol=1e-5, atol=1e-7)  # linear means, exact
+    with_levels = tmp_path / "p.zarr"
+    shutil.copytree(src, with_levels)
+    assert btf("pyramid", with_levels, "--levels", "2", "-q").code == 0
+    result = btf("scene", _write(tmp_path / "b.yaml", text.format(with_levels)),
+                 tmp_path / "stored.zarr")
+    assert result.code == 0 and "no pyramid" not in result.err
+    assert "pyramid/2/" in result.err  # read from the stored level
+    stored = _radiance(tmp_path / "stored.zarr")
+    if kind == "radiance":
+        assert np.allclose(stored, exact, rtol=1e-5, atol=1e-7)
+    else:  # the stored level: exp(U S V_2^T) - eps of the pyramid's V_2 (a projection on U)
+        from tasks.svd import reconstruct_layers
+
+        g = zarr.open_group(with_levels, mode="r")
+        v2 = g["pyramid/2/V"][2:10, 0:16]
+        rebuilt = reconstruct_layers(g["U"][...], g["S"][...], v2,
+                                     eps=g.attrs["transform"]["eps"])
+        assert np.allclose(stored, rebuilt, rtol=1e-5, atol=1e-6)
+        rel = np.sqrt(np.mean((stored - exact) ** 2) / np.mean(exact**2))
+        assert rel < 0.15  # the projection's own error at rank 8 (measured: 8.1%)
+
+
+def _count_reads(monkeypatch) -> list[str]:
+    """Record the key of every chunk or metadata document zarr reads from local stores."""
+    from zarr.storage import LocalStore
+
+    keys: list[str] = []
+    original = LocalStore.get
+
+    async def get(self, key, *args, **kwargs):
+        keys.append(f"{Path(str(self.root)).name}/{key}")
+        return await original(self, key, *args, **kwargs)
+
+    monkeypatch.setattr(LocalStore, "get", get)
+    return keys
+
+
+def _chunk_reads(keys: list[str], variable: str) -> set[str]:
+    return {k for k in keys if f"/{variable}/c/" in k}
+
+
+@pytest.mark.parametrize("size", [64, 128])
+def test_reads_are_counted_and_do_not_grow_with_the_store(tmp_path, btf, monkeypatch, size):
+    """One direction of a 16 x 16 region: the same chunks, whatever the store's size."""
+    from pipeline.cli import main
+
+    m = generate_store(tmp_path / "m.zarr", "--material", "wood", "--size", str(size),
+                       "--sampling", "hemi:6", "--chunk", "16", "--dir-chunk", "2")
+    assert main(["compress", str(m), str(tmp_path / "c.zarr"), "--rank", "4", "-q"]) == 0
+    for source, variables in ((m, {"radiance": 1}), (tmp_path / "c.zarr", {"V": 1, "U": 1})):
+        spec = _write(tmp_path / "s.yaml", f"source: {source}\ndirections: "
+                                           f"[{_angles(source, 1, 3)}]\nregion: [16, 32, 32, 48]\n")
+        keys = _count_reads(monkeypatch)
+        result = btf("scene", spec, tmp_path / "o.zarr", "--scheduler", "synchronous")
+        monkeypatch.undo()
+        assert result.code == 0, result.err
+        recorded = zarr.open_group(tmp_path / "o.zarr", mode="r").attrs["reads"]
+        for variable, count in variables.items():
+            read = _chunk_reads(keys, variable)
+            assert len(read) == count, (variable, sorted(read))
+            assert recorded[variable][0] == count
+        if source == m:  # the chunk of view 1, lights 2-3, texels 16-32 x 32-48
+            assert _chunk_reads(keys, "radiance") == {"m.zarr/radiance/c/1/1/1/2/0"}
+        shutil.rmtree(tmp_path / "o.zarr")
+
+
+def test_tile_set_scenes_equal_btf_render_and_read_only_visible_tiles(stores, tmp_path, btf,
+                                                                      monkeypatch):
+    for name in ("q.zarr", "q_svd.zarr"):
+        ts = stores / name
+        assert btf("render", ts, tmp_path / f"r_{name}", "--light", "6", "--view", "2",
+                   "--size", "40,52", "--origin=-9,30", "-q").code == 0
+        spec = _write(tmp_path / "s.yaml", f"source: {ts}\ndirections: [{_angles(ts, 2, 6)}]"
+                                           "\nsize: [40, 52]\norigin: [-9, 30]\nchunk: 16\n")
+        keys = _count_reads(monkeypatch)
+        result = btf("scene", spec, tmp_path / f"o_{name}", "--scheduler", "synchronous")
+        monkeypatch.undo()
+        assert result.code == 0, result.err
+        assert np.array_equal(_radiance(tmp_path / f"o_{name}")[0],
+                              _radiance(tmp_path / f"r_{name}"))
+        variable = "V" if "svd" in name else "radiance"
+        read = _chunk_reads(keys, variable)
+        recorded = zarr.open_group(tmp_path / f"o_{name}", mode="r").attrs["reads"]
+        assert len(read) == recorded[variable][0] < 16  # of 16 tiles (x one layer)
+        # a region inside one cell of the lattice: one tile
+        small = _write(tmp_path / "t.yaml", f"source: {ts}\ndirections: "
+                                            f"[{_angles(ts, 2, 6)}]\nsize: [5, 5]\n")
+        keys = _count_reads(monkeypatch)
+        assert btf("scene", small, tmp_path / f"t_{name}", "-q").code == 0
+        monkeypatch.undo()
+        assert len(_chunk_reads(keys, variable)) == 1
+
+
+def test_surface_source_and_image_formats(stores, tmp_path, btf):
+    from pipeline.images import read_image
+
+    assert btf("render", stores / "q.zarr", tmp_path / "surf.zarr", "--light", "1", "--size",
+               "32,48", "-q").code == 0
+    surface = _radiance(tmp_path / "surf.zarr")
+    for fmt in ("exr", "png"):
+        spec = _write(tmp_path / f"{fmt}.yaml", f"source: {tmp_path / 'surf.zarr'}\n"
+                      "directions: [[10, 0, 0, 0], [60, 90, 45, 0]]\nlevel: 1\n"
+                      f"format: {fmt}\n")
+        assert btf("scene", spec, tmp_path / fmt).code == 0
+        files = sorted(p.name for p in (tmp_path / fmt).iterdir())
+        assert files == ["manifest.csv", f"tl10_pl0_tv0_pv0.{fmt}",
+                         f"tl60_pl90_tv45_pv0.{fmt}"]
+    pixels, _ = read_image(tmp_path / "exr" / "tl10_pl0_tv0_pv0.exr")
+    # a surface holds one layer: every direction is that layer (here at level 1)
+    assert np.allclose(pixels, _block_means(surface, 2), rtol=1e-6)
+
+
+@pytest.mark.parametrize("text, where", [
+    ("source: {m}\ndirections: all\nregoin: [0, 4, 0, 4]\n", ":3: regoin: unknown key "
+                                                             "(did you mean 'region'?)"),
+    ("source: {m}\ndirections:\n  - [0, 0, 0, 0]\n  - [95, 0, 10, 0]\n",
+     ":4: directions[1]: theta_light 95 is below the horizon"),
+    ("source: {m}\ndirections: all\nregion: [0, 80, 0, 8]\n",
+     ":3: region: [0, 80, 0, 8] reaches beyond the source's 64 x 64 texels"),
+    ("source: {m}\ndirections: all\nlevel: 7\n", ":3: level: level 7 would shrink"),
+    ("source: {p}\ndirections: all\nlevel: 3\n", ":3: level: level 3 is beyond the pyramid"),
+    ("source: {m}\ndirections: all\nrank: 3\n", ":3: rank: applies to compressed sources"),
+    ("source: {c}\ndirections: all\nrank: 30\n", ":3: rank: 30 is above the 8 components"),
+    ("source: {m}\ndirections: all\nsize: [4, 4]\n", ":3: size: applies to tile sets only"),
+    ("source: {q}\ndirections: all\nregion: [0, 4, 0, 4]\n", ":3: region: a tile set covers"),
+    ("source: {q}\ndirections: all\n", ":1: size: is required for a tile set"),
+    ("source: nowhere.zarr\ndirections: all\n", ":1: source: 'nowhere.zarr' does not exist"),
+    ("source: {m}\ndirections: [[0, 0, 0]]\n", ":2: directions[0]: expected [theta_light"),
+    ("source: {m}\ndirections: [[0, 0, 0, 0], [0, 360, 0, 0]]\n",
+     ":2: directions[1]: repeats directions[0]"),
+    ("source: {m}\ndirections: all\ninterpolation: cubic\n", ":3: interpolation: expected one"),
+    ("directions: all\n", ":1: source: is required"),
+])
+def test_bad_specs_name_the_key_and_line_and_write_nothing(stores, tmp_path, btf, text, where):
+    p = tmp_path / "p.zarr"
+    if not p.exists():
+        shutil.copytree(stores / "m.zarr", p)
+        assert btf("pyramid", p, "--levels", "2", "-q").code == 0
+    spec = _write(tmp_path / "bad.yaml", text.format(m=stores / "m.zarr", p=p,
+                                                     c=stores / "m_svd.zarr",
+                                                     q=stores / "q.zarr"))
+    result = btf("scene", spec, tmp_path / "o.zarr")
+    assert result.code == 1
+    assert f"{spec}{where}" in result.err, result.err
+    assert result.err.count("error") == 1
+    assert no_partial_outputs(tmp_path / "o.zarr")
+
+
+def test_example_scenes_run(tmp_path, btf, monkeypatch):
+    """Every spec in configs/scenes/ runs on the stores its header says how to make."""
+    from pipeline.cli import main
+    from pipeline.scene_spec import load
+
+    examples = sorted((ROOT / "configs" / "scenes").glob("*.yaml"))
+    assert len(examples) >= 3
+    monkeypatch.chdir(tmp_path)
+    for example in examples:
+        setup = [line[len("# setup: "):] for line in example.read_text().splitlines()
+                 if line.startswith("# setup: ")]
+        assert setup, f"{example.name} has no '# setup: btf ...' lines"
+        for command in setup:
+            words = command.split()
+            assert words[0] == "btf"
+            assert main([*words[1:], "-q"]) == 0, command
+        spec = load(example)
+        out = tmp_path / (example.stem + (".zarr" if spec.format == "zarr" else ""))
+        result = btf("scene", example, out, "-q")
+        assert result.code == 0, (example.name, result.err)
+        assert out.exists()
