@@ -13,7 +13,7 @@ from pathlib import Path
 
 from benchmarks.harness import to_json
 
-SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume")
+SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):

@@ -98,7 +98,7 @@ def _positionals(stage: Stage) -> set[str]:
 
 
 def _run_config(args: argparse.Namespace) -> int:
-    from pipeline.config import execute, load, runtime_for
+    from pipeline.config import execute, load, runtime_for, scene_lines
     from pipeline.provenance import command_line
 
     plan = load(args.config, tuple(args.set))
@@ -108,6 +108,8 @@ def _run_config(args: argparse.Namespace) -> int:
         print(f"{plan.path}: valid; {len(plan.stages)} stage(s) on {options.scheduler}:")
         for step in plan.stages:
             print("  " + command_line(step.name, step.params))
+        for line in scene_lines(plan):
+            print(line)
         return 0
     with Session(options) as session:
         _check_plan(plan, options, session, args)
@@ -163,7 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override a parameter of every stage of that name, e.g. "
                           "generate.size=64 (repeatable)")
     run.add_argument("--check", action="store_true",
-                     help="validate the config and print its commands without running them")
+                     help="validate the config and print its commands without running them; "
+                          "with a scene: section, what each stage computes for the scene "
+                          "(blocks out of all, where its input exists already)")
     run.add_argument("--plan", action="store_true",
                      help="print, per stage, the bytes read and written, tasks, passes, peak "
                           "memory per task and on the client, and an estimated time (from "

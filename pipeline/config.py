@@ -8,6 +8,10 @@ A config is a mapping::
     stages:
       - generate: {out: out/demo/wood.zarr, material: wood, size: 256, sampling: "abtf:12,6"}
       - inspect: {store: out/demo/wood.zarr}
+    scene:                                     # optional: what the run is for (see below)
+      out: out/demo/scene.zarr
+      source: out/demo/wood.zarr
+      directions: [[30, 0, 0, 0]]
 
 Each stage takes the same parameters as its subcommand (underscores for dashes). Before any
 stage runs, every key is checked: unknown keys, wrong types and missing required keys, and
@@ -16,6 +20,12 @@ file (``FILE:LINE: stages[2].generate.size: ...``). Only PyYAML's safe loader is
 subclass that also records line numbers and rejects duplicate keys). Relative paths are relative
 to the current directory. A stage whose output store already holds exactly what the stage would
 make (same parameters and version, from its provenance) is skipped; other outputs are replaced.
+
+A ``scene:`` section (a scene spec, :mod:`pipeline.scene_spec`, plus its ``out``) runs last, and
+the stage that makes its source computes only what the scene reads: ``reconstruct`` only the
+scene's layers and texels, ``quilt`` of a radiance store applies its plan only to the scene's
+layers (both through their ``for_scene`` parameter, set to the config). Other stages compute
+their whole output; :data:`WHOLE` says why, and ``btf run --check`` prints it per stage.
 """
 
 from __future__ import annotations
@@ -34,7 +44,19 @@ from pipeline.provenance import up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
 
-TOP_KEYS = ("description", "scheduler", "workers", "stages")
+TOP_KEYS = ("description", "scheduler", "workers", "stages", "scene")
+RESTRICTABLE = ("reconstruct", "quilt")
+WHOLE = {
+    "generate": "a measurement: the stages after it read all of it",
+    "ingest": "a measurement: the stages after it read all of it",
+    "crop": "cuts what its own region, light and view say",
+    "compress": "the SVD needs every layer and texel",
+    "enlarge": "Texture Optimization synthesizes the whole target; its eigentextures serve "
+               "every layer",
+    "roller": "applies its tiles to every layer (restricting it is not implemented)",
+    "pyramid": "levels are made for the whole store",
+    "fit": "fits every texel over all lights",
+}
 
 
 class _Mapping(dict):
@@ -92,6 +114,8 @@ class Plan:
     stages: tuple[PlannedStage, ...]
     scheduler: str | None = None
     workers: int | None = None
+    scene: Any = None  # a pipeline.scene_spec.SceneSpec
+    scene_out: str | None = None
 
 
 def _apply_overrides(stages: list, overrides: list[str], path: str) -> None:
@@ -181,7 +205,108 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
                      f"{value!r} does not exist and no earlier stage makes it")
         made.update(os.path.abspath(p) for p in paths(params, "out"))
         planned.append(PlannedStage(name, params, f"{path}:{line}: {where}"))
-    return Plan(path, tuple(planned), scheduler, workers)
+    if "scene" not in data:
+        return Plan(path, tuple(planned), scheduler, workers)
+    spec, out = _scene_section(data, path, made, fail)
+    return Plan(path, _restricted(tuple(planned), spec, path), scheduler, workers, spec, out)
+
+
+def _scene_section(data, path: str, made: set, fail):
+    from pipeline.scene_spec import from_mapping
+
+    section = data["scene"]
+    line = data.lines["scene"]
+    if not isinstance(section, dict):
+        fail(line, "scene", "expected a mapping: a scene spec and its out")
+    out = section.get("out")
+    if not isinstance(out, str) or not out:
+        fail(getattr(section, "lines", {}).get("out", line), "scene.out",
+             "expected the path of the scene's output (.zarr, or a folder for exr/png)")
+    rest = _Mapping((k, v) for k, v in section.items() if k != "out")
+    rest.line, rest.lines = section.line, section.lines
+    spec = from_mapping(rest, path, prefix="scene.")
+    if not os.path.exists(spec.source) and os.path.abspath(spec.source) not in made:
+        fail(section.lines["source"], "scene.source",
+             f"{spec.source!r} does not exist and no stage makes it")
+    return spec, out
+
+
+def producer(stages, source: str) -> int | None:
+    """Index of the last stage that makes ``source`` (None: it exists already)."""
+    found = None
+    for k, step in enumerate(stages):
+        if os.path.abspath(source) in {os.path.abspath(p) for p in paths(step.params, "out")}:
+            found = k
+    return found
+
+
+def _restricted(stages: tuple, spec, path: str) -> tuple:
+    """The stages, the scene source's producer set to compute only what the scene needs."""
+    k = producer(stages, spec.source)
+    if k is None or stages[k].name not in RESTRICTABLE:
+        return stages
+    step = stages[k]
+    try:
+        params = dataclasses.replace(step.params, for_scene=path)
+    except ParamError:  # its own light/view/region (or exr output): it computes those
+        return stages
+    return (*stages[:k], dataclasses.replace(step, params=params), *stages[k + 1:])
+
+
+def scene_lines(plan: Plan) -> list[str]:
+    """What each stage computes for the scene (``btf run --check``)."""
+    if plan.scene is None:
+        return []
+    k = producer(plan.stages, plan.scene.source)
+    lines = [f"scene -> {plan.scene_out}: reads {plan.scene.source}"]
+    for i, step in enumerate(plan.stages):
+        if getattr(step.params, "for_scene", None):
+            what = _restricted_count(step, plan) or "only what the scene reads"
+            lines.append(f"  {step.name}: restricted to the scene: {what}")
+        elif i == k and step.name in RESTRICTABLE:
+            lines.append(f"  {step.name}: computes its whole output: it was given its own "
+                         "light, view or region, or writes EXR files")
+        else:
+            reason = WHOLE.get(step.name, "does not make stores the scene reads")
+            lines.append(f"  {step.name}: computes its whole output: {reason}")
+    return lines
+
+
+def _restricted_count(step, plan: Plan) -> str | None:
+    """``n of N blocks`` a restricted stage computes, when its input exists already."""
+    from pipeline.stages.scene import needs_of
+    from pipeline.stores.base import open_group, read_directions
+
+    try:
+        group = open_group(step.params.store)
+    except BTFError:
+        return None  # made by an earlier stage of this run: counted when it exists
+    d = read_directions(group)
+    if step.name == "reconstruct":
+        v = group["V"]
+        needs = needs_of(plan.scene, d, v.shape[:2])
+        from pipeline.graphs.blocks import TASK_TEXELS
+
+        chunk, dl = step.params.chunk, step.params.dir_chunk
+        side = chunk * max(1, TASK_TEXELS // chunk)
+        ny, nx = v.shape[:2]
+        total = kept = 0
+        for view in range(d.views):
+            for l0 in range(0, d.lights, dl):
+                for y0 in range(0, ny, side):
+                    for x0 in range(0, nx, side):
+                        total += 1
+                        kept += needs.keeps(view, range(l0, min(l0 + dl, d.lights)),
+                                            slice(y0, min(y0 + side, ny)),
+                                            slice(x0, min(x0 + side, nx)))
+        return f"{kept} of {total} blocks ({needs.window} of {ny} x {nx} texels)"
+    if group.attrs.get("btf_kind") == "compressed":
+        return "nothing to restrict: the eigentextures of a compressed source serve every layer"
+    needs = needs_of(plan.scene, d)
+    dl = group["radiance"].chunks[1]
+    blocks = [(view, l0) for view in range(d.views) for l0 in range(0, d.lights, dl)]
+    kept = sum(needs.keeps(view, range(l0, min(l0 + dl, d.lights))) for view, l0 in blocks)
+    return f"{kept} of {len(blocks)} blocks of layers ({len(needs.layers)} of {needs.of} layers)"
 
 
 def execute(plan: Plan, session: Session) -> None:
@@ -202,6 +327,11 @@ def execute(plan: Plan, session: Session) -> None:
         if "overwrite" in {f.name for f in dataclasses.fields(params)}:
             params = dataclasses.replace(params, overwrite=True)  # the run owns its outputs
         stage.run(params, session)
+    if plan.scene is not None:
+        from pipeline.stages.scene import write_scene
+
+        session.log(f"[scene] -> {plan.scene_out}")
+        write_scene(plan.scene, plan.scene_out, session, overwrite=True)
     session.log(f"done: {len(plan.stages)} stage(s), {skipped} skipped, in "
                 f"{time.perf_counter() - start:.1f} s")
 

@@ -80,7 +80,10 @@ class SceneSpec:
 
 
 def load(path: str | Path) -> SceneSpec:
-    """Read and validate a scene spec file (see the module docstring)."""
+    """Read and validate a scene spec file (see the module docstring).
+
+    A run config (a mapping with ``stages``) gives its ``scene:`` section.
+    """
     import yaml
 
     from pipeline.config import _LineLoader
@@ -96,6 +99,13 @@ def load(path: str | Path) -> SceneSpec:
         raise BTFError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         raise BTFError(f"{path}: not valid YAML: {exc}") from None
+    if isinstance(data, dict) and "stages" in data:
+        if not isinstance(data.get("scene"), dict):
+            raise BTFError(f"{path}: a run config without a 'scene:' section")
+        section = data["scene"]
+        rest = type(section)((k, v) for k, v in section.items() if k != "out")
+        rest.line, rest.lines = section.line, section.lines
+        return from_mapping(rest, path, prefix="scene.")
     return from_mapping(data, path)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -272,3 +273,92 @@ def test_example_scenes_run(tmp_path, btf, monkeypatch):
         result = btf("scene", example, out, "-q")
         assert result.code == 0, (example.name, result.err)
         assert out.exists()
+
+
+def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp_path, btf,
+                                                                             monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    stages = """stages:
+  - generate: {out: m.zarr, material: leather, size: 96, sampling: "hemi:9", chunk: 16,
+               dir_chunk: 3, seed: 4}
+  - compress: {store: m.zarr, out: c.zarr, rank: 8}
+  - reconstruct: {store: c.zarr, out: r.zarr, chunk: 16, dir_chunk: 3}
+  - quilt: {store: m.zarr, out: q.zarr, size: [48, 48], corners: 2}
+"""
+    _write(tmp_path / "r.yaml", stages + """scene:
+  out: s.zarr
+  source: r.zarr
+  directions: [[20, 10, 30, 40], [0, 0, 0, 0]]
+  region: [0, 32, 16, 48]
+""")
+    check = btf("run", "r.yaml", "--check")
+    assert check.code == 0, check.err
+    assert "--for-scene r.yaml" in check.out
+    assert "reconstruct: restricted to the scene" in check.out
+    assert "compress: computes its whole output: the SVD needs every layer" in check.out
+    assert btf("run", "r.yaml", "-q").code == 0
+    again = btf("run", "r.yaml", "--check")
+    counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 27 blocks", again.out)
+    r = zarr.open_group("r.zarr", mode="r")
+    only = r.attrs["computed_for_scene"]
+    assert len(only["layers"]) == 9 and only["of_layers"] == 81  # (0, 0) among the 9
+    written = np.isfinite(r["radiance"][..., 0, 16, 0])  # (view, light) written at all
+    # 96^2 texels are one task block: whole light chunks (3 lights) of the needed layers
+    blocks = {(v, li // 3) for v, li in zip(*np.nonzero(written), strict=True)}
+    assert int(counted.group(1)) == len(blocks) < 27 // 2
+    assert all(written[v, li] for v, li in only["layers"])
+    # the scene equals the same scene on a full reconstruction
+    assert btf("reconstruct", "c.zarr", "full.zarr", "-q").code == 0
+    spec = _write(tmp_path / "direct.yaml", "source: full.zarr\ndirections: [[20, 10, 30, 40], "
+                                            "[0, 0, 0, 0]]\nregion: [0, 32, 16, 48]\n")
+    assert btf("scene", spec, "direct.zarr", "-q").code == 0
+    assert np.array_equal(_radiance(tmp_path / "s.zarr"), _radiance(tmp_path / "direct.zarr"))
+    # a scene that needs a layer the restricted store did not compute is refused
+    other = _write(tmp_path / "o.yaml", "source: r.zarr\ndirections: [[70, 200, 60, 90]]\n")
+    refused = btf("scene", other, "o.zarr")
+    assert refused.code == 1 and "was not computed" in refused.err
+    other.write_text("source: r.zarr\ndirections: [[0, 0, 0, 0]]\nregion: [0, 64, 0, 64]\n")
+    refused = btf("scene", other, "o.zarr")
+    assert refused.code == 1 and "was computed only for the texels" in refused.err
+    # quilting a radiance store for a scene applies the plan to the scene's layers only
+    _write(tmp_path / "q.yaml", stages + """scene:
+  out: t.zarr
+  source: q.zarr
+  directions: [[20, 10, 30, 40]]
+  size: [40, 60]
+""")
+    assert btf("run", "q.yaml", "-q").code == 0
+    q = zarr.open_group("q.zarr", mode="r")
+    assert len(q.attrs["computed_for_scene"]["layers"]) == 9
+    assert btf("quilt", "m.zarr", "qfull.zarr", "--size", "48,48", "--corners", "2",
+               "-q").code == 0
+    spec = _write(tmp_path / "qd.yaml", "source: qfull.zarr\ndirections: [[20, 10, 30, 40]]\n"
+                                        "size: [40, 60]\n")
+    assert btf("scene", spec, "qd.zarr", "-q").code == 0
+    assert np.array_equal(_radiance(tmp_path / "t.zarr"), _radiance(tmp_path / "qd.zarr"))
+    refused = btf("render", "q.zarr", "x.exr", "--light", "8", "--view", "8", "--size", "8")
+    assert refused.code == 1 and "was not computed" in refused.err
+
+
+def test_a_run_config_scene_section_is_validated_with_lines(tmp_path, btf):
+    cfg = _write(tmp_path / "bad.yaml", f"""stages:
+  - inspect: {{store: {stores_hint(tmp_path)}}}
+scene:
+  out: s.zarr
+  source: nowhere.zarr
+  directions: all
+""")
+    result = btf("run", cfg, "--check")
+    assert result.code == 1
+    assert f"{cfg}:5: scene.source: 'nowhere.zarr' does not exist" in result.err
+    cfg.write_text(cfg.read_text().replace("directions: all", "directions: [[0, 0, 100, 0]]")
+                   .replace("nowhere.zarr", str(tmp_path / "m.zarr")))
+    result = btf("run", cfg, "--check")
+    assert result.code == 1
+    assert f"{cfg}:6: scene.directions[0]: theta_view 100 is below the horizon" in result.err
+
+
+def stores_hint(tmp_path: Path) -> Path:
+    """A small generated store the config's stage can name."""
+    return generate_store(tmp_path / "m.zarr", "--material", "stone", "--size", "16",
+                          "--sampling", "abtf:2,1")

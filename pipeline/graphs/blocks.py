@@ -47,13 +47,15 @@ def read_chunks(group, name: str) -> dict[str, int]:
     return dict(zip(dims, task_block(array), strict=True))
 
 
-def store_aligned(sources: list, targets: list, *, progress=None):
+def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     """A delayed write of dask arrays into zarr arrays, refused unless aligned to write units.
 
     Every dask chunk boundary must fall on a shard boundary (or chunk boundary for unsharded
     arrays), so no two tasks ever write into the same shard or chunk. With ``progress`` (a
     :class:`pipeline.resume.Progress`) every block is a unit of work of its own: blocks an
     earlier, killed run finished are skipped, and each block marks itself done once written.
+    With ``keep`` (``keep(region) -> bool``, region a tuple of slices of the target), only the
+    blocks it keeps are computed and written.
     """
     import dask
     import dask.array as da
@@ -66,7 +68,7 @@ def store_aligned(sources: list, targets: list, *, progress=None):
                     f"dask chunks {chunks} of axis {dim} split write units of {unit} in "
                     f"{target.path!r}: concurrent writes would lose data"
                 )
-    if progress is None:
+    if progress is None and keep is None:
         return da.store(sources, targets, lock=False, compute=False)
     units = []
     # optimised together, as da.store would: work the sources share stays shared
@@ -76,10 +78,12 @@ def store_aligned(sources: list, targets: list, *, progress=None):
         for index in np.ndindex(blocks.shape):
             region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
                                                                            strict=True))
+            if keep is not None and not keep(region):
+                continue
             name = f"{target.path}/{'.'.join(map(str, index))}"
             units.append((name, dask.delayed(_write_block, pure=False)(blocks[index], target,
                                                                         region)))
-    todo, _ = progress.pending(units)
+    todo = progress.pending(units)[0] if progress is not None else [w for _, w in units]
     return dask.delayed(_count, pure=False)(todo)
 
 

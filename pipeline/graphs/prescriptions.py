@@ -84,17 +84,20 @@ def tile_groups(tiles: int, tile_bytes: int, parallelism: int) -> list[range]:
 
 
 def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_chunk: int,
-                 tile_shape: tuple[int, int]) -> list:
+                 tile_shape: tuple[int, int], needs=None) -> list:
     """Delayed tasks writing every tile's layers of a radiance source of ``shape``.
 
-    ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`).
+    ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`). With
+    ``needs`` (:class:`pipeline.stages.scene.Needs`), only blocks of lights holding a layer
+    it needs.
     """
     import dask
 
     nv, nl = shape[:2]
     return [dask.delayed(_apply_block)(location(store), location(out), v, l0,
                                        min(l0 + dir_chunk, nl), matrices, tile_shape)
-            for v in range(nv) for l0 in range(0, nl, dir_chunk)]
+            for v in range(nv) for l0 in range(0, nl, dir_chunk)
+            if needs is None or needs.keeps(v, range(l0, min(l0 + dir_chunk, nl)))]
 
 
 def eigentexture_writes(store: str, out: str, matrices, *, tiles: int, tile_bytes: int,
@@ -106,8 +109,8 @@ def eigentexture_writes(store: str, out: str, matrices, *, tiles: int, tile_byte
             for group in tile_groups(tiles, tile_bytes, parallelism)]
 
 
-def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: int
-                  ) -> tuple[list, str]:
+def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: int,
+                  needs=None) -> tuple[list, str]:
     """Delayed tasks filling a tile-set store at ``out`` from ``source``, and what they do.
 
     ``tiles`` is the :class:`pipeline.stores.tileset.TileSet` the store was created for;
@@ -127,12 +130,13 @@ def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: 
                         f"{len(writes)} group(s) of tiles")
     radiance = source_group[RADIANCE]
     writes = layer_writes(source, out, handle, shape=radiance.shape,
-                          dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape)
+                          dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape,
+                          needs=needs)
     return writes, f"{len(matrices)} prescription(s) to {len(writes)} blocks of layers"
 
 
 def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
-                  overwrite: bool) -> Path:
+                  overwrite: bool, needs=None) -> Path:
     """Write a tile-set store for ``tiles`` planned on ``source``: all or nothing at ``out``.
 
     The one place both tile-set stages (quilting, the roller) end: the store is created
@@ -153,7 +157,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
         progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
                                                       source_group=group))
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
-                                     share=session.share, parallelism=session.parallelism)
+                                     share=session.share, parallelism=session.parallelism,
+                                     needs=needs)
         # how the writes are grouped depends on the session (tile_groups): a rerun with
         # other workers groups them otherwise, and then keeps nothing of the killed run's
         grouping = f"{len(writes)}x{session.parallelism}"

@@ -66,6 +66,9 @@ def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int]
         raise BTFError(f"{path}: --view {view} is out of range (the tile set has {nv} views)")
     if not 0 <= light < nl:
         raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
+    from pipeline.stages.scene import restricted_layers
+
+    restricted_layers(group, str(path), view, light)
     if seed is None:
         seed = stored_seed(group)
     channels = group["channel"].shape[0]

@@ -52,6 +52,11 @@ class QuiltStageParams:
     weights: str = option("1,0.5,0.5", metavar="D,H,R", help=WEIGHTS_HELP)
     view: int | None = option(None, metavar="J",
                               help="view for the reference image (default: closest to normal)")
+    for_scene: str | None = option(
+        None, metavar="SCENE.yaml", path="in",
+        help="apply the plan only to the layers this scene spec (or a run config's scene: "
+             "section) reads of OUT (radiance sources; the eigentextures of a compressed "
+             "one serve every layer); the others stay unwritten")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
@@ -126,10 +131,36 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
                        for p in plan.placements],
         "provenance": provenance("quilt", params),
     }
+    needs = _scene_needs(params, session)
+    if needs is not None:
+        attrs["computed_for_scene"] = needs.record(params.for_scene)
     tiles = TileSet(index=[t.index.reshape(-1, TERMS) for t in plan.tiles],
                     weight=[t.weight.reshape(-1, TERMS) for t in plan.tiles],
                     tile_shape=qp.tile, corners=plan.corners, reference=maps.reference,
                     attrs=attrs)
     del plan  # the canvases' values and the strips are not needed any more
     return write_tileset(tiles, params.out, source=params.store, session=session,
-                         label="quilt", overwrite=params.overwrite)
+                         label="quilt", overwrite=params.overwrite, needs=needs)
+
+
+def _scene_needs(params: QuiltStageParams, session: Session):
+    """The layers ``--for-scene`` reads of the tile set (None: every layer)."""
+    if params.for_scene is None:
+        return None
+    from pipeline.scene_spec import load
+    from pipeline.stages.scene import needs_of
+    from pipeline.stores.base import open_group, read_directions
+
+    spec = load(params.for_scene)
+    if Path(spec.source).absolute() != Path(params.out).absolute():
+        raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
+                                   f"{params.out}")
+    group = open_group(params.store)
+    if group.attrs.get("btf_kind") == "compressed":
+        session.log("quilt: the scene cannot restrict a compressed source: the tiles' "
+                    "eigentextures serve every layer")
+        return None
+    needs = needs_of(spec, read_directions(group))
+    session.log(f"quilt: applying the plan only to the {len(needs.layers)} of {needs.of} "
+                f"layers {params.for_scene} needs")
+    return needs

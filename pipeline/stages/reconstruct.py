@@ -43,6 +43,10 @@ class ReconstructParams:
     rank: int | None = option(None, metavar="R", help="components to use (default: all)")
     format: str = option("zarr", choices=("zarr", "exr"),
                          help="zarr: a radiance store; exr: one float32 EXR per layer")
+    for_scene: str | None = option(
+        None, metavar="SCENE.yaml", path="in",
+        help="compute only the layers and texels this scene spec (or a run config's scene: "
+             "section) reads of OUT; the store keeps its full shape, the rest unwritten")
     chunk: int = option(128, help="texels per side of a stored chunk (zarr output)")
     dir_chunk: int = option(16, help="light directions per stored chunk (zarr output)")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
@@ -52,6 +56,13 @@ class ReconstructParams:
         if self.rank is not None and self.rank < 1:
             raise ParamError("rank", f"must be at least 1, got {self.rank}")
         Layout(chunk=self.chunk, dir_chunk=self.dir_chunk)
+        if self.for_scene is not None:
+            for name in ("light", "view", "region"):
+                if getattr(self, name) is not None:
+                    raise ParamError(name, "cannot be combined with --for-scene (the scene "
+                                           "says which layers and texels to compute)")
+            if self.format != "zarr":
+                raise ParamError("for_scene", "needs --format zarr")
 
 
 def select(params: ReconstructParams):
@@ -83,10 +94,24 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
     nv, nl, ny, nx, _ = sel.shape
     session.log(f"reconstruct: {nv} x {nl} layers of {ny} x {nx} texels at rank "
                 f"{sel.attrs['rank_used']} -> {params.out}")
+    needs = None
+    if params.for_scene is not None:
+        from pipeline.scene_spec import load
+        from pipeline.stages.scene import needs_of
+
+        spec = load(params.for_scene)
+        if Path(spec.source).absolute() != Path(params.out).absolute():
+            raise spec.error("source", f"the scene reads {spec.source}, not this stage's "
+                                       f"output {params.out}")
+        needs = needs_of(spec, d, (ny, nx))
+        session.log(f"reconstruct: only what {params.for_scene} needs: {len(needs.layers)} "
+                    f"of {needs.of} layers, texels {needs.window}")
     attrs = {"btf_kind": d.kind, "source": "reconstruct",
              "reconstructed_from": {"store": params.store, "rank": sel.attrs["rank_used"],
                                     "error": sel.attrs.get("error")},
              "provenance": provenance("reconstruct", params)}
+    if needs is not None:
+        attrs["computed_for_scene"] = needs.record(params.for_scene)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"] if params.format != "exr" else None) as tmp:
         if params.format == "exr":
@@ -110,5 +135,8 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             if progress.count():
                 session.log(f"reconstruct: resuming: {progress.count()} blocks already written")
             data = sel.data.rechunk(aligned_chunks(group[RADIANCE]))
-            session.compute(store_aligned([data], [group[RADIANCE]], progress=progress))
+            keep = None if needs is None else (lambda r: needs.keeps(
+                r[0].start, range(r[1].start, r[1].stop), r[2], r[3]))
+            session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,
+                                          keep=keep))
     return Path(params.out)

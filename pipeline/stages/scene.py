@@ -50,15 +50,14 @@ def scene_stage(params: SceneParams, session: Session) -> Path:
     return write_scene(load(params.scene), params.out, session, overwrite=params.overwrite)
 
 
-def resolve(spec: SceneSpec, group) -> tuple[Any, np.ndarray, list]:
+def resolve(spec: SceneSpec, d) -> tuple[Any, np.ndarray, list]:
     """Requested directions ``(n, 4)``, their ``(direction, layer)`` weights and the layers.
 
-    ``all`` gives every measured layer, view-major, with identity weights.
+    ``d`` holds the source's measured :class:`~pipeline.stores.base.Directions`. ``all``
+    gives every measured layer, view-major, with identity weights.
     """
-    from pipeline.stores.base import read_directions
     from tasks.directions import pair_weights
 
-    d = read_directions(group)
     if spec.directions is None:
         layers = [(v, li) for v in range(d.views) for li in range(d.lights)]
         rows = np.array([[d.theta_light[li], d.phi_light[li], d.theta_view[v], d.phi_view[v]]
@@ -73,6 +72,68 @@ def resolve(spec: SceneSpec, group) -> tuple[Any, np.ndarray, list]:
         for v, li, w in t:
             weights[i, column[(v, li)]] = w
     return spec.directions, weights, layers
+
+
+@dataclasses.dataclass(frozen=True)
+class Needs:
+    """What a scene needs of the store it reads: layers, and level-0 texels (None: all)."""
+
+    layers: frozenset
+    window: tuple[int, int, int, int] | None
+    of: int  # layers of the store
+
+    def keeps(self, view: int, lights: range, ys: slice | None = None,
+              xs: slice | None = None) -> bool:
+        """Whether a block of one view, some lights and texels holds anything needed."""
+        if not any((view, li) in self.layers for li in lights):
+            return False
+        if self.window is None or ys is None:
+            return True
+        y0, y1, x0, x1 = self.window
+        return ys.start < y1 and ys.stop > y0 and xs.start < x1 and xs.stop > x0
+
+    def record(self, spec_path: str) -> dict:
+        """The ``computed_for_scene`` attribute of a store restricted to these needs."""
+        return {"scene": spec_path, "layers": sorted([list(p) for p in self.layers]),
+                "of_layers": self.of, "region": None if self.window is None
+                else list(self.window)}
+
+
+def needs_of(spec: SceneSpec, directions, shape: tuple[int, int] | None = None) -> Needs:
+    """The layers (and, for a bounded source of ``shape``, level-0 texels) a scene reads.
+
+    ``directions`` are those of the store the scene will read (the same as its producer's
+    input: reconstruct and quilt keep them).
+    """
+    _, _, layers = resolve(spec, directions)
+    window = None
+    if shape is not None:
+        f = 2**spec.level
+        y0, y1, x0, x1 = _level_window(spec, *shape, spec.level)
+        window = (y0 * f, y1 * f, x0 * f, x1 * f)
+    return Needs(frozenset(layers), window, directions.views * directions.lights)
+
+
+def restricted_layers(group, path: str, view: int, light: int) -> None:
+    """Refuse a layer a store restricted to a scene (``computed_for_scene``) did not compute."""
+    only = group.attrs.get("computed_for_scene")
+    if only and [view, light] not in only["layers"]:
+        raise BTFError(f"{path}: view {view}, light {light} was not computed: the store holds "
+                       f"only the {len(only['layers'])} layer(s) the scene {only['scene']} "
+                       "needs (btf run with a scene: section); run its stage without the "
+                       "scene for every layer")
+
+
+def _restricted_region(group, spec: SceneSpec, request) -> None:
+    """Refuse texels a store restricted to another scene's region did not compute."""
+    restriction = group.attrs.get("computed_for_scene") or {}
+    only = restriction.get("region")
+    if only:
+        ys, xs = request.level0()
+        if ys.start < only[0] or ys.stop > only[1] or xs.start < only[2] or xs.stop > only[3]:
+            raise spec.error("region", f"{spec.source} was computed only for the texels "
+                                       f"{only} (of the scene {restriction['scene']}); this "
+                                       "scene reads beyond them")
 
 
 def _open_source(spec: SceneSpec):
@@ -166,11 +227,13 @@ def build(spec: SceneSpec, session: Session):
     import zarr
 
     from pipeline.graphs import scene as graphs
-    from pipeline.stores.base import read_channels
+    from pipeline.stores.base import read_channels, read_directions
 
     group, kind = _open_source(spec)
     _check_keys(spec, kind, group)
-    directions, weights, layers = resolve(spec, group)
+    directions, weights, layers = resolve(spec, read_directions(group))
+    for v, li in layers:
+        restricted_layers(group, spec.source, v, li)
     info: dict[str, Any] = {"kind": group.attrs["btf_kind"], "channels": read_channels(group),
                             "layers": layers, "weights": weights, "level": spec.level}
     path = location(spec.source)
@@ -186,6 +249,7 @@ def build(spec: SceneSpec, session: Session):
         if kind == "surface" and spec.level:
             session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
         req = request(_level_window(spec, ny, nx, spec.level), stored is not None)
+        _restricted_region(group, spec, req)
         source = zarr.open_array(path, path=stored or RADIANCE, mode="r")
         data = da.from_zarr(source)
         if kind == "surface":
