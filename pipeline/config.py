@@ -43,6 +43,7 @@ from pipeline.params import ParamError, from_mapping, paths
 from pipeline.provenance import up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
+from pipeline.yaml_lines import LineLoader, Mapping
 
 TOP_KEYS = ("description", "scheduler", "workers", "stages", "scene")
 RESTRICTABLE = ("reconstruct", "quilt")
@@ -57,44 +58,6 @@ WHOLE = {
     "pyramid": "levels are made for the whole store",
     "fit": "fits every texel over all lights",
 }
-
-
-class _Mapping(dict):
-    line = 0
-    lines: dict
-
-
-class _Sequence(list):
-    line = 0
-    lines: list
-
-
-class _LineLoader(yaml.SafeLoader):
-    """The safe loader, recording the line of every mapping key and sequence item."""
-
-
-def _mapping(loader: _LineLoader, node: yaml.MappingNode) -> _Mapping:
-    loader.flatten_mapping(node)
-    out = _Mapping()
-    out.line, out.lines = node.start_mark.line + 1, {}
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if key in out:
-            raise BTFError(f"line {key_node.start_mark.line + 1}: duplicate key {key!r}")
-        out[key] = loader.construct_object(value_node, deep=True)
-        out.lines[key] = key_node.start_mark.line + 1
-    return out
-
-
-def _sequence(loader: _LineLoader, node: yaml.SequenceNode) -> _Sequence:
-    out = _Sequence(loader.construct_object(child, deep=True) for child in node.value)
-    out.line = node.start_mark.line + 1
-    out.lines = [child.start_mark.line + 1 for child in node.value]
-    return out
-
-
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _sequence)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,7 +111,7 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
     except OSError as exc:
         raise BTFError(f"{path}: cannot read the config ({exc.strerror})") from None
     try:
-        data = yaml.load(text, Loader=_LineLoader)  # a SafeLoader subclass: safe
+        data = yaml.load(text, Loader=LineLoader)  # a SafeLoader subclass: safe
     except BTFError as exc:
         raise BTFError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
@@ -186,7 +149,7 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
         if name not in STAGES:
             fail(line, f"stages[{i}]", f"unknown stage {name!r}; stages: {', '.join(STAGES)}")
         if raw is None:
-            raw = _Mapping()
+            raw = Mapping()
         if not isinstance(raw, dict):
             fail(line, where, "expected a mapping of parameters")
         lines = getattr(raw, "lines", {})
@@ -222,7 +185,7 @@ def _scene_section(data, path: str, made: set, fail):
     if not isinstance(out, str) or not out:
         fail(getattr(section, "lines", {}).get("out", line), "scene.out",
              "expected the path of the scene's output (.zarr, or a folder for exr/png)")
-    rest = _Mapping((k, v) for k, v in section.items() if k != "out")
+    rest = Mapping((k, v) for k, v in section.items() if k != "out")
     rest.line, rest.lines = section.line, section.lines
     spec = from_mapping(rest, path, prefix="scene.")
     if not os.path.exists(spec.source) and os.path.abspath(spec.source) not in made:

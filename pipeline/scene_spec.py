@@ -86,7 +86,7 @@ def load(path: str | Path) -> SceneSpec:
     """
     import yaml
 
-    from pipeline.config import _LineLoader
+    from pipeline.yaml_lines import LineLoader
 
     path = str(path)
     try:
@@ -94,7 +94,7 @@ def load(path: str | Path) -> SceneSpec:
     except OSError as exc:
         raise BTFError(f"{path}: cannot read the scene spec ({exc.strerror})") from None
     try:
-        data = yaml.load(text, Loader=_LineLoader)  # a SafeLoader subclass: safe
+        data = yaml.load(text, Loader=LineLoader)  # a SafeLoader subclass: safe
     except BTFError as exc:
         raise BTFError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:

@@ -123,7 +123,10 @@ def _stores(tmp_path: Path, btf) -> dict[str, Path]:
         "hls-fit": ("fit", src, tmp_path / "h.zarr"),
         "btf": ("generate", tmp_path / "b.zarr", "--material", "wood", "--size", "16",
                 "--sampling", "hemi:3"),
+        "scene": ("scene", tmp_path / "scene.yaml", tmp_path / "sc.zarr"),
     }
+    (tmp_path / "scene.yaml").write_text(f"source: {tmp_path / 'c.zarr'}\n"
+                                         "directions: [[10, 20, 0, 0]]\nregion: [0, 8, 0, 8]\n")
     for kind, args in steps.items():
         result = btf(*args, "--quiet")
         assert result.code == 0, (kind, result.err)

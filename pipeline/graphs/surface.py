@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import BTFError
-from pipeline.stores.base import RADIANCE, location
+from pipeline.stores.base import RADIANCE, check_computed, location
 from pipeline.stores.tileset import corner_order, open_tileset, stored_seed
 from tasks.placement import gather, lattice_gather
 
@@ -66,9 +66,7 @@ def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int]
         raise BTFError(f"{path}: --view {view} is out of range (the tile set has {nv} views)")
     if not 0 <= light < nl:
         raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
-    from pipeline.stages.scene import restricted_layers
-
-    restricted_layers(group, str(path), view, light)
+    check_computed(group, str(path), view, light)
     if seed is None:
         seed = stored_seed(group)
     channels = group["channel"].shape[0]

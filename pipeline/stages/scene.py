@@ -28,7 +28,7 @@ from pipeline.errors import BTFError
 from pipeline.params import option
 from pipeline.scene_spec import SceneSpec, load
 from pipeline.session import Session
-from pipeline.stores.base import RADIANCE, location, open_group
+from pipeline.stores.base import RADIANCE, check_computed, location, open_group
 
 SOURCE_KINDS = {"abtf": "radiance", "btf": "radiance", "compressed": "compressed",
                 "tileset": "tileset", "compressed-tileset": "tileset", "surface": "surface"}
@@ -112,16 +112,6 @@ def needs_of(spec: SceneSpec, directions, shape: tuple[int, int] | None = None) 
         y0, y1, x0, x1 = _level_window(spec, *shape, spec.level)
         window = (y0 * f, y1 * f, x0 * f, x1 * f)
     return Needs(frozenset(layers), window, directions.views * directions.lights)
-
-
-def restricted_layers(group, path: str, view: int, light: int) -> None:
-    """Refuse a layer a store restricted to a scene (``computed_for_scene``) did not compute."""
-    only = group.attrs.get("computed_for_scene")
-    if only and [view, light] not in only["layers"]:
-        raise BTFError(f"{path}: view {view}, light {light} was not computed: the store holds "
-                       f"only the {len(only['layers'])} layer(s) the scene {only['scene']} "
-                       "needs (btf run with a scene: section); run its stage without the "
-                       "scene for every layer")
 
 
 def _restricted_region(group, spec: SceneSpec, request) -> None:
@@ -233,7 +223,7 @@ def build(spec: SceneSpec, session: Session):
     _check_keys(spec, kind, group)
     directions, weights, layers = resolve(spec, read_directions(group))
     for v, li in layers:
-        restricted_layers(group, spec.source, v, li)
+        check_computed(group, spec.source, v, li)
     info: dict[str, Any] = {"kind": group.attrs["btf_kind"], "channels": read_channels(group),
                             "layers": layers, "weights": weights, "level": spec.level}
     path = location(spec.source)

@@ -182,6 +182,20 @@ def check_coordinates(group, path: str | Path, sizes: dict[str, int], what: str)
                            f"{what} has {sizes[dim]} {dim}(s)")
 
 
+def check_computed(group, path: str | Path, view: int, light: int) -> None:
+    """Refuse a layer that a store restricted to a scene did not compute.
+
+    Such stores (``btf run`` with a ``scene:`` section, or ``--for-scene``) record what they
+    hold in ``computed_for_scene``.
+    """
+    only = group.attrs.get("computed_for_scene")
+    if only and [view, light] not in only["layers"]:
+        raise BTFError(f"{path}: view {view}, light {light} was not computed: the store holds "
+                       f"only the {len(only['layers'])} layer(s) the scene {only['scene']} "
+                       "needs (btf run with a scene: section); run its stage without the "
+                       "scene for every layer")
+
+
 def layer_indices(selection, size: int, what: str, store: str) -> list[int]:
     """Validated, de-duplicated view or light indices (all of them when ``selection`` is None)."""
     if selection is None:

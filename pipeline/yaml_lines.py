@@ -1,0 +1,54 @@
+"""YAML with line numbers: PyYAML's safe loader, recording where every key and item is.
+
+Run configs and scene specs report problems as ``FILE:LINE: key: message``; the loader keeps
+the line of every mapping key (``Mapping.lines``) and sequence item (``Sequence.lines``) and
+rejects duplicate keys.
+"""
+
+from __future__ import annotations
+
+import yaml
+
+from pipeline.errors import BTFError
+
+
+class Mapping(dict):
+    """A YAML mapping with its line (``line``) and the line of each key (``lines``)."""
+
+    line = 0
+    lines: dict
+
+
+class Sequence(list):
+    """A YAML sequence with its line (``line``) and the line of each item (``lines``)."""
+
+    line = 0
+    lines: list
+
+
+class LineLoader(yaml.SafeLoader):
+    """The safe loader, recording the line of every mapping key and sequence item."""
+
+
+def _mapping(loader: LineLoader, node: yaml.MappingNode) -> Mapping:
+    loader.flatten_mapping(node)
+    out = Mapping()
+    out.line, out.lines = node.start_mark.line + 1, {}
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if key in out:
+            raise BTFError(f"line {key_node.start_mark.line + 1}: duplicate key {key!r}")
+        out[key] = loader.construct_object(value_node, deep=True)
+        out.lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+def _sequence(loader: LineLoader, node: yaml.SequenceNode) -> Sequence:
+    out = Sequence(loader.construct_object(child, deep=True) for child in node.value)
+    out.line = node.start_mark.line + 1
+    out.lines = [child.start_mark.line + 1 for child in node.value]
+    return out
+
+
+LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
+LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _sequence)
