@@ -51,8 +51,11 @@ def _sources(tmp: Path, args) -> dict[str, Path]:
     return {"compressed": c, "tileset": q}
 
 
+DATA = ("U", "S", "V", "radiance", "pyramid")  # data variables (not coordinates)
+
+
 class _Reads:
-    """Counts chunk reads and bytes of every zarr LocalStore while active."""
+    """Counts chunk reads of data variables and their bytes, at every zarr LocalStore."""
 
     def __enter__(self):
         from zarr.storage import LocalStore
@@ -63,7 +66,7 @@ class _Reads:
 
         async def get(store, key, *a, **k):
             buf = await original(store, key, *a, **k)
-            if "/c/" in key or key.startswith("c/"):
+            if "/c/" in key and key.split("/")[0] in DATA:
                 self.keys.add(f"{store.root}/{key}")
                 self.bytes += len(buf) if buf is not None else 0
             return buf

@@ -35,6 +35,7 @@ import numpy as np
 
 from pipeline.errors import BTFError
 from tasks.directions import METHODS
+from tasks.sampling import canonical_direction
 
 FORMATS = ("zarr", "exr", "png")
 KEYS = ("source", "directions", "interpolation", "region", "size", "origin", "level", "rank",
@@ -179,7 +180,7 @@ def _directions(value, fail) -> np.ndarray | None:
     if not isinstance(value, list) or not value:
         fail("directions", "expected 'all' or a list of [theta_light, phi_light, theta_view, "
                            f"phi_view] in degrees, got {value!r}")
-    out = []
+    out, seen = [], {}
     for i, item in enumerate(value):
         key = f"directions[{i}]"
         if (not isinstance(item, list) or len(item) != 4 or not all(
@@ -194,8 +195,10 @@ def _directions(value, fail) -> np.ndarray | None:
                 fail(key, f"{name} {theta} is {where}: theta is measured from the surface "
                           "normal and must be between 0 and 90 degrees")
         row = [float(item[0]), float(item[1]) % 360.0, float(item[2]), float(item[3]) % 360.0]
-        for j, earlier in enumerate(out):
-            if np.allclose(earlier, row, atol=1e-9):
-                fail(key, f"repeats directions[{j}]")
+        same = tuple(round(a, 9) for a in (*canonical_direction(*row[:2]),
+                                           *canonical_direction(*row[2:])))
+        if same in seen:
+            fail(key, f"repeats directions[{seen[same]}]")
+        seen[same] = i
         out.append(row)
     return np.array(out, np.float64)
