@@ -188,6 +188,9 @@ def _scene_section(data, path: str, made: set, fail):
     rest = Mapping((k, v) for k, v in section.items() if k != "out")
     rest.line, rest.lines = section.line, section.lines
     spec = from_mapping(rest, path, prefix="scene.")
+    if (spec.format == "zarr") != out.lower().endswith(".zarr"):
+        fail(section.lines["out"], "scene.out", f"{out!r} does not suit format {spec.format} "
+                                                "(zarr: a .zarr path; exr, png: a folder)")
     if not os.path.exists(spec.source) and os.path.abspath(spec.source) not in made:
         fail(section.lines["source"], "scene.source",
              f"{spec.source!r} does not exist and no stage makes it")
@@ -206,7 +209,7 @@ def producer(stages, source: str) -> int | None:
 def _restricted(stages: tuple, spec, path: str) -> tuple:
     """The stages, the scene source's producer set to compute only what the scene needs."""
     k = producer(stages, spec.source)
-    if k is None or stages[k].name not in RESTRICTABLE:
+    if k is None or stages[k].name not in RESTRICTABLE or _read_later(stages, k, spec.source):
         return stages
     step = stages[k]
     try:
@@ -216,60 +219,86 @@ def _restricted(stages: tuple, spec, path: str) -> tuple:
     return (*stages[:k], dataclasses.replace(step, params=params), *stages[k + 1:])
 
 
+def _read_later(stages, k: int, source: str) -> bool:
+    """Whether a stage after the ``k``-th reads ``source`` (then it must be whole)."""
+    return any(os.path.abspath(source) in {os.path.abspath(p) for p in paths(s.params, "in")}
+               for s in stages[k + 1:])
+
+
 def scene_lines(plan: Plan) -> list[str]:
-    """What each stage computes for the scene (``btf run --check``)."""
+    """What each stage computes for the scene, in stored chunks (``btf run --check``)."""
+    from pipeline import planning
+
     if plan.scene is None:
         return []
+    shapes: dict = {}
+    planning.plan_stages(plan.stages, shapes)
     k = producer(plan.stages, plan.scene.source)
     lines = [f"scene -> {plan.scene_out}: reads {plan.scene.source}"]
     for i, step in enumerate(plan.stages):
+        outputs = paths(step.params, "out")
+        shape = shapes.get(outputs[0]) if outputs else None
+        src = shapes.get(getattr(step.params, "store", None))
+        if (shape is None and step.name == "reconstruct" and src is not None and src.radiance
+                and not (step.params.light or step.params.view or step.params.region)):
+            shape = dataclasses.replace(src, kind="btf", chunk=step.params.chunk,
+                                        dir_chunk=step.params.dir_chunk)
+        total = planning.chunks_of(shape) if shape is not None else None
+        whole = f"all {total} chunks" if total else "all of its output"
         if getattr(step.params, "for_scene", None):
-            what = _restricted_count(step, plan) or "only what the scene reads"
+            what = _restricted_count(step, plan, shapes) or "only what the scene reads"
             lines.append(f"  {step.name}: restricted to the scene: {what}")
+        elif i == k and _read_later(plan.stages, k, plan.scene.source):
+            lines.append(f"  {step.name}: {whole}: a later stage reads its output too")
         elif i == k and step.name in RESTRICTABLE:
-            lines.append(f"  {step.name}: computes its whole output: it was given its own "
-                         "light, view or region, or writes EXR files")
+            lines.append(f"  {step.name}: {whole}: it was given its own light, view or region, "
+                         "or writes EXR files")
+        elif not outputs:
+            lines.append(f"  {step.name}: writes no store")
         else:
-            reason = WHOLE.get(step.name, "does not make stores the scene reads")
-            lines.append(f"  {step.name}: computes its whole output: {reason}")
+            reason = WHOLE.get(step.name, "it makes no store the scene reads")
+            lines.append(f"  {step.name}: {whole}: {reason}")
     return lines
 
 
-def _restricted_count(step, plan: Plan) -> str | None:
-    """``n of N blocks`` a restricted stage computes, when its input exists already."""
-    from pipeline.stages.scene import needs_of
-    from pipeline.stores.base import open_group, read_directions
+def _restricted_count(step, plan: Plan, shapes: dict) -> str | None:
+    """Stored chunks (or blocks of layers) a restricted stage computes, out of all."""
+    import math
 
-    try:
-        group = open_group(step.params.store)
-    except BTFError:
-        return None  # made by an earlier stage of this run: counted when it exists
-    d = read_directions(group)
+    from pipeline.planning import planned_directions
+    from pipeline.stages.scene import needs_of
+
+    d = planned_directions(plan.stages, step.params.store)
+    src = shapes.get(step.params.store)
+    if d is None or src is None or not src.radiance:
+        return None  # its input's shape or directions are not known before it runs
     if step.name == "reconstruct":
-        v = group["V"]
-        needs = needs_of(plan.scene, d, v.shape[:2])
         from pipeline.graphs.blocks import TASK_TEXELS
 
+        ny, nx = src.radiance[2:4]
+        needs = needs_of(plan.scene, d, (ny, nx))
         chunk, dl = step.params.chunk, step.params.dir_chunk
-        side = chunk * max(1, TASK_TEXELS // chunk)
-        ny, nx = v.shape[:2]
-        total = kept = 0
+        side = chunk * max(1, TASK_TEXELS // chunk)  # written in task blocks of whole chunks
+        kept = total = 0
         for view in range(d.views):
             for l0 in range(0, d.lights, dl):
                 for y0 in range(0, ny, side):
                     for x0 in range(0, nx, side):
-                        total += 1
-                        kept += needs.keeps(view, range(l0, min(l0 + dl, d.lights)),
-                                            slice(y0, min(y0 + side, ny)),
-                                            slice(x0, min(x0 + side, nx)))
-        return f"{kept} of {total} blocks ({needs.window} of {ny} x {nx} texels)"
-    if group.attrs.get("btf_kind") == "compressed":
-        return "nothing to restrict: the eigentextures of a compressed source serve every layer"
+                        ys, xs = slice(y0, min(y0 + side, ny)), slice(x0, min(x0 + side, nx))
+                        n = (math.ceil((ys.stop - ys.start) / chunk)
+                             * math.ceil((xs.stop - xs.start) / chunk))
+                        total += n
+                        kept += n * needs.keeps(view, range(l0, min(l0 + dl, d.lights)), ys, xs)
+        return (f"{kept} of {total} chunks (layers and texels {needs.window} of {ny} x {nx}: "
+                "the task blocks holding them)")
+    if src.kind == "compressed":
+        return "all of its output: the eigentextures of a compressed source serve every layer"
     needs = needs_of(plan.scene, d)
-    dl = group["radiance"].chunks[1]
+    dl = src.dir_chunk
     blocks = [(view, l0) for view in range(d.views) for l0 in range(0, d.lights, dl)]
     kept = sum(needs.keeps(view, range(l0, min(l0 + dl, d.lights))) for view, l0 in blocks)
-    return f"{kept} of {len(blocks)} blocks of layers ({len(needs.layers)} of {needs.of} layers)"
+    return (f"{kept} of {len(blocks)} blocks of layers per tile ({len(needs.layers)} of "
+            f"{needs.of} layers)")
 
 
 def execute(plan: Plan, session: Session) -> None:

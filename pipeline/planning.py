@@ -257,11 +257,14 @@ def _crop(params, shapes: dict) -> tuple[StagePlan, Shape]:
 ESTIMATORS = {"generate": _generate, "compress": _compress, "quilt": _quilt, "crop": _crop}
 
 
-def plan_stages(stages) -> list[StagePlan]:
-    """The estimates of a validated config's stages (``pipeline.config.PlannedStage``)."""
+def plan_stages(stages, shapes: dict | None = None) -> list[StagePlan]:
+    """The estimates of a validated config's stages (``pipeline.config.PlannedStage``).
+
+    ``shapes`` (a dict, filled in) receives the shape of every input and planned output.
+    """
     from pipeline.params import paths
 
-    shapes: dict[str, Shape] = {}
+    shapes = {} if shapes is None else shapes
     out = []
     for step in stages:
         for p in paths(step.params, "in"):
@@ -282,6 +285,47 @@ def plan_stages(stages) -> list[StagePlan]:
                 shapes[p] = made
         out.append(plan)
     return out
+
+
+def chunks_of(shape: Shape) -> int | None:
+    """Stored chunks of a store's main arrays (radiance; U and V of a compressed store)."""
+    if not shape.radiance or not shape.chunk:
+        return None
+    nv, nl, ny, nx, _ = shape.radiance
+    spatial = math.ceil(ny / shape.chunk) * math.ceil(nx / shape.chunk)
+    if shape.kind == "compressed":
+        return spatial + nv * math.ceil(nl / shape.dir_chunk)
+    return nv * math.ceil(nl / shape.dir_chunk) * spatial
+
+
+def planned_directions(stages, path: str):
+    """Directions of an existing store, or of one a stage of ``stages`` makes (None: unknown).
+
+    Follows the stages that keep their input's directions back to a store or a ``generate``.
+    """
+    import os
+
+    from pipeline.params import paths
+    from pipeline.stores.base import Directions, open_group, read_directions
+    from tasks.sampling import parse_sampling
+
+    for step in reversed(stages):
+        if os.path.abspath(path) not in {os.path.abspath(p) for p in paths(step.params, "out")}:
+            continue
+        p = step.params
+        if step.name == "generate":
+            s = parse_sampling(p.sampling)
+            return Directions(s.theta_view, s.phi_view, s.theta_light, s.phi_light)
+        if step.name in ("compress", "quilt", "reconstruct", "crop", "pyramid", "roller"):
+            d = planned_directions(stages, p.store)
+            if d is None or step.name not in ("reconstruct", "crop"):
+                return d
+            return d.select(p.view or range(d.views), p.light or range(d.lights))
+        return None
+    try:
+        return read_directions(open_group(path))
+    except BTFError:
+        return None
 
 
 def _radiance_known(step, shapes) -> bool:

@@ -257,3 +257,17 @@ def test_tile_borders_of_a_larger_target_are_no_rougher_than_the_whole(tmp_path)
     whole, tiled = steps(tmp_path / "W.zarr"), steps(tmp_path / "T.zarr")
     # measured: 1.48x the whole's step across the tile border with the tiles cut, 1.0x blended
     assert tiled[127] < 1.2 * whole[127], (tiled[127], whole[127])
+
+
+def test_a_scene_reads_an_enlarged_store_like_any_compressed_one(enlarged, tmp_path, btf):
+    """Enlarged BTFs are compressed stores: btf scene equals btf reconstruct on them."""
+    g = zarr.open_group(enlarged, mode="r")
+    angles = [float(g["theta_light"][3]), float(g["phi_light"][3]), 0.0, 0.0]
+    spec = tmp_path / "s.yaml"
+    spec.write_text(f"source: {enlarged}\ndirections: [{angles}]\nregion: [8, 40, 16, 64]\n")
+    assert btf("scene", spec, tmp_path / "s.zarr", "-q").code == 0
+    assert btf("reconstruct", enlarged, tmp_path / "r.zarr", "--light", "3", "--region",
+               "8:40,16:64", "-q").code == 0
+    got = zarr.open_group(tmp_path / "s.zarr", mode="r")["radiance"][0]
+    want = zarr.open_group(tmp_path / "r.zarr", mode="r")["radiance"][0, 0]
+    assert np.allclose(got, want, rtol=1e-5, atol=1e-6)

@@ -197,6 +197,20 @@ def test_tile_set_scenes_equal_btf_render_and_read_only_visible_tiles(stores, tm
         assert len(_chunk_reads(keys, variable)) == 1
 
 
+def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
+    """Several roller tiles: picked per cell of a sheared lattice (every tile is read)."""
+    src = generate_store(tmp_path / "f.zarr", "--material", "fabric", "--size", "128",
+                         "--sampling", "hemi:4", "--seed", "2")
+    assert btf("roller", src, tmp_path / "ro.zarr", "--tiles", "3", "-q").code == 0
+    assert btf("render", tmp_path / "ro.zarr", tmp_path / "r.zarr", "--light", "2", "--view",
+               "1", "--size", "70,90", "--origin=5,-20", "-q").code == 0
+    spec = _write(tmp_path / "s.yaml", f"source: {tmp_path / 'ro.zarr'}\ndirections: "
+                                       f"[{_angles(tmp_path / 'ro.zarr', 1, 2)}]\n"
+                                       "size: [70, 90]\norigin: [5, -20]\nchunk: 32\n")
+    assert btf("scene", spec, tmp_path / "s.zarr", "-q").code == 0
+    assert np.array_equal(_radiance(tmp_path / "s.zarr")[0], _radiance(tmp_path / "r.zarr"))
+
+
 def test_surface_source_and_image_formats(stores, tmp_path, btf):
     from pipeline.images import read_image
 
@@ -294,18 +308,20 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
     check = btf("run", "r.yaml", "--check")
     assert check.code == 0, check.err
     assert "--for-scene r.yaml" in check.out
-    assert "reconstruct: restricted to the scene" in check.out
-    assert "compress: computes its whole output: the SVD needs every layer" in check.out
+    # counted before anything exists, from the planned shapes and generate's sampling
+    planned = re.search(r"reconstruct: restricted to the scene: (\d+) of 972 chunks", check.out)
+    assert "compress: all 63 chunks: the SVD needs every layer and texel" in check.out
+    assert "generate: all 972 chunks: a measurement" in check.out
     assert btf("run", "r.yaml", "-q").code == 0
     again = btf("run", "r.yaml", "--check")
-    counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 27 blocks", again.out)
+    counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 972 chunks", again.out)
     r = zarr.open_group("r.zarr", mode="r")
     only = r.attrs["computed_for_scene"]
     assert len(only["layers"]) == 9 and only["of_layers"] == 81  # (0, 0) among the 9
     written = np.isfinite(r["radiance"][..., 0, 16, 0])  # (view, light) written at all
     # 96^2 texels are one task block: whole light chunks (3 lights) of the needed layers
     blocks = {(v, li // 3) for v, li in zip(*np.nonzero(written), strict=True)}
-    assert int(counted.group(1)) == len(blocks) < 27 // 2
+    assert int(counted.group(1)) == int(planned.group(1)) == 36 * len(blocks) < 972 // 2
     assert all(written[v, li] for v, li in only["layers"])
     # the scene equals the same scene on a full reconstruction
     assert btf("reconstruct", "c.zarr", "full.zarr", "-q").code == 0
@@ -362,3 +378,26 @@ def stores_hint(tmp_path: Path) -> Path:
     """A small generated store the config's stage can name."""
     return generate_store(tmp_path / "m.zarr", "--material", "stone", "--size", "16",
                           "--sampling", "abtf:2,1")
+
+
+def test_a_store_another_stage_reads_is_not_restricted_to_the_scene(tmp_path, btf,
+                                                                    monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _write(tmp_path / "r.yaml", """stages:
+  - generate: {out: m.zarr, material: wood, size: 32, sampling: "hemi:4"}
+  - compress: {store: m.zarr, out: c.zarr, rank: 4}
+  - reconstruct: {store: c.zarr, out: r.zarr}
+  - compress: {store: r.zarr, out: c2.zarr, rank: 4}
+scene:
+  out: s.zarr
+  source: r.zarr
+  directions: [[10, 0, 0, 0]]
+""")
+    check = btf("run", "r.yaml", "--check")
+    assert check.code == 0, check.err
+    assert "--for-scene" not in check.out
+    assert "reconstruct: all 4 chunks: a later stage reads its output too" in check.out
+    (tmp_path / "r.yaml").write_text((tmp_path / "r.yaml").read_text().replace(
+        "out: s.zarr", "out: s_images"))
+    bad = btf("run", "r.yaml", "--check")
+    assert bad.code == 1 and "r.yaml:7: scene.out: 's_images' does not suit format zarr" in bad.err

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
 from pipeline.stores.base import RADIANCE, location
 from tasks.scene import compressed_block, surface_block
 
-LAYERS_PER_TASK = 16  # radiance tile sets: distinct layers one block task holds
+LAYERS_PER_TASK = 16  # distinct layers (and directions) one block task holds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +37,8 @@ class Request:
     layers
         Distinct ``(view, light)`` store indices the scene needs.
     weights
-        ``(direction, layer)`` interpolation weights over ``layers``.
+        ``(direction, layer)`` interpolation weights over ``layers``, a scipy CSR matrix
+        (``directions: all`` of a dome151 store is 22801 x 22801).
     window
         ``(y0, y1, x0, x1)`` of the output in level-n texels (surface coordinates for tile
         sets; may be negative there).
@@ -49,7 +51,7 @@ class Request:
     """
 
     layers: list[tuple[int, int]]
-    weights: np.ndarray
+    weights: Any
     window: tuple[int, int, int, int]
     level: int
     stored_level: bool
@@ -107,12 +109,14 @@ def radiance_graph(data, request: Request):
     factor = 1 if request.stored_level else request.factor
     layers = [_coarsen(data[v, li, ys, xs], factor) for v, li in request.layers]
     out = []
-    for w in request.weights:
-        used = np.flatnonzero(w)
-        if len(used) == 1 and w[used[0]] == 1.0:
+    w = request.weights
+    for d in range(w.shape[0]):
+        used, values = w.indices[w.indptr[d]:w.indptr[d + 1]], w.data[w.indptr[d]:w.indptr[d + 1]]
+        if len(used) == 1 and values[0] == 1.0:
             out.append(layers[used[0]])
         else:
-            out.append(sum(np.float32(w[k]) * layers[k] for k in used).astype(np.float32))
+            out.append(sum(np.float32(x) * layers[k] for k, x in zip(used, values, strict=True)
+                           ).astype(np.float32))
     block = request.block
     return da.stack(out).rechunk((1, block, block, -1))
 
@@ -136,18 +140,22 @@ def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: 
     y0, y1, x0, x1 = request.window
     ys, xs = (slice(y0, y1), slice(x0, x1)) if request.stored_level else request.level0()
     factor = 1 if request.stored_level else request.factor
+    import dask.array as da
+
     rank = u_rows.shape[-1]
     region = v[ys, xs, :rank]
     side = max(factor, (request.chunk // factor) * factor)
     region = region.rechunk((side, side, -1))
-    nd, nc = len(request.weights), u_rows.shape[1]
-    chunks = ((nd,), tuple(c // factor for c in region.chunks[0]),
-              tuple(c // factor for c in region.chunks[1]), (nc,))
-    out = region.map_blocks(compressed_block, u=u_rows, s=np.asarray(s[:rank], np.float32),
-                            eps=eps, weights=request.weights, factor=factor, chunks=chunks,
-                            drop_axis=2, new_axis=[0, 3], dtype=np.float32,
-                            meta=np.empty((0, 0, 0, 0), np.float32))
-    return out
+    nc = u_rows.shape[1]
+    parts = []
+    for dirs, used, w in direction_groups(request.weights, LAYERS_PER_TASK):
+        chunks = ((len(dirs),), tuple(c // factor for c in region.chunks[0]),
+                  tuple(c // factor for c in region.chunks[1]), (nc,))
+        parts.append(region.map_blocks(
+            compressed_block, u=u_rows[used], s=np.asarray(s[:rank], np.float32), eps=eps,
+            weights=w, factor=factor, chunks=chunks, drop_axis=2, new_axis=[0, 3],
+            dtype=np.float32, meta=np.empty((0, 0, 0, 0), np.float32)))
+    return da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
 
 
 def _blocks(request: Request) -> list[list[tuple[int, int, int, int]]]:
@@ -171,11 +179,11 @@ def _tile_data(store: str, tile: int, layers, rank):
     return np.stack([group[RADIANCE][tile, v, li] for v, li in layers], axis=2)
 
 
-def _surface(tiles: dict, y0, x0, ny, nx, *, request: Request, placement: dict, u, s, eps,
+def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, eps,
              weights):
     from tasks.placement import gather, lattice_gather
 
-    f = request.factor
+    f = factor
     if placement["lattice"]:
         stack = np.stack([tiles[t] for t in sorted(tiles)])
         values = lattice_gather(stack, y0 * f, x0 * f, ny * f, nx * f, hnf=placement["hnf"],
@@ -205,8 +213,9 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
                   s=None, eps: float = 0.0):
     """Scene of the surface a tile set covers; returns the dask array and the tiles read.
 
-    Radiance tile sets are processed in groups of directions whose layers number at most
-    :data:`LAYERS_PER_TASK`, so a block task holds a bounded number of layers of its tiles.
+    Directions are processed in groups whose layers number at most :data:`LAYERS_PER_TASK`,
+    so a block task holds a bounded number of layers of its tiles (a compressed tile set's
+    tiles are eigentextures, read once for all groups).
     """
     import dask
     import dask.array as da
@@ -214,16 +223,13 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     compressed = u_rows is not None
     tile_shape = tuple(group.attrs["tile_shape"])
     order = placement["order"]  # placement code -> stored tile
-    groups = ([list(range(len(request.weights)))] if compressed
-              else _direction_groups(request.weights, LAYERS_PER_TASK))
     read: set = set()
     parts = []
-    for dirs in groups:
-        w = request.weights[dirs]
-        used = np.flatnonzero(w.any(axis=0))
+    shared: dict = {}
+    for dirs, used, w in direction_groups(request.weights, LAYERS_PER_TASK):
         layers = None if compressed else [request.layers[k] for k in used]
-        w = w if compressed else w[:, used]
-        tiles = {}
+        u = u_rows[used] if compressed else None
+        tiles = shared if compressed else {}
         rows = []
         for row in _blocks(request):
             blocks = []
@@ -236,32 +242,38 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
                             location(store), int(order[c]), layers, request.rank)
                         read.add((int(order[c]), None if layers is None else tuple(layers)))
                 block = dask.delayed(_surface, pure=True)(
-                    {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0, request=request,
-                    placement=placement, u=u_rows, s=s, eps=eps, weights=w)
+                    {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0,
+                    factor=request.factor, placement=placement, u=u, s=s, eps=eps, weights=w)
                 nc = u_rows.shape[1] if compressed else group["channel"].shape[0]
                 blocks.append(da.from_delayed(block, (len(dirs), y1 - y0, x1 - x0, nc),
                                               dtype=np.float32))
             rows.append(blocks)
         parts.append(da.block([[[[b] for b in r] for r in rows]]))
-    out = da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
-    order_back = np.argsort(np.concatenate(groups))
-    if not np.array_equal(order_back, np.arange(len(order_back))):
-        out = out[order_back]
-    return out, read
+    return (da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]), read
 
 
-def _direction_groups(weights: np.ndarray, most: int) -> list[list[int]]:
-    """Directions in groups whose distinct layers number at most ``most`` (greedy, in order)."""
-    groups, current, layers = [], [], set()
-    for d, w in enumerate(weights):
-        mine = set(np.flatnonzero(w).tolist())
-        if current and len(layers | mine) > most:
-            groups.append(current)
-            current, layers = [], set()
-        current.append(d)
+def direction_groups(weights, most: int) -> list[tuple[range, np.ndarray, np.ndarray]]:
+    """Consecutive directions in groups whose distinct layers number at most ``most``.
+
+    Returns ``(directions, layers, dense weights)`` per group: the group's rows of the CSR
+    ``weights`` restricted to the layers they use (greedy, in order; a direction with more
+    layers than ``most`` is a group of its own).
+    """
+    groups, start, layers = [], 0, set()
+    bounds = weights.indptr
+    for d in range(weights.shape[0]):
+        mine = set(weights.indices[bounds[d]:bounds[d + 1]].tolist())
+        if d > start and len(layers | mine) > most:
+            groups.append(range(start, d))
+            start, layers = d, set()
         layers |= mine
-    groups.append(current)
-    return groups
+    groups.append(range(start, weights.shape[0]))
+    out = []
+    for dirs in groups:
+        rows = weights[dirs.start:dirs.stop]
+        used = np.unique(rows.indices)
+        out.append((dirs, used, rows[:, used].toarray()))
+    return out
 
 
 def chunks_touched(shape, chunks, selection) -> int:

@@ -11,6 +11,7 @@ a compressed tile set.
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import psutil
@@ -152,7 +153,7 @@ def _scene_needs(params: QuiltStageParams, session: Session):
     from pipeline.stores.base import open_group, read_directions
 
     spec = load(params.for_scene)
-    if Path(spec.source).absolute() != Path(params.out).absolute():
+    if os.path.abspath(spec.source) != os.path.abspath(params.out):
         raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
                                    f"{params.out}")
     group = open_group(params.store)

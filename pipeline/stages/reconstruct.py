@@ -8,6 +8,7 @@ default) or one EXR per layer with a manifest, as ``btf export`` writes them.
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
         from pipeline.stages.scene import needs_of
 
         spec = load(params.for_scene)
-        if Path(spec.source).absolute() != Path(params.out).absolute():
+        if os.path.abspath(spec.source) != os.path.abspath(params.out):
             raise spec.error("source", f"the scene reads {spec.source}, not this stage's "
                                        f"output {params.out}")
         needs = needs_of(spec, d, (ny, nx))

@@ -56,21 +56,23 @@ def resolve(spec: SceneSpec, d) -> tuple[Any, np.ndarray, list]:
     ``d`` holds the source's measured :class:`~pipeline.stores.base.Directions`. ``all``
     gives every measured layer, view-major, with identity weights.
     """
+    from scipy import sparse
+
     from tasks.directions import pair_weights
 
     if spec.directions is None:
         layers = [(v, li) for v in range(d.views) for li in range(d.lights)]
         rows = np.array([[d.theta_light[li], d.phi_light[li], d.theta_view[v], d.phi_view[v]]
                          for v, li in layers])
-        return rows, np.eye(len(layers)), layers
+        return rows, sparse.identity(len(layers), format="csr"), layers
     terms = pair_weights((d.theta_light, d.phi_light), (d.theta_view, d.phi_view),
                          spec.directions, spec.interpolation)
     layers = sorted({(v, li) for t in terms for v, li, _ in t})
     column = {pair: k for k, pair in enumerate(layers)}
-    weights = np.zeros((len(terms), len(layers)))
-    for i, t in enumerate(terms):
-        for v, li, w in t:
-            weights[i, column[(v, li)]] = w
+    entries = [(i, column[(v, li)], w) for i, t in enumerate(terms) for v, li, w in t]
+    rows, cols, values = (np.array(x) for x in zip(*entries, strict=True))
+    weights = sparse.csr_matrix((values, (rows, cols)), shape=(len(terms), len(layers)))
+    weights.sort_indices()
     return spec.directions, weights, layers
 
 
@@ -276,6 +278,9 @@ def build(spec: SceneSpec, session: Session):
             "U": [graphs.layer_chunks(layers, u.chunks[1]), graphs.total_chunks(u.shape,
                                                                              u.chunks)]}
     else:
+        if spec.level:
+            session.log(f"scene: a tile set has no pyramid: level {spec.level} is computed on "
+                        f"the fly from level 0, which reads {4**spec.level}x the texels")
         out, info["reads"] = _tileset(spec, group, path, layers, request)
     return out, directions, info
 
@@ -338,8 +343,11 @@ def write_scene(spec: SceneSpec, out: str, session: Session, *, overwrite: bool 
     reads = ", ".join(f"{a}/{b} {name} chunks" for name, (a, b) in info["reads"].items())
     session.log(f"scene: {nd} direction(s) from {len(info['layers'])} measured layer(s), "
                 f"{ny} x {nx} texels at level {spec.level} -> {out}; reads {reads}")
-    terms = [[[int(info["layers"][k][0]), int(info["layers"][k][1]), float(w[k])]
-              for k in np.flatnonzero(w)] for w in info["weights"]]
+    w = info["weights"]
+    terms = [[[int(info["layers"][k][0]), int(info["layers"][k][1]), float(x)]
+              for k, x in zip(w.indices[w.indptr[d]:w.indptr[d + 1]],
+                              w.data[w.indptr[d]:w.indptr[d + 1]], strict=True)]
+             for d in range(w.shape[0])] if spec.directions is not None else None
     attrs = {"source": "scene", "source_store": spec.source, "level": spec.level,
              "scene": spec.record(), "reads": info["reads"],
              "provenance": {"stage": "scene", "command": shlex.join(["btf", "scene", spec.path,
@@ -347,7 +355,7 @@ def write_scene(spec: SceneSpec, out: str, session: Session, *, overwrite: bool 
                             "scene": spec.record(),
                             "inputs": {spec.source: digest(spec.source)},
                             "version": __version__}}
-    if spec.directions is not None:
+    if terms is not None:
         attrs["terms"] = terms
     channels = info["channels"]
     if spec.format == "zarr":

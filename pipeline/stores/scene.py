@@ -1,6 +1,8 @@
 """Scene stores (``btf_kind: scene``): the layers a scene asked for, in its directions.
 
-``radiance`` float32 ``(direction, y, x, channel)``: one image per requested direction pair,
+``radiance`` float32 ``(direction, y, x, channel)``: one image per requested direction pair, in
+chunks of :data:`DIRECTIONS_PER_CHUNK` directions (a small region of many directions is a few
+files, not one per direction: measured 0.32 -> 0.11 s for 144 directions of 26^2 texels),
 interpolated from the measured layers (:mod:`tasks.directions`); the coordinates
 ``theta_light``, ``phi_light``, ``theta_view``, ``phi_view`` (degrees) on ``direction`` and the
 ``channel`` labels; attrs with the scene spec, the source, the level and the interpolation
@@ -22,6 +24,7 @@ from pipeline.stores.base import RADIANCE, StoreKind, add_array, check_variables
 
 NAME = "scene"
 DIMS = ("direction", "y", "x", "channel")
+DIRECTIONS_PER_CHUNK = 16
 
 
 def create_scene_store(path, *, directions: np.ndarray, shape: tuple[int, int],
@@ -35,7 +38,8 @@ def create_scene_store(path, *, directions: np.ndarray, shape: tuple[int, int],
         coord.attrs["units"] = "degree"
     ny, nx = shape
     return add_array(group, RADIANCE, shape=(len(directions), ny, nx, len(channels)),
-                     dims=DIMS, chunks=(1, min(chunk, ny), min(chunk, nx), len(channels)),
+                     dims=DIMS, chunks=(min(DIRECTIONS_PER_CHUNK, len(directions)), min(chunk, ny),
+                                        min(chunk, nx), len(channels)),
                      attrs={"coordinates": " ".join(DIRECTION_FIELDS),
                             "long_name": "radiance in the requested directions"})
 
