@@ -317,6 +317,8 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
     counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 972 chunks", again.out)
     r = zarr.open_group("r.zarr", mode="r")
     only = r.attrs["computed_for_scene"]
+    assert "computed only for the scene r.yaml: 9 of 81 layers, texels" in btf(
+        "inspect", "r.zarr").out
     assert len(only["layers"]) == 9 and only["of_layers"] == 81  # (0, 0) among the 9
     written = np.isfinite(r["radiance"][..., 0, 16, 0])  # (view, light) written at all
     # 96^2 texels are one task block: whole light chunks (3 lights) of the needed layers

@@ -187,6 +187,12 @@ def format_report(report: dict[str, Any]) -> str:
     if "provenance" in attrs:
         p = attrs["provenance"]
         lines.append(f"made by: {p.get('command')} (version {p.get('version')})")
+    if attrs.get("computed_for_scene"):
+        only = attrs["computed_for_scene"]
+        lines.append(f"computed only for the scene {only['scene']}: {len(only['layers'])} of "
+                     f"{only['of_layers']} layers"
+                     + (f", texels {only['region']}" if only.get("region") else "")
+                     + "; the rest is unwritten (NaN)")
     if "scan" in report:
         lines.append("scan:")
         lines.append(f"  {'variable':<12} {'min':>11} {'max':>11} {'mean':>11} {'NaN':>8} "
