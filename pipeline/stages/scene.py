@@ -265,7 +265,7 @@ def build(spec: SceneSpec, session: Session):
         stored = _pyramid_level(spec, group, "V", session)
         req = request(_level_window(spec, ny, nx, spec.level), stored is not None, rank=rank)
         u = group["U"]
-        u_rows = graphs.read_u_rows(u, layers, rank)
+        u_rows, u_read = graphs.read_u_rows(u, layers, rank)
         s = np.asarray(group["S"][:rank])
         v = zarr.open_array(path, path=stored or "V", mode="r")
         out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
@@ -275,8 +275,7 @@ def build(spec: SceneSpec, session: Session):
         info["reads"] = {
             v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
                      graphs.total_chunks(v.shape, v.chunks)],
-            "U": [graphs.layer_chunks(layers, u.chunks[1]), graphs.total_chunks(u.shape,
-                                                                             u.chunks)]}
+            "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
     else:
         if spec.level:
             session.log(f"scene: a tile set has no pyramid: level {spec.level} is computed on "
@@ -309,16 +308,15 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request):
     compressed = group.attrs["btf_kind"] == "compressed-tileset"
     rank = spec.rank or (group["S"].shape[0] if compressed else None)
     req = request(window, False, rank=rank, seed=placement["seed"])
-    extra = {}
+    extra, u_read = {}, 0
     if compressed:
-        from pipeline.graphs.scene import read_u_rows
-
-        extra = {"u_rows": read_u_rows(group["U"], layers, rank),
-                 "s": np.asarray(group["S"][:rank]),
+        u = group["U"]
+        u_rows, u_read = graphs.read_u_rows(u, layers, rank)
+        extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]),
                  "eps": float(group.attrs["transform"]["eps"])}
     out, read = graphs.tileset_graph(path, group, req, placement, **extra)
     if compressed:
-        reads = {"V": [len(read), n], "U": [1, 1]}
+        reads = {"V": [len(read), n], "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
     else:
         nv, nl = group[RADIANCE].shape[1:3]
         chunks = sum(len(lay) for _, lay in read)
