@@ -87,6 +87,7 @@ class QuiltStageParams:
 
 def quilt(params: QuiltStageParams, session: Session) -> Path:
     """Plan a tile set on the reference image and apply it to every layer."""
+    needs = _scene_needs(params, session)  # a bad scene spec stops before the planning
     layers = open_layers(params.store)[RADIANCE]
     sample = (layers.sizes["y"], layers.sizes["x"])
     if params.block is not None and min(sample) < params.block:
@@ -132,7 +133,6 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
                        for p in plan.placements],
         "provenance": provenance("quilt", params),
     }
-    needs = _scene_needs(params, session)
     if needs is not None:
         attrs["computed_for_scene"] = needs.record(params.for_scene)
     tiles = TileSet(index=[t.index.reshape(-1, TERMS) for t in plan.tiles],
