@@ -221,38 +221,25 @@ class Session:
             self._pin_blas = False
 
     def share(self, value: Any) -> Any:
-        """A task argument for a large value that every task of a graph reads.
+        """A task argument for a large value that every task of a graph reads: one graph task.
 
-        On a cluster it is sent to every worker once; locally it is a graph literal (threads
-        share it; the ``processes`` scheduler pickles it for each task).
+        Locally threads share it (the ``processes`` scheduler pickles it for each task). On a
+        cluster the scheduler holds it with the graph, one worker computes it and the others
+        fetch it from there; if that worker is lost, the scheduler runs the task again. (Data
+        scattered to the workers instead cannot be recomputed, and dask's active memory
+        manager soon keeps it on one worker only: losing that worker then cancelled the run
+        with "lost dependencies", as CI saw for compress and quilt.)
         """
         import dask
 
-        if self.client is not None:
-            return self._scatter(value)
         return dask.delayed(value, pure=False)
 
-    def _scatter(self, value: Any, attempts: int = 3) -> Any:
-        """Scatter ``value`` to every worker, again if a worker is lost on the way.
-
-        A worker that dies while it receives the value fails the whole scatter with a comm
-        error; the scheduler then drops it, so scattering again reaches the workers left.
-        Once scattered the value has a replica on every worker, so losing one later is
-        survived like any lost result.
-        """
-        from distributed.comm.core import CommClosedError
-
-        for attempt in range(attempts):
-            try:
-                return self.client.scatter(value, broadcast=True, hash=False)
-            except (CommClosedError, OSError):
-                if attempt == attempts - 1:
-                    raise
-                self.log("a worker was lost while data was sent to it: sending again")
-                time.sleep(1.0)  # let the scheduler notice the lost worker
-
     def _compute_distributed(self, collections) -> tuple:
-        futures = self.client.compute(list(collections))
+        import warnings
+
+        with warnings.catch_warnings():  # shared values travel with the graph on purpose
+            warnings.filterwarnings("ignore", message="Sending large graph")
+            futures = self.client.compute(list(collections))
         try:
             if not self.options.quiet:
                 self._cluster_progress(futures)

@@ -202,27 +202,16 @@ def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
     assert again.returncode == 0 and again.stderr == "", again.stderr
 
 
-def test_a_worker_lost_while_data_is_scattered_is_survived(monkeypatch):
-    """The client's scatter fails if a worker dies while it receives: it is sent again."""
-    from distributed.comm.core import CommClosedError
+def test_shared_values_are_graph_tasks_a_lost_worker_can_recompute(local_cluster):
+    """Values every task reads travel as one graph task, not scattered data: the scheduler can
+    run it again when the worker holding it is lost (tests/test_lost_worker.py kills one)."""
+    import dask
+    from dask.delayed import Delayed
 
     from pipeline.session import RuntimeOptions, Session
 
-    class FlakyClient:
-        def __init__(self, failures):
-            self.failures, self.calls = failures, 0
-
-        def scatter(self, value, **kwargs):
-            self.calls += 1
-            assert kwargs == {"broadcast": True, "hash": False}
-            if self.calls <= self.failures:
-                raise CommClosedError("in <TCP (closed) ...>: Stream is closed")
-            return ("future", value)
-
-    monkeypatch.setattr("pipeline.session.time.sleep", lambda s: None)
-    session = Session(RuntimeOptions(scheduler="synchronous", quiet=True))
-    session.client = FlakyClient(failures=2)
-    assert session.share("plan") == ("future", "plan") and session.client.calls == 3
-    session.client = FlakyClient(failures=3)  # a cluster that keeps failing: the error shows
-    with pytest.raises(CommClosedError):
-        session.share("plan")
+    with Session(RuntimeOptions(scheduler=local_cluster, quiet=True)) as session:
+        shared = session.share(np.arange(5))
+        assert isinstance(shared, Delayed)
+        total = dask.delayed(np.sum)(shared)
+        assert session.compute(total) == (10,)
