@@ -222,6 +222,9 @@ def test_surface_source_and_image_formats(stores, tmp_path, btf):
                       "directions: [[10, 0, 0, 0], [60, 90, 45, 0]]\nlevel: 1\n"
                       f"format: {fmt}\n")
         assert btf("scene", spec, tmp_path / fmt).code == 0
+        again = btf("scene", spec, tmp_path / fmt)  # refused before anything is computed
+        assert again.code == 1 and "already exists; pass --overwrite" in again.err
+        assert "scene: 2 direction(s)" not in again.err
         files = sorted(p.name for p in (tmp_path / fmt).iterdir())
         assert files == ["manifest.csv", f"tl10_pl0_tv0_pv0.{fmt}",
                          f"tl60_pl90_tv45_pv0.{fmt}"]

@@ -336,6 +336,8 @@ def write_scene(spec: SceneSpec, out: str, session: Session, *, overwrite: bool 
     if spec.format != "zarr" and suffix == ".zarr":
         raise spec.error("format", f"{spec.format} output is a folder of images; {out!r} "
                                    "ends in .zarr")
+    if Path(out).exists() and not overwrite:  # before computing (atomic_output checks again)
+        raise BTFError(f"{out}: already exists; pass --overwrite to replace it")
     data, directions, info = build(spec, session)
     nd, ny, nx, _ = data.shape
     reads = ", ".join(f"{a}/{b} {name} chunks" for name, (a, b) in info["reads"].items())
