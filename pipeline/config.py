@@ -38,12 +38,13 @@ from typing import Any
 
 import yaml
 
+from pipeline import yaml_lines
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, from_mapping, paths
 from pipeline.provenance import up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
-from pipeline.yaml_lines import LineLoader, Mapping
+from pipeline.yaml_lines import Mapping
 
 TOP_KEYS = ("description", "scheduler", "workers", "stages", "scene")
 RESTRICTABLE = ("reconstruct", "quilt")
@@ -106,16 +107,7 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
         Naming the file, line and key of the first problem.
     """
     path = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise BTFError(f"{path}: cannot read the config ({exc.strerror})") from None
-    try:
-        data = yaml.load(text, Loader=LineLoader)  # a SafeLoader subclass: safe
-    except BTFError as exc:
-        raise BTFError(f"{path}: {exc}") from None
-    except yaml.YAMLError as exc:
-        raise BTFError(f"{path}: not valid YAML: {exc}") from None
+    data = yaml_lines.read(path, "config")
 
     def fail(line: int, where: str, message: str):
         raise BTFError(f"{path}:{line}: {where}: {message}")

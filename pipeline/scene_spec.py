@@ -85,21 +85,10 @@ def load(path: str | Path) -> SceneSpec:
 
     A run config (a mapping with ``stages``) gives its ``scene:`` section.
     """
-    import yaml
-
-    from pipeline.yaml_lines import LineLoader
+    from pipeline.yaml_lines import read
 
     path = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise BTFError(f"{path}: cannot read the scene spec ({exc.strerror})") from None
-    try:
-        data = yaml.load(text, Loader=LineLoader)  # a SafeLoader subclass: safe
-    except BTFError as exc:
-        raise BTFError(f"{path}: {exc}") from None
-    except yaml.YAMLError as exc:
-        raise BTFError(f"{path}: not valid YAML: {exc}") from None
+    data = read(path, "scene spec")
     if isinstance(data, dict) and "stages" in data:
         if not isinstance(data.get("scene"), dict):
             raise BTFError(f"{path}: a run config without a 'scene:' section")

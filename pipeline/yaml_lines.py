@@ -54,5 +54,25 @@ def _sequence(loader: LineLoader, node: yaml.SequenceNode) -> Sequence:
     return out
 
 
+def read(path: str, what: str):
+    """The YAML document in ``path``, with line numbers.
+
+    One :class:`BTFError` names the file if it cannot be read (``what`` says what the file is)
+    or is not valid YAML.
+    """
+    from pathlib import Path
+
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise BTFError(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    try:
+        return yaml.load(text, Loader=LineLoader)  # a safe loader subclass: safe
+    except BTFError as exc:
+        raise BTFError(f"{path}: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise BTFError(f"{path}: not valid YAML: {exc}") from None
+
+
 LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
 LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _sequence)

@@ -57,7 +57,6 @@ class Request:
     stored_level: bool
     chunk: int
     rank: int | None = None
-    seed: int | None = None
 
     @property
     def factor(self) -> int:
@@ -74,6 +73,11 @@ class Request:
     def block(self) -> int:
         """Level-n texels per side of an output block (level-0 footprint about ``chunk``)."""
         return max(1, self.chunk // self.factor)
+
+    def read_window(self) -> tuple[slice, slice]:
+        """The texels read: of level n when it is stored, else of level 0."""
+        y0, y1, x0, x1 = self.window
+        return (slice(y0, y1), slice(x0, x1)) if self.stored_level else self.level0()
 
     def level0(self) -> tuple[slice, slice]:
         """The level-0 texels the window covers."""
@@ -104,8 +108,7 @@ def radiance_graph(data, request: Request):
     """
     import dask.array as da
 
-    y0, y1, x0, x1 = request.window
-    ys, xs = (slice(y0, y1), slice(x0, x1)) if request.stored_level else request.level0()
+    ys, xs = request.read_window()
     factor = 1 if request.stored_level else request.factor
     layers = [_coarsen(data[v, li, ys, xs], factor) for v, li in request.layers]
     out = []
@@ -141,8 +144,7 @@ def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: 
 
     Only the region's ``V`` tiles are read; each block rebuilds just the needed layers.
     """
-    y0, y1, x0, x1 = request.window
-    ys, xs = (slice(y0, y1), slice(x0, x1)) if request.stored_level else request.level0()
+    ys, xs = request.read_window()
     factor = 1 if request.stored_level else request.factor
     import dask.array as da
 

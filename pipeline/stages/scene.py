@@ -247,8 +247,7 @@ def build(spec: SceneSpec, session: Session):
         if kind == "surface":
             data = data[None, None]
         out = graphs.radiance_graph(data, req)
-        ys, xs = (slice(req.window[0], req.window[1]), slice(req.window[2], req.window[3])
-                  ) if stored else req.level0()
+        ys, xs = req.read_window()
         if kind == "surface":
             info["reads"] = {RADIANCE: [graphs.chunks_touched(
                 source.shape, source.chunks, (ys, xs, slice(None))),
@@ -270,8 +269,7 @@ def build(spec: SceneSpec, session: Session):
         v = zarr.open_array(path, path=stored or "V", mode="r")
         out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
                                       float(group.attrs["transform"]["eps"]), req)
-        ys, xs = (slice(req.window[0], req.window[1]), slice(req.window[2], req.window[3])
-                  ) if stored else req.level0()
+        ys, xs = req.read_window()
         info["reads"] = {
             v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
                      graphs.total_chunks(v.shape, v.chunks)],
@@ -307,7 +305,7 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request):
                          corners=int(group.attrs["corner_types"]))
     compressed = group.attrs["btf_kind"] == "compressed-tileset"
     rank = spec.rank or (group["S"].shape[0] if compressed else None)
-    req = request(window, False, rank=rank, seed=placement["seed"])
+    req = request(window, False, rank=rank)
     extra, u_read = {}, 0
     if compressed:
         u = group["U"]
