@@ -70,10 +70,19 @@ def test_existing_levels_are_kept_unless_overwrite_and_bad_requests_fail(tmp_pat
     assert len(zarr.open_group(store, mode="r").attrs["multiscales"][0]["datasets"]) == 3
     assert not list(store.glob("pyramid.partial-*"))
     assert btf("pyramid", store, "--levels", "0").code == 2
-    tiles = tmp_path / "t.zarr"
+    tiles = tmp_path / "t.zarr"  # a tile set of 24 x 24 tiles: levels halve them exactly
     assert btf("quilt", store, tiles, "--block", "16", "--overlap", "4", "--quiet").code == 0
-    refused = btf("pyramid", tiles, "--quiet")
-    assert refused.code == 1 and "takes a radiance or a compressed store" in refused.err
+    small = btf("pyramid", tiles, "--quiet")  # 12 x 12 tiles would fall below 16 texels
+    assert small.code == 1 and "tiles of 24 x 24 texels are too small" in small.err
+    inexact = btf("pyramid", tiles, "--levels", "4", "--quiet")  # 24 = 3 x 2^3
+    assert inexact.code == 1 and "halve exactly 3 time(s)" in inexact.err
+    assert btf("pyramid", tiles, "--levels", "3", "--quiet").code == 0
+    assert zarr.open_group(tiles, mode="r")["pyramid/3/radiance"].shape[-3:-1] == (3, 3)
+    spec = tmp_path / "scene.yaml"
+    spec.write_text(f"source: {store}\ndirections: [[0, 0, 0, 0]]\n")
+    assert btf("scene", spec, tmp_path / "scene.zarr", "--quiet").code == 0
+    refused = btf("pyramid", tmp_path / "scene.zarr", "--quiet")
+    assert refused.code == 1 and "a scene store; btf pyramid takes a radiance" in refused.err
 
 
 @pytest.fixture(scope="module")

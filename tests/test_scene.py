@@ -197,6 +197,43 @@ def test_tile_set_scenes_equal_btf_render_and_read_only_visible_tiles(stores, tm
         assert len(_chunk_reads(keys, variable)) == 1
 
 
+def test_tile_set_levels_come_from_the_tiles_pyramid(stores, tmp_path, btf, monkeypatch):
+    """Level 2 of a quilted surface: laid from the tiles' level 2 once ``btf pyramid`` made
+    it, equal to the on-the-fly block means (exactly for radiance tiles; within the
+    projection's error for eigentextures), reading no level-0 tile."""
+    text = ("source: {}\ndirections: [{}, [40, 30, 20, 200]]\nsize: [60, 84]\n"
+            "origin: [-12, 36]\nlevel: 2\nchunk: 32\n")
+    for name, variable in (("q.zarr", "radiance"), ("q_svd.zarr", "V")):
+        ts = stores / name
+        fly = btf("scene", _write(tmp_path / "a.yaml", text.format(ts, _angles(ts, 2, 6))),
+                  tmp_path / f"fly_{name}")
+        assert fly.code == 0 and "on the fly" in fly.err, fly.err
+        levels = tmp_path / f"p_{name}"
+        shutil.copytree(ts, levels)
+        assert btf("pyramid", levels, "--levels", "2", "-q").code == 0
+        keys = _count_reads(monkeypatch)
+        stored = btf("scene", _write(tmp_path / "b.yaml", text.format(levels,
+                                                                      _angles(ts, 2, 6))),
+                     tmp_path / f"stored_{name}", "--scheduler", "synchronous")
+        monkeypatch.undo()
+        assert stored.code == 0 and f"pyramid/2/{variable}" in stored.err, stored.err
+        assert "on the fly" not in stored.err
+        assert _chunk_reads(keys, f"pyramid/2/{variable}")
+        assert not {k for k in keys if k.startswith(f"p_{name}/{variable}/c/")}
+        a, b = _radiance(tmp_path / f"fly_{name}"), _radiance(tmp_path / f"stored_{name}")
+        assert a.shape == b.shape == (2, 15, 21, 3)
+        if variable == "radiance":
+            assert np.allclose(a, b, rtol=1e-5, atol=1e-7)
+        else:  # a projection on U (tests/test_pyramid.py), here at rank 8
+            rel = np.sqrt(np.mean((a - b) ** 2) / np.mean(a**2))
+            assert 0 < rel < 0.15, rel
+    beyond = btf("scene", _write(tmp_path / "c.yaml", text.format(
+        tmp_path / "p_q.zarr", _angles(stores / "q.zarr", 2, 6)).replace("level: 2",
+                                                                         "level: 3")),
+        tmp_path / "beyond.zarr")
+    assert beyond.code == 1 and "level 3 is beyond the pyramid" in beyond.err
+
+
 def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
     """Several roller tiles: picked per cell of a sheared lattice (every tile is read)."""
     src = generate_store(tmp_path / "f.zarr", "--material", "fabric", "--size", "128",
@@ -209,6 +246,11 @@ def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
                                        "size: [70, 90]\norigin: [5, -20]\nchunk: 32\n")
     assert btf("scene", spec, tmp_path / "s.zarr", "-q").code == 0
     assert np.array_equal(_radiance(tmp_path / "s.zarr")[0], _radiance(tmp_path / "r.zarr"))
+    refused = btf("pyramid", tmp_path / "ro.zarr", "-q")  # tiles on a sheared lattice
+    assert refused.code == 1 and "a roller tile set" in refused.err
+    level = btf("scene", _write(tmp_path / "l.yaml", spec.read_text() + "level: 1\n"),
+                tmp_path / "l.zarr")
+    assert level.code == 0 and "roller tile set has no pyramid" in level.err
 
 
 def test_surface_source_and_image_formats(stores, tmp_path, btf):

@@ -136,7 +136,8 @@ STAGES: dict[str, Stage] = {
               "ratio; the fitted store rebuilds radiance lazily.", makes_store=True),
         Stage("pyramid", pyramid.PyramidParams, pyramid.pyramid,
               "add levels of detail (OME-NGFF multiscales) to a store",
-              "Add levels of detail to a radiance or compressed store: level n is the mean of "
+              "Add levels of detail to a radiance, compressed or quilted tile-set store (of its "
+              "tiles, whose sides must be multiples of 2^n): level n is the mean of "
               "2^n x 2^n texel blocks of level 0 in linear radiance (for a compressed store, "
               "projected back on U; --method mean-v averages V instead, a log-domain "
               "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "

@@ -11,6 +11,11 @@ viewers will not open it as one. Level 0 stays where it was: every stage reads t
 before.
 
 - Radiance stores: levels of ``radiance``, block means in linear radiance (exact).
+- Quilted tile sets: levels of each tile (``radiance``, or a compressed tile set's ``V`` as
+  below). The tiles' sides must be multiples of 2^n: corner placement puts tiles at multiples
+  of their size, so the surface laid from level-n tiles is then exactly level n of the surface
+  laid from level-0 tiles, and ``btf scene`` reads the tiles' level. Roller tile sets lie on a
+  sheared lattice, where that does not hold: they have no levels.
 - Compressed stores: levels of ``V``; ``U`` and ``S`` are shared, so a level is
   ``exp(U S V_n^T) - eps``. With ``--method projected`` (the default) ``V_n`` is the exact
   level's radiance (block means of the reconstructed radiance, linear) range-reduced and
@@ -47,7 +52,8 @@ MIN_SIDE = 16  # default levels stop before the smaller side would fall below th
 class PyramidParams:
     """Parameters of ``btf pyramid``."""
 
-    store: str = option(help="radiance or compressed store to add levels of detail to",
+    store: str = option(help="radiance, compressed or quilted tile-set store to add levels "
+                             "of detail to",
                         positional=True, path="in")
     levels: int | None = option(None, metavar="N",
                                 help="levels beyond level 0 (default: halve until the smaller "
@@ -66,14 +72,18 @@ class PyramidParams:
 
 
 def variable_of(group, path: str) -> str:
-    """The variable that has levels: ``radiance``, or ``V`` for a compressed store."""
+    """The variable that has levels: ``radiance``, or ``V`` for a compressed store or tile set."""
     kind = group.attrs.get("btf_kind")
-    if kind == "compressed":
+    if kind in ("tileset", "compressed-tileset") and group.attrs.get("placement") == "lattice":
+        raise BTFError(f"{path}: a roller tile set: its tiles lie on a sheared lattice, so "
+                       "level n of its surface is not made of level-n tiles; btf scene computes "
+                       "its levels on the fly")
+    if kind in ("compressed", "compressed-tileset"):
         return "V"
-    if kind in ("abtf", "btf") and RADIANCE in group:
+    if kind in ("abtf", "btf", "tileset") and RADIANCE in group:
         return RADIANCE
-    raise BTFError(f"{path}: a {kind or 'non-btf'} store; btf pyramid takes a radiance or a "
-                   "compressed store")
+    raise BTFError(f"{path}: a {kind or 'non-btf'} store; btf pyramid takes a radiance, a "
+                   "compressed or a quilted tile-set store")
 
 
 def levels_of(group) -> list[dict]:
@@ -126,13 +136,26 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
         raise BTFError(f"{params.store}: already has levels ({PYRAMID}/); pass --overwrite to "
                        "replace them")
     most = max(0, (min(ny, nx) // MIN_SIDE).bit_length() - 1)
+    tiles = "tile" in dims
+    if tiles:  # levels halve every tile exactly (see the module)
+        exact = min((ny & -ny).bit_length(), (nx & -nx).bit_length()) - 1
+        if exact == 0:
+            raise BTFError(f"{params.store}: tiles of {ny} x {nx} texels cannot be halved "
+                           "exactly (an odd side); btf scene computes their levels on the fly")
+        if params.levels is not None and params.levels > exact:
+            raise BTFError(f"{params.store}: tiles of {ny} x {nx} texels halve exactly "
+                           f"{exact} time(s) (level n needs sides that are multiples of 2^n); "
+                           f"use --levels {exact} or less")
+        most = min(most, exact)
     count = params.levels if params.levels is not None else most
     if min(ny, nx) >> count < 1:
         raise BTFError(f"{params.store}: {count} levels would shrink {ny} x {nx} texels below "
                        "one texel; use --levels " + str(max(1, min(ny, nx).bit_length() - 1)))
     if count < 1:
-        raise BTFError(f"{params.store}: {ny} x {nx} texels are too small for levels of detail "
-                       f"(the smaller side halved would fall below {MIN_SIDE}); pass --levels")
+        what = "tiles of " if tiles else ""
+        raise BTFError(f"{params.store}: {what}{ny} x {nx} texels are too small for levels of "
+                       f"detail (the smaller side halved would fall below {MIN_SIDE}); pass "
+                       "--levels")
     root = Path(params.store)
     for stale in root.glob(f".{PYRAMID}.*"):  # left by a killed run
         shutil.rmtree(stale, ignore_errors=True)
@@ -142,7 +165,9 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
         previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
         projected = name == "V" and params.method == "projected"
         for n in range(1, count + 1):
-            if projected:
+            if projected and tiles:
+                coarse = da.stack([_projected(group, t, 2**n) for t in level0])
+            elif projected:
                 coarse = _projected(group, level0, 2**n)
             else:
                 coarse = da.coarsen(_mean32, previous, {ay: 2, ax: 2}, trim_excess=True)

@@ -275,14 +275,11 @@ def build(spec: SceneSpec, session: Session):
                      graphs.total_chunks(v.shape, v.chunks)],
             "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
     else:
-        if spec.level:
-            session.log(f"scene: a tile set has no pyramid: level {spec.level} is computed on "
-                        f"the fly from level 0, which reads {4**spec.level}x the texels")
-        out, info["reads"] = _tileset(spec, group, path, layers, request)
+        out, info["reads"] = _tileset(spec, group, path, layers, request, session)
     return out, directions, info
 
 
-def _tileset(spec: SceneSpec, group, path: str, layers, request):
+def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Session):
     from pipeline.graphs import scene as graphs
     from pipeline.stores.tileset import corner_order, stored_seed
 
@@ -304,21 +301,30 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request):
                                             int(group.attrs["corner_types"])),
                          corners=int(group.attrs["corner_types"]))
     compressed = group.attrs["btf_kind"] == "compressed-tileset"
+    variable = "V" if compressed else RADIANCE
+    stored = None
+    if lattice and spec.level:
+        session.log(f"scene: a roller tile set has no pyramid (its tiles lie on a sheared "
+                    f"lattice): level {spec.level} is computed on the fly from level 0, which "
+                    f"reads {4**spec.level}x the texels")
+    elif not lattice:
+        stored = _pyramid_level(spec, group, variable, session)
     rank = spec.rank or (group["S"].shape[0] if compressed else None)
-    req = request(window, False, rank=rank)
+    req = request(window, stored is not None, rank=rank)
     extra, u_read = {}, 0
     if compressed:
         u = group["U"]
         u_rows, u_read = graphs.read_u_rows(u, layers, rank)
         extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]),
                  "eps": float(group.attrs["transform"]["eps"])}
-    out, read = graphs.tileset_graph(path, group, req, placement, **extra)
+    out, read = graphs.tileset_graph(path, group, req, placement, level_path=stored, **extra)
     if compressed:
-        reads = {"V": [len(read), n], "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
+        reads = {stored or "V": [len(read), n],
+                 "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
     else:
         nv, nl = group[RADIANCE].shape[1:3]
         chunks = sum(len(lay) for _, lay in read)
-        reads = {RADIANCE: [chunks, n * nv * nl]}
+        reads = {stored or RADIANCE: [chunks, n * nv * nl]}
     return out, reads
 
 

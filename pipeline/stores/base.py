@@ -90,15 +90,15 @@ def create_store(path: str | Path, *, kind: str, attrs: dict[str, Any],
     """
     import zarr
 
-    group = zarr.open_group(location(path), mode="w-", zarr_format=3)
-    group.attrs.update({**attrs, "btf_kind": kind})
+    group = zarr.open_group(location(path), mode="w-", zarr_format=3,
+                            attributes={**attrs, "btf_kind": kind})
     if directions is not None:
         for name, dim in DIRECTION_COORDS.items():
             values = np.asarray(getattr(directions, name), np.float64)
             coord = group.create_array(name, shape=values.shape, dtype="float64",
-                                       dimension_names=(dim,), compressors=None)
+                                       dimension_names=(dim,), compressors=None,
+                                       attributes={"units": "degree"})
             coord[:] = values
-            coord.attrs["units"] = "degree"
     if channels is not None:
         labels = group.create_array("channel", shape=(len(channels),), dtype=str,
                                     dimension_names=("channel",), compressors=None)
@@ -116,12 +116,9 @@ def add_array(group, name: str, *, shape: tuple[int, ...], dims: tuple[str, ...]
     """
     if fill_value is None:
         fill_value = np.nan if np.dtype(dtype).kind == "f" else 0
-    array = group.create_array(name, shape=shape, chunks=chunks or "auto", shards=shards,
-                               dtype=dtype, dimension_names=dims, compressors=codec(),
-                               fill_value=fill_value)
-    if attrs:
-        array.attrs.update(attrs)
-    return array
+    return group.create_array(name, shape=shape, chunks=chunks or "auto", shards=shards,
+                              dtype=dtype, dimension_names=dims, compressors=codec(),
+                              fill_value=fill_value, attributes=attrs or None)
 
 
 def open_group(path: str | Path):
