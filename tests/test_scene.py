@@ -100,6 +100,7 @@ def test_levels_are_block_means_from_the_pyramid_or_on_the_fly(stores, tmp_path,
     text = "source: {}\ndirections: all\nregion: [10, 37, 3, 64]\nlevel: 2\n"
     result = btf("scene", _write(tmp_path / "a.yaml", text.format(src)), tmp_path / "fly.zarr")
     assert result.code == 0 and "no pyramid" in result.err and "on the fly" in result.err
+    assert "level's texels [2, 10, 0, 16], which cover [8, 40, 0, 64] of level 0" in result.err
     fly = _radiance(tmp_path / "fly.zarr")
     assert fly.shape == exact.shape  # a radiance store of every layer: directions 'all'
     assert zarr.open_group(tmp_path / "fly.zarr").attrs["btf_kind"] == "btf"

@@ -144,8 +144,13 @@ def _open_source(spec: SceneSpec):
     return group, SOURCE_KINDS[kind]
 
 
-def _level_window(spec: SceneSpec, ny: int, nx: int, level: int) -> tuple[int, int, int, int]:
-    """Level-n texels of a bounded source's region (the whole store without one)."""
+def _level_window(spec: SceneSpec, ny: int, nx: int, level: int,
+                  session: Session | None = None) -> tuple[int, int, int, int]:
+    """Level-n texels of a bounded source's region (the whole store without one).
+
+    A region that does not fall on whole level-n texels is widened to them, and cut at the
+    edge texels the level leaves out; the log says so.
+    """
     y0, y1, x0, x1 = spec.region or (0, ny, 0, nx)
     if y1 > ny or x1 > nx:
         raise spec.error("region", f"{list(spec.region)} reaches beyond the source's {ny} x "
@@ -160,6 +165,13 @@ def _level_window(spec: SceneSpec, ny: int, nx: int, level: int) -> tuple[int, i
         raise spec.error("region", f"{list(spec.region)} lies in the edge texels that level "
                                    f"{level} leaves out (its {ly} x {lx} texels cover "
                                    f"{ly * f} x {lx * f} of level 0)")
+    covered = [window[0] * f, window[1] * f, window[2] * f, window[3] * f]
+    if session is not None and spec.region is not None and covered != list(spec.region):
+        cut = ", cut at the edge the level leaves out" if (covered[1] < y1
+                                                           or covered[3] < x1) else ""
+        session.log(f"scene: region {list(spec.region)} at level {level} is the level's "
+                    f"texels {list(window)}, which cover {covered} of level 0 (whole "
+                    f"{f} x {f} blocks{cut})")
     return window
 
 
@@ -240,7 +252,7 @@ def build(spec: SceneSpec, session: Session):
         stored = _pyramid_level(spec, group, RADIANCE, session) if kind == "radiance" else None
         if kind == "surface" and spec.level:
             session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
-        req = request(_level_window(spec, ny, nx, spec.level), stored is not None)
+        req = request(_level_window(spec, ny, nx, spec.level, session), stored is not None)
         _restricted_region(group, spec, req)
         source = zarr.open_array(path, path=stored or RADIANCE, mode="r")
         data = da.from_zarr(source)
@@ -262,7 +274,8 @@ def build(spec: SceneSpec, session: Session):
         rank = spec.rank or group["S"].shape[0]
         ny, nx = group["V"].shape[:2]
         stored = _pyramid_level(spec, group, "V", session)
-        req = request(_level_window(spec, ny, nx, spec.level), stored is not None, rank=rank)
+        req = request(_level_window(spec, ny, nx, spec.level, session), stored is not None,
+                      rank=rank)
         u = group["U"]
         u_rows, u_read = graphs.read_u_rows(u, layers, rank)
         s = np.asarray(group["S"][:rank])
