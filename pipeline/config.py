@@ -23,9 +23,10 @@ make (same parameters and version, from its provenance) is skipped; other output
 
 A ``scene:`` section (a scene spec, :mod:`pipeline.scene_spec`, plus its ``out``) runs last, and
 the stage that makes its source computes only what the scene reads: ``reconstruct`` only the
-scene's layers and texels, ``quilt`` of a radiance store applies its plan only to the scene's
-layers (both through their ``for_scene`` parameter, set to the config). Other stages compute
-their whole output; :data:`WHOLE` says why, and ``btf run --check`` prints it per stage.
+scene's layers and texels, ``quilt`` and ``roller`` of a radiance store apply their tiles only
+to the scene's layers (all through their ``for_scene`` parameter, set to the config). Other
+stages compute their whole output; :data:`WHOLE` says why, and ``btf run --check`` prints it
+per stage.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from pipeline.stages import STAGES
 from pipeline.yaml_lines import Mapping
 
 TOP_KEYS = ("description", "scheduler", "workers", "stages", "scene")
-RESTRICTABLE = ("reconstruct", "quilt")
+RESTRICTABLE = ("reconstruct", "quilt", "roller")
 WHOLE = {
     "generate": "a measurement: the stages after it read all of it",
     "ingest": "a measurement: the stages after it read all of it",
@@ -55,7 +56,6 @@ WHOLE = {
     "compress": "the SVD needs every layer and texel",
     "enlarge": "Texture Optimization synthesizes the whole target; its eigentextures serve "
                "every layer",
-    "roller": "applies its tiles to every layer (restricting it is not implemented)",
     "pyramid": "levels are made for the whole store",
     "fit": "fits every texel over all lights",
 }

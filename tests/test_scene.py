@@ -252,6 +252,19 @@ def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
     level = btf("scene", _write(tmp_path / "l.yaml", spec.read_text() + "level: 1\n"),
                 tmp_path / "l.zarr")
     assert level.code == 0 and "roller tile set has no pyramid" in level.err
+    # --for-scene: the tiles applied only to the layers the scene reads, the same scene
+    only = _write(tmp_path / "only.yaml", spec.read_text().replace("ro.zarr", "only.zarr"))
+    made = btf("roller", src, tmp_path / "only.zarr", "--tiles", "3", "--for-scene", only)
+    assert made.code == 0 and "only to the 1 of 16 layers" in made.err, made.err
+    ro = zarr.open_group(tmp_path / "only.zarr", mode="r")
+    assert ro.attrs["computed_for_scene"]["layers"] == [[1, 2]]
+    assert np.isnan(ro["radiance"][0, 0, 0, 0, 0, 0])  # another layer: never written
+    assert btf("scene", only, tmp_path / "o.zarr", "-q").code == 0
+    assert np.array_equal(_radiance(tmp_path / "o.zarr"), _radiance(tmp_path / "s.zarr"))
+    other = _write(tmp_path / "other.yaml", only.read_text().replace(
+        str(_angles(tmp_path / "ro.zarr", 1, 2)), str(_angles(tmp_path / "ro.zarr", 0, 0))))
+    refused = btf("scene", other, tmp_path / "x.zarr")
+    assert refused.code == 1 and "was not computed" in refused.err
 
 
 def test_surface_source_and_image_formats(stores, tmp_path, btf):
@@ -402,6 +415,18 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
     assert np.array_equal(_radiance(tmp_path / "t.zarr"), _radiance(tmp_path / "qd.zarr"))
     refused = btf("render", "q.zarr", "x.exr", "--light", "8", "--view", "8", "--size", "8")
     assert refused.code == 1 and "was not computed" in refused.err
+    # the roller restricts itself the same way (tests its output in test_roller_tile_sets_...)
+    _write(tmp_path / "ro.yaml", stages + """  - roller: {store: m.zarr, out: ro.zarr}
+scene:
+  out: u.zarr
+  source: ro.zarr
+  directions: [[20, 10, 30, 40]]
+  size: [40, 60]
+""")
+    check = btf("run", "ro.yaml", "--check")
+    assert check.code == 0, check.err
+    assert re.search(r"roller: restricted to the scene: \d+ of 27 blocks of layers per tile "
+                     r"\(9 of 81 layers\)", check.out), check.out
 
 
 def test_a_run_config_scene_section_is_validated_with_lines(tmp_path, btf):

@@ -11,7 +11,6 @@ a compressed tile set.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import psutil
@@ -87,7 +86,10 @@ class QuiltStageParams:
 
 def quilt(params: QuiltStageParams, session: Session) -> Path:
     """Plan a tile set on the reference image and apply it to every layer."""
-    needs = _scene_needs(params, session)  # a bad scene spec stops before the planning
+    from pipeline.stages.scene import tileset_needs
+
+    # a bad scene spec stops before the planning
+    needs = tileset_needs(params.for_scene, params.store, params.out, session, label="quilt")
     layers = open_layers(params.store)[RADIANCE]
     sample = (layers.sizes["y"], layers.sizes["x"])
     if params.block is not None and min(sample) < params.block:
@@ -142,26 +144,3 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     del plan  # the canvases' values and the strips are not needed any more
     return write_tileset(tiles, params.out, source=params.store, session=session,
                          label="quilt", overwrite=params.overwrite, needs=needs)
-
-
-def _scene_needs(params: QuiltStageParams, session: Session):
-    """The layers ``--for-scene`` reads of the tile set (None: every layer)."""
-    if params.for_scene is None:
-        return None
-    from pipeline.scene_spec import load
-    from pipeline.stages.scene import needs_of
-    from pipeline.stores.base import open_group, read_directions
-
-    spec = load(params.for_scene)
-    if os.path.abspath(spec.source) != os.path.abspath(params.out):
-        raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
-                                   f"{params.out}")
-    group = open_group(params.store)
-    if group.attrs.get("btf_kind") == "compressed":
-        session.log("quilt: the scene cannot restrict a compressed source: the tiles' "
-                    "eigentextures serve every layer")
-        return None
-    needs = needs_of(spec, read_directions(group))
-    session.log(f"quilt: applying the plan only to the {len(needs.layers)} of {needs.of} "
-                f"layers {params.for_scene} needs")
-    return needs

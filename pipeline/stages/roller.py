@@ -5,8 +5,9 @@ lit layer (the light and view closest to the normal; ``--image reference`` uses 
 reference image instead). The tiles are planned on the same image in colour
 (:mod:`tasks.roller`), and their prescriptions are applied to every layer, or to the
 eigentextures of a compressed store, by the machinery quilting uses
-(:func:`pipeline.graphs.prescriptions.write_tileset`). The result is a tile set that
-``btf render`` lays on surfaces of any size with pure gathers.
+(:func:`pipeline.graphs.prescriptions.write_tileset`); with ``--for-scene`` only to the layers
+that scene reads. The result is a tile set that ``btf render`` lays on surfaces of any size
+with pure gathers.
 """
 
 from __future__ import annotations
@@ -58,11 +59,18 @@ class RollerStageParams:
     image: str = option("layer", choices=("layer", "reference"),
                         help="image to analyse: the perpendicularly lit layer, or quilting's "
                              "reference image")
+    for_scene: str | None = option(
+        None, metavar="SCENE.yaml", path="in",
+        help="apply the tiles only to the layers this scene spec (or a run config's scene: "
+             "section) reads of OUT (radiance sources; the eigentextures of a compressed "
+             "one serve every layer); the others stay unwritten")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
         if not self.detect_only and self.out is None:
             raise ParamError("out", "is required (unless --detect-only)")
+        if self.detect_only and self.for_scene is not None:
+            raise ParamError("for_scene", "makes no sense with --detect-only (no tiles)")
         if self.json and not self.detect_only:
             raise ParamError("json", "only goes with --detect-only")
         check_seed(self.seed)
@@ -102,6 +110,10 @@ def describe(lattice: Lattice) -> str:
 
 def roller(params: RollerStageParams, session: Session) -> Path | None:
     """Detect the lattice and, unless ``--detect-only``, write a roller tile set."""
+    from pipeline.stages.scene import tileset_needs
+
+    # a bad scene spec stops before the analysis
+    needs = tileset_needs(params.for_scene, params.store, params.out, session, label="roller")
     image, what = analysis_image(params.store, params.image, session)
     gray = luminance(image) if image.shape[-1] == 3 else image.mean(axis=-1)
     try:
@@ -146,9 +158,11 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
         "seed": params.seed,
         "provenance": provenance("roller", params),
     }
+    if needs is not None:
+        attrs["computed_for_scene"] = needs.record(params.for_scene)
     tiles = TileSet(index=list(plan.index), weight=list(plan.weight),
                     tile_shape=plan.tile_shape, reference=image.astype(np.float32),
                     corners=np.zeros((params.tiles, 4), np.int64), attrs=attrs,
                     representative=plan.representative.astype(np.int64))
     return write_tileset(tiles, params.out, source=params.store, session=session,
-                         label="roller", overwrite=params.overwrite)
+                         label="roller", overwrite=params.overwrite, needs=needs)

@@ -116,6 +116,34 @@ def needs_of(spec: SceneSpec, directions, shape: tuple[int, int] | None = None) 
     return Needs(frozenset(layers), window, directions.views * directions.lights)
 
 
+def tileset_needs(for_scene: str | None, store: str, out: str, session: Session, *,
+                  label: str) -> Needs | None:
+    """The layers a ``--for-scene`` spec reads of a tile set ``out`` made from ``store``.
+
+    None (every layer) without a spec, or for a compressed source: the tiles' eigentextures
+    serve every layer. Raises the spec's error when it reads another store than ``out``.
+    """
+    import os
+
+    from pipeline.stores.base import read_directions
+
+    if for_scene is None:
+        return None
+    spec = load(for_scene)
+    if os.path.abspath(spec.source) != os.path.abspath(out):
+        raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
+                                   f"{out}")
+    group = open_group(store)
+    if group.attrs.get("btf_kind") == "compressed":
+        session.log(f"{label}: the scene cannot restrict a compressed source: the tiles' "
+                    "eigentextures serve every layer")
+        return None
+    needs = needs_of(spec, read_directions(group))
+    session.log(f"{label}: applying the prescriptions only to the {len(needs.layers)} of "
+                f"{needs.of} layers {for_scene} needs")
+    return needs
+
+
 def _restricted_region(group, spec: SceneSpec, request) -> None:
     """Refuse texels a store restricted to another scene's region did not compute."""
     restriction = group.attrs.get("computed_for_scene") or {}
