@@ -267,16 +267,18 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     if not compressed:
         footprint = max(footprint[0], tile_shape[0]), max(footprint[1], tile_shape[1])
     most = request.layers_per_task(footprint, nc)
+    grid = [[(block, visible_tiles(block[0], block[2], block[1] - block[0],
+                                   block[3] - block[2], factor=f, tile_shape=tile_shape,
+                                   placement=placement)) for block in row]
+            for row in _blocks(request)]  # the same for every group of directions
     for dirs, used, w in direction_groups(request.weights, most):
         layers = None if compressed else [request.layers[k] for k in used]
         u = u_rows[used] if compressed else None
         tiles = shared if compressed else {}
         rows = []
-        for row in _blocks(request):
+        for row in grid:
             blocks = []
-            for y0, y1, x0, x1 in row:
-                codes = visible_tiles(y0, x0, y1 - y0, x1 - x0, factor=f,
-                                      tile_shape=tile_shape, placement=placement)
+            for (y0, y1, x0, x1), codes in row:
                 for c in codes:
                     if c not in tiles:
                         tiles[c] = dask.delayed(_tile_data, pure=True)(
