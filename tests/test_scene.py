@@ -209,6 +209,7 @@ def test_tile_set_levels_come_from_the_tiles_pyramid(stores, tmp_path, btf, monk
         fly = btf("scene", _write(tmp_path / "a.yaml", text.format(ts, _angles(ts, 2, 6))),
                   tmp_path / f"fly_{name}")
         assert fly.code == 0 and "on the fly" in fly.err, fly.err
+        assert "which cover" not in fly.err  # on whole 4 x 4 blocks: nothing widened
         levels = tmp_path / f"p_{name}"
         shutil.copytree(ts, levels)
         assert btf("pyramid", levels, "--levels", "2", "-q").code == 0
@@ -252,6 +253,7 @@ def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
     level = btf("scene", _write(tmp_path / "l.yaml", spec.read_text() + "level: 1\n"),
                 tmp_path / "l.zarr")
     assert level.code == 0 and "roller tile set has no pyramid" in level.err
+    assert "level's texels [2, 38, -10, 35], which cover [4, 76, -20, 70]" in level.err
     # --for-scene: the tiles applied only to the layers the scene reads, the same scene
     only = _write(tmp_path / "only.yaml", spec.read_text().replace("ro.zarr", "only.zarr"))
     made = btf("roller", src, tmp_path / "only.zarr", "--tiles", "3", "--for-scene", only)

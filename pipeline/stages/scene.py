@@ -327,6 +327,11 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
     f = 2**spec.level
     (h, w), (oy, ox) = spec.size, spec.origin
     window = (oy // f, -(-(oy + h) // f), ox // f, -(-(ox + w) // f))
+    covered = [c * f for c in window]
+    if covered != [oy, oy + h, ox, ox + w]:
+        session.log(f"scene: size {list(spec.size)} at origin {list(spec.origin)} and level "
+                    f"{spec.level} is the level's texels {list(window)}, which cover "
+                    f"{covered} of the level-0 surface (whole {f} x {f} blocks)")
     n = group["corners"].shape[0]
     lattice = group.attrs.get("placement") == "lattice"
     placement = {"lattice": lattice, "tiles": n,
