@@ -19,8 +19,12 @@ synthesis, (3) the result after the QP rounds (``btf enlarge --keep-phases``); n
 - **lookup**: every target texel takes the ABRDF of the sample texel whose constraint values
   are nearest (a k-d tree on the log constraint values; no neighbourhoods).
 
-Times per phase come from the enlarged store's attrs. ``--sheet FILE`` draws ground truth,
-result and baselines side by side for a few lights of the first material.
+"C residual" is the RMS of the reconstructed constraint layers against the photos C over the
+target (log domain, the QP's ``A x - b``); "S residual" is the same for the sample against its
+own constraint layers, i.e. the sample's compression error on them: the issue's target is C
+residual within S residual. Times per phase come from the enlarged store's attrs. ``--sheet
+FILE`` draws ground truth, result and baselines side by side for a few lights of the first
+material.
 """
 
 from __future__ import annotations
@@ -247,7 +251,9 @@ def _material(name: str, args, tmp: Path) -> dict:
                                     mask) if "phase_statistics" in g.array_keys() else None,
                "final": abrdf_error(ue, ve * se.astype(np.float32), eps, truth, mask),
                "seconds": info["seconds"], "wall": wall, "rounds": info["rounds"],
-               "residual": info["constraint_residual_rms"], "lambda": info["lambda"],
+               "residual": info["constraint_residual_rms"],
+               "sample_residual": info["sample_constraint_residual_rms"],
+               "lambda": info["lambda"],
                "placement": info["placement"]}
         if "lookup" in baselines:
             keys = _log_layers(c, eps)
@@ -377,8 +383,9 @@ def report(result: dict) -> str:
              "eq. (11) ABRDF RMSE outside the sample "
              "(linear radiance; lower is better).", "",
              "| material | set | (1) TO | (2) + stats | (3) final | Eref | (3)/Eref | lookup | "
-             "tiling | quilt | roller | TO s | stats s | QP s | rounds |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "tiling | quilt | roller | TO s | stats s | QP s | rounds | C residual | "
+             "S residual |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m in result["materials"]:
         b = m["baselines"]
         for which, row in m["sets"].items():
@@ -388,7 +395,8 @@ def report(result: dict) -> str:
                 f"{_num(row['final'])} | {_num(m['eref'])} | {row['final'] / m['eref']:.1f} | "
                 f"{_num(row.get('lookup'))} | {_num(b.get('tiling'))} | {_num(b.get('quilt'))} | "
                 f"{_num(b.get('roller'))} | {s['texture_optimization']:.1f} | "
-                f"{s['statistics']:.1f} | {s['qp']:.2f} | {row['rounds']} |")
+                f"{s['statistics']:.1f} | {s['qp']:.2f} | {row['rounds']} | "
+                f"{_num(row.get('residual'))} | {_num(row.get('sample_residual'))} |")
     t = result.get("timing")
     if t:
         lines += ["", f"Wood 128^2 -> 256^2 at rank {t['rank']}, one photo: {t['wall']:.1f} s "
