@@ -476,3 +476,39 @@ scene:
         "out: s.zarr", "out: s_images"))
     bad = btf("run", "r.yaml", "--check")
     assert bad.code == 1 and "r.yaml:7: scene.out: 's_images' does not suit format zarr" in bad.err
+
+
+@pytest.mark.parametrize("chunks", [(12, 12, 3, 16), (1, 4, 3, 16), (5, 5, 3, 16)])
+def test_u_rows_are_the_rows_asked_for_and_their_chunks_are_counted(chunks):
+    from pipeline.graphs.scene import read_u_rows
+
+    rng = np.random.default_rng(0)
+    values = rng.standard_normal((12, 12, 3, 16)).astype(np.float32)
+    u = zarr.create_array(zarr.storage.MemoryStore(), shape=values.shape, chunks=chunks,
+                          dtype="float32")
+    u[...] = values
+    cv, dl = chunks[:2]
+    for layers in ([(0, 1), (5, 7), (11, 3), (5, 6)],  # scattered chunks
+                   [(v, li) for v in range(12) for li in range(12)],  # every chunk: one call
+                   [(2, 2)]):
+        rows, read = read_u_rows(u, layers, 10)
+        assert np.array_equal(rows, np.stack([values[v, li, :, :10] for v, li in layers]))
+        assert read == len({(v // cv, li // dl) for v, li in layers})
+
+
+def test_on_the_fly_levels_keep_direction_chunks_of_a_store_chunk():
+    """A thin on-the-fly block (chunk / 2^n texels) must not hold the directions of a whole
+    output task: its chunks hold as many directions as a scene store chunk does."""
+    import dask.array as da
+    from scipy.sparse import identity
+
+    from pipeline.graphs.scene import Request, radiance_graph
+    from pipeline.stores.scene import directions_per_chunk
+
+    data = da.zeros((1, 64, 4096, 4096, 3), dtype=np.float32, chunks=(1, 1, 512, 512, 3))
+    request = Request(layers=[(0, li) for li in range(64)], weights=identity(64, format="csr"),
+                      window=(0, 512, 0, 512), level=3, stored_level=False, chunk=256)
+    out = radiance_graph(data, request)
+    assert out.shape == (64, 512, 512, 3)
+    assert out.chunks[1][0] == 32  # 256 level-0 texels a side
+    assert max(out.chunks[0]) == directions_per_chunk(64, (256, 256), 3) == 21

@@ -1,7 +1,8 @@
 """Graphs of ``btf scene``: only the chunks a scene touches, per kind of source.
 
 Every graph yields ``(direction, y, x, channel)`` float32 at the requested level, as a dask
-array in blocks of about ``chunk`` level-0 texels a side:
+array in blocks of about ``chunk`` texels a side of what is read (level 0, or the stored level
+n) and of as many directions as :func:`pipeline.stores.scene.directions_per_chunk` allows:
 
 - radiance stores: the requested layers' chunks of the region (dask culls the rest), from the
   pyramid level when the store has it, else block means of level 0;
@@ -47,7 +48,8 @@ class Request:
     stored_level
         Whether level n is read from the store's pyramid (else averaged from level 0).
     chunk
-        Level-0 texels per side of an output block.
+        Texels per side of an output block, of what is read: level 0 (then a block is
+        ``chunk / 2^n`` level-n texels a side) or the stored level n.
     """
 
     layers: list[tuple[int, int]]
@@ -131,8 +133,10 @@ def radiance_graph(data, request: Request):
                            ).astype(np.float32))
     block = request.block
     ny, nx = request.shape
-    per_task = directions_per_chunk(len(out), (min(block, ny), min(block, nx)),
-                                    out[0].shape[-1])
+    # as many directions as a scene store chunk of ``chunk`` level-n texels holds: a thin
+    # on-the-fly block must not gather the directions of a whole output task
+    per_task = directions_per_chunk(len(out), (min(request.chunk, ny),
+                                               min(request.chunk, nx)), out[0].shape[-1])
     return da.stack(out).rechunk((per_task, block, block, -1))
 
 
@@ -144,19 +148,18 @@ def read_u_rows(u, layers: list[tuple[int, int]], rank: int) -> tuple[np.ndarray
     concurrently: 144 layers of a hemi:12 store in 3 ms instead of 6, which is what a small
     region of every direction costs at a coarse level.
     """
-    dl = u.chunks[1]
-    needed = {(v, li // dl) for v, li in layers}
-    views, blocks = {v for v, _ in needed}, {b for _, b in needed}
-    v0, v1, b0, b1 = min(views), max(views) + 1, min(blocks), max(blocks) + 1
-    if len(needed) > 1 and len(needed) == (v1 - v0) * (b1 - b0):
-        box = np.asarray(u[v0:v1, b0 * dl : b1 * dl, :, :rank])
-        return np.stack([box[v - v0, li - b0 * dl] for v, li in layers]), len(needed)
-    rows = {}
-    for v, li in layers:
-        c0 = (li // dl) * dl
-        if (v, c0) not in rows:
-            rows[(v, c0)] = np.asarray(u[v, c0 : c0 + dl, :, :rank])
-    return np.stack([rows[(v, (li // dl) * dl)][li % dl] for v, li in layers]), len(rows)
+    cv, dl = u.chunks[0], u.chunks[1]
+    needed = {(v // cv, li // dl) for v, li in layers}
+    a0, a1 = min(a for a, _ in needed), max(a for a, _ in needed) + 1
+    b0, b1 = min(b for _, b in needed), max(b for _, b in needed) + 1
+    if len(needed) > 1 and len(needed) == (a1 - a0) * (b1 - b0):
+        box = np.asarray(u[a0 * cv : a1 * cv, b0 * dl : b1 * dl, :, :rank])
+        return (np.stack([box[v - a0 * cv, li - b0 * dl] for v, li in layers]),
+                len(needed))
+    chunks = {(a, b): np.asarray(u[a * cv : (a + 1) * cv, b * dl : (b + 1) * dl, :, :rank])
+              for a, b in needed}
+    return (np.stack([chunks[(v // cv, li // dl)][v % cv, li % dl] for v, li in layers]),
+            len(needed))
 
 
 def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: Request):
@@ -246,8 +249,9 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     means of the level-0 surface (corner placement only).
 
     Directions are processed in groups whose layers number at most
-    :meth:`Request.layers_per_task`, so a block task holds a bounded number of values (a
-    compressed tile set's tiles are eigentextures, read once for all groups).
+    :meth:`Request.layers_per_task` of the values a task holds per layer (its block and the
+    radiance tiles it shows), so a task holds a bounded number of values; a compressed tile
+    set's tiles are eigentextures, read once for all groups.
     """
     import dask
     import dask.array as da
@@ -261,16 +265,18 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     parts = []
     shared: dict = {}
     nc = u_rows.shape[1] if compressed else group["channel"].shape[0]
-    # a task assembles its block's surface at the level read (and holds whole stored tiles)
-    ny, nx = request.shape
-    footprint = min(request.block, ny) * f, min(request.block, nx) * f
-    if not compressed:
-        footprint = max(footprint[0], tile_shape[0]), max(footprint[1], tile_shape[1])
-    most = request.layers_per_task(footprint, nc)
     grid = [[(block, visible_tiles(block[0], block[2], block[1] - block[0],
                                    block[3] - block[2], factor=f, tile_shape=tile_shape,
                                    placement=placement)) for block in row]
             for row in _blocks(request)]  # the same for every group of directions
+    # values per layer a task holds: its block's surface at the level read, and (radiance
+    # tiles) every tile the block shows, whole
+    ny, nx = request.shape
+    texels = min(request.block, ny) * f * min(request.block, nx) * f
+    if not compressed:
+        shown = max(len(codes) for row in grid for _, codes in row)
+        texels += shown * tile_shape[0] * tile_shape[1]
+    most = request.layers_per_task((1, texels), nc)
     for dirs, used, w in direction_groups(request.weights, most):
         layers = None if compressed else [request.layers[k] for k in used]
         u = u_rows[used] if compressed else None

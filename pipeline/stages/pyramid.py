@@ -163,12 +163,12 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
     try:
         levels = zarr.open_group(str(root), path=partial, mode="w-", zarr_format=3)
         previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
-        projected = name == "V" and params.method == "projected"
+        basis = _basis(group) if name == "V" and params.method == "projected" else None
         for n in range(1, count + 1):
-            if projected and tiles:
-                coarse = da.stack([_projected(group, t, 2**n) for t in level0])
-            elif projected:
-                coarse = _projected(group, level0, 2**n)
+            if basis is not None and tiles:
+                coarse = da.stack([_projected(basis, t, 2**n) for t in level0])
+            elif basis is not None:
+                coarse = _projected(basis, level0, 2**n)
             else:
                 coarse = da.coarsen(_mean32, previous, {ay: 2, ax: 2}, trim_excess=True)
             shape = coarse.shape
@@ -207,23 +207,29 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
     return found
 
 
-def _projected(group, level0, factor: int):
-    """Level ``factor`` of a compressed store's ``V`` (dask), projected tile by tile."""
+def _basis(group) -> dict:
+    """What projecting needs of a compressed store: U (one task of the graph), S and eps."""
     import dask
     import numpy as np
 
-    k = level0.shape[-1]
+    k = group["S"].shape[0]
     u = np.asarray(group["U"][...]).reshape(-1, k)
-    s = np.asarray(group["S"][...])
-    eps = float(group.attrs["transform"]["eps"])
+    return {"u": dask.delayed(u), "s": np.asarray(group["S"][...]),  # one copy of U
+            "eps": float(group.attrs["transform"]["eps"])}
+
+
+def _projected(basis: dict, level0, factor: int):
+    """Level ``factor`` of a compressed store's ``V`` (dask ``(y, x, k)``), tile by tile."""
+    import numpy as np
+
+    k = level0.shape[-1]
     ny, nx = (level0.shape[0] // factor) * factor, (level0.shape[1] // factor) * factor
     # tiles whose sides are multiples of the factor (a partial edge block is left out)
     side = max(factor, (level0.chunksize[0] // factor) * factor)
     whole = level0[:ny, :nx].rechunk((side, side, k))
     chunks = (*(tuple(c // factor for c in cs) for cs in whole.chunks[:2]), whole.chunks[2])
-    basis = dask.delayed(u)  # one copy of U in the graph, not one per task
-    return whole.map_blocks(_projected_block, basis, s=s, factor=factor, eps=eps,
-                            dtype=np.float32, chunks=chunks)
+    return whole.map_blocks(_projected_block, basis["u"], s=basis["s"], factor=factor,
+                            eps=basis["eps"], dtype=np.float32, chunks=chunks)
 
 
 def _projected_block(v, u, *, s, factor, eps):

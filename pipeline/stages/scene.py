@@ -194,12 +194,12 @@ def _level_window(spec: SceneSpec, ny: int, nx: int, level: int,
                                    f"{level} leaves out (its {ly} x {lx} texels cover "
                                    f"{ly * f} x {lx * f} of level 0)")
     covered = [window[0] * f, window[1] * f, window[2] * f, window[3] * f]
-    if session is not None and spec.region is not None and covered != list(spec.region):
+    if session is not None and covered != [y0, y1, x0, x1]:
         cut = ", cut at the edge the level leaves out" if (covered[1] < y1
                                                            or covered[3] < x1) else ""
-        session.log(f"scene: region {list(spec.region)} at level {level} is the level's "
-                    f"texels {list(window)}, which cover {covered} of level 0 (whole "
-                    f"{f} x {f} blocks{cut})")
+        asked = f"region {list(spec.region)}" if spec.region else f"the whole {ny} x {nx}"
+        session.log(f"scene: {asked} at level {level} is the level's texels {list(window)}, "
+                    f"which cover {covered} of level 0 (whole {f} x {f} blocks{cut})")
     return window
 
 
