@@ -214,16 +214,23 @@ def _add_plugins(sub) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``btf`` console script; returns the exit status."""
+    """Entry point of the ``btf`` console script; returns the exit status.
+
+    Also for ``--help`` (0) and usage errors (2), which argparse ends with ``SystemExit``: a
+    caller running ``main`` in-process gets the status back like any other.
+    """
     argv = sys.argv[1:] if argv is None else list(argv)
     plugin = _plugins().get(argv[0]) if argv else None
-    if plugin is not None:  # a command with its own parser, options and help
-        command, handler = argv[0], partial(plugin.load(), argv[1:])
-    else:
-        args = build_parser().parse_args(argv)
-        command, handler = args.command, partial(args.handler, args)
+    command = argv[0] if argv else ""
     try:
+        if plugin is not None:  # a command with its own parser, options and help
+            handler = partial(plugin.load(), argv[1:])
+        else:
+            args = build_parser().parse_args(argv)
+            command, handler = args.command, partial(args.handler, args)
         return handler()
+    except SystemExit as exc:
+        return _status(exc)
     except BTFError as exc:
         print(f"btf {command}: error: {exc}", file=sys.stderr)
         return 1
@@ -233,6 +240,14 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into a program that stopped reading (e.g. head)
         sys.stderr.close()
         return 0
+
+
+def _status(exc: SystemExit) -> int:
+    """The exit status ``sys.exit`` would give (a message is printed, as it would print it)."""
+    if exc.code is None or isinstance(exc.code, int):
+        return exc.code or 0
+    print(exc.code, file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

@@ -35,6 +35,16 @@ def test_top_level_help_lists_the_commands(btf):
         assert name in result.out
 
 
+def test_main_returns_the_status_of_help_and_usage_errors(capsys):
+    """In-process callers get a status back, as the console script's exit code."""
+    from pipeline.cli import main
+
+    assert main(["--help"]) == 0 and "usage: btf" in capsys.readouterr().out
+    assert main(["bench", "--help"]) == 0 and "usage: btf bench" in capsys.readouterr().out
+    assert main(["generate"]) == 2 and "required: OUT" in capsys.readouterr().err
+    assert main(["no-such-command"]) == 2
+
+
 def test_console_script_is_installed():
     btf = Path(sys.executable).parent / "btf"
     out = subprocess.run([btf, "--version"], capture_output=True, text=True, check=True)
