@@ -2,9 +2,9 @@
 
 A generated BTF (``--size``, ``--sampling``) is compressed (``--rank``) and quilted into a
 compressed tile set; both get a pyramid (``btf pyramid``, 3 levels; the tile set's of its
-tiles). On each source, scenes ask
-for 1%, 10% and 100% of the measured layers (over the whole region or surface), and for 1%
-and 10% of the region's texels (a square at the origin, every layer), at levels 0 to 3. Each
+tiles). On each source, scenes ask for 1%, 10% and 100% of the measured layers (over the whole
+region or surface), and for 1% and 10% of the region's texels (a square at the origin, every
+layer), at levels 0 to 3. Each
 scene runs in this process (``pipeline.stages.scene.write_scene``, threads scheduler, zarr
 output), so the time is the scene's own, without interpreter start-up and imports; bytes and
 chunks are counted at zarr's store (every ``get`` of a chunk key). Ratios are against the

@@ -41,7 +41,7 @@ import yaml
 
 from pipeline import yaml_lines
 from pipeline.errors import BTFError
-from pipeline.params import ParamError, from_mapping, paths
+from pipeline.params import ParamError, from_mapping, names_path, paths
 from pipeline.provenance import up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
@@ -193,7 +193,7 @@ def producer(stages, source: str) -> int | None:
     """Index of the last stage that makes ``source`` (None: it exists already)."""
     found = None
     for k, step in enumerate(stages):
-        if os.path.abspath(source) in {os.path.abspath(p) for p in paths(step.params, "out")}:
+        if names_path(step.params, "out", source):
             found = k
     return found
 
@@ -213,8 +213,7 @@ def _restricted(stages: tuple, spec, path: str) -> tuple:
 
 def _read_later(stages, k: int, source: str) -> bool:
     """Whether a stage after the ``k``-th reads ``source`` (then it must be whole)."""
-    return any(os.path.abspath(source) in {os.path.abspath(p) for p in paths(s.params, "in")}
-               for s in stages[k + 1:])
+    return any(names_path(s.params, "in", source) for s in stages[k + 1:])
 
 
 def scene_lines(plan: Plan) -> list[str]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import difflib
+import os
 import types
 import typing
 from collections.abc import Mapping
@@ -163,13 +164,10 @@ def coerce(value: Any, tp: Any, name: str, choices=None) -> Any:
 
 def check_paths(params: Any) -> Any:
     """Refuse parameters whose output path is also one of their inputs; returns ``params``."""
-    import os
-
-    inputs = {os.path.abspath(p) for p in paths(params, "in")}
     for f in dataclasses.fields(params):
         value = getattr(params, f.name)
         if f.metadata.get("path") == "out" and value is not None:
-            if os.path.abspath(value) in inputs:
+            if names_path(params, "in", value):
                 raise ParamError(f.name, f"{value!r} is also an input of this stage")
     return params
 
@@ -219,6 +217,11 @@ def paths(params: Any, direction: str) -> list[str]:
         for f in dataclasses.fields(params)
         if f.metadata.get("path") == direction and getattr(params, f.name) is not None
     ]
+
+
+def names_path(params: Any, direction: str, path: str) -> bool:
+    """Whether the parameters name ``path`` among their inputs or outputs (as absolute paths)."""
+    return os.path.abspath(path) in {os.path.abspath(p) for p in paths(params, direction)}
 
 
 def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:

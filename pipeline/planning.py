@@ -303,14 +303,12 @@ def planned_directions(stages, path: str):
 
     Follows the stages that keep their input's directions back to a store or a ``generate``.
     """
-    import os
-
-    from pipeline.params import paths
+    from pipeline.params import names_path
     from pipeline.stores.base import Directions, open_group, read_directions
     from tasks.sampling import parse_sampling
 
     for step in reversed(stages):
-        if os.path.abspath(path) not in {os.path.abspath(p) for p in paths(step.params, "out")}:
+        if not names_path(step.params, "out", path):
             continue
         p = step.params
         if step.name == "generate":

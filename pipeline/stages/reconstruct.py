@@ -8,7 +8,6 @@ default) or one EXR per layer with a manifest, as ``btf export`` writes them.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import numpy as np
@@ -97,14 +96,9 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                 f"{sel.attrs['rank_used']} -> {params.out}")
     needs = None
     if params.for_scene is not None:
-        from pipeline.scene_spec import load
-        from pipeline.stages.scene import needs_of
+        from pipeline.stages.scene import needs_of, spec_for_output
 
-        spec = load(params.for_scene)
-        if os.path.abspath(spec.source) != os.path.abspath(params.out):
-            raise spec.error("source", f"the scene reads {spec.source}, not this stage's "
-                                       f"output {params.out}")
-        needs = needs_of(spec, d, (ny, nx))
+        needs = needs_of(spec_for_output(params.for_scene, params.out), d, (ny, nx))
         session.log(f"reconstruct: only what {params.for_scene} needs: {len(needs.layers)} "
                     f"of {needs.of} layers, texels {needs.window}")
     attrs = {"btf_kind": d.kind, "source": "reconstruct",

@@ -116,6 +116,17 @@ def needs_of(spec: SceneSpec, directions, shape: tuple[int, int] | None = None) 
     return Needs(frozenset(layers), window, directions.views * directions.lights)
 
 
+def spec_for_output(for_scene: str, out: str) -> SceneSpec:
+    """The ``--for-scene`` spec of a stage writing ``out``; its error unless it reads ``out``."""
+    import os
+
+    spec = load(for_scene)
+    if os.path.abspath(spec.source) != os.path.abspath(out):
+        raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
+                                   f"{out}")
+    return spec
+
+
 def tileset_needs(for_scene: str | None, store: str, out: str, session: Session, *,
                   label: str) -> Needs | None:
     """The layers a ``--for-scene`` spec reads of a tile set ``out`` made from ``store``.
@@ -123,16 +134,11 @@ def tileset_needs(for_scene: str | None, store: str, out: str, session: Session,
     None (every layer) without a spec, or for a compressed source: the tiles' eigentextures
     serve every layer. Raises the spec's error when it reads another store than ``out``.
     """
-    import os
-
     from pipeline.stores.base import read_directions
 
     if for_scene is None:
         return None
-    spec = load(for_scene)
-    if os.path.abspath(spec.source) != os.path.abspath(out):
-        raise spec.error("source", f"the scene reads {spec.source}, not this stage's output "
-                                   f"{out}")
+    spec = spec_for_output(for_scene, out)
     group = open_group(store)
     if group.attrs.get("btf_kind") == "compressed":
         session.log(f"{label}: the scene cannot restrict a compressed source: the tiles' "
@@ -193,14 +199,21 @@ def _level_window(spec: SceneSpec, ny: int, nx: int, level: int,
         raise spec.error("region", f"{list(spec.region)} lies in the edge texels that level "
                                    f"{level} leaves out (its {ly} x {lx} texels cover "
                                    f"{ly * f} x {lx * f} of level 0)")
-    covered = [window[0] * f, window[1] * f, window[2] * f, window[3] * f]
-    if session is not None and covered != [y0, y1, x0, x1]:
-        cut = ", cut at the edge the level leaves out" if (covered[1] < y1
-                                                           or covered[3] < x1) else ""
+    if session is not None:
         asked = f"region {list(spec.region)}" if spec.region else f"the whole {ny} x {nx}"
+        _say_widened(session, asked, level, window, (y0, y1, x0, x1))
+    return window
+
+
+def _say_widened(session: Session, asked: str, level: int, window, wanted) -> None:
+    """Log it when the level-n ``window`` does not cover exactly the level-0 texels wanted."""
+    f = 2**level
+    covered = [c * f for c in window]
+    if covered != list(wanted):
+        cut = (", cut at the edge the level leaves out"
+               if covered[1] < wanted[1] or covered[3] < wanted[3] else "")
         session.log(f"scene: {asked} at level {level} is the level's texels {list(window)}, "
                     f"which cover {covered} of level 0 (whole {f} x {f} blocks{cut})")
-    return window
 
 
 def _pyramid_level(spec: SceneSpec, group, variable: str, session: Session) -> str | None:
@@ -327,11 +340,8 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
     f = 2**spec.level
     (h, w), (oy, ox) = spec.size, spec.origin
     window = (oy // f, -(-(oy + h) // f), ox // f, -(-(ox + w) // f))
-    covered = [c * f for c in window]
-    if covered != [oy, oy + h, ox, ox + w]:
-        session.log(f"scene: size {list(spec.size)} at origin {list(spec.origin)} and level "
-                    f"{spec.level} is the level's texels {list(window)}, which cover "
-                    f"{covered} of the level-0 surface (whole {f} x {f} blocks)")
+    _say_widened(session, f"size {list(spec.size)} at origin {list(spec.origin)}",
+                 spec.level, window, (oy, oy + h, ox, ox + w))
     n = group["corners"].shape[0]
     lattice = group.attrs.get("placement") == "lattice"
     placement = {"lattice": lattice, "tiles": n,
