@@ -1,0 +1,362 @@
+"""Do the borders of a synthesized texture stand out from its inside? Two measures per border.
+
+A periodic texture's wrap, the borders of a mosaic of corner tiles and the tile grid of a
+tiled synthesis are lines the eye finds when they differ from the rest of the texture. Given
+an image and its border lines (:class:`Borders`), every line gets two ratios, each against the
+image's *inside* (everything farther than ``reach`` from every line), so that 1 means "as
+good as the rest of this texture" and a bound holds per line, not on average:
+
+- **seam**: the mean absolute difference of the texel pairs across the line (mean over
+  channels) over the mean of all pairs in the same direction that cross no line (a texture
+  with vertical lines has large differences across columns and small ones across rows). It
+  sees a step or a line of texels that do not continue; it misses a pattern that breaks a
+  few texels away from the line, and a feathered blend that hides a break from neighbour
+  differences.
+- **structure**: patch coherence (the completeness term of bidirectional similarity, Simakov
+  et al. 2008; Texture Optimization's energy, Kwatra et al. 2005): the RMS distance of every
+  ``p x p`` patch of the image to its nearest patch of the sample. Patches that straddle a
+  break of the pattern (rows of bricks that do not continue, a mortar line doubled beside
+  another, a blend of two misaligned motifs) do not occur in the sample and lie far from
+  it; copied texture lies at 0. A line's figure is the mean over the patches centred within
+  ``reach`` of it, over the mean of the patches whose centres are farther than ``reach``
+  from every line. The inside of a quilted texture holds its ordinary patch cuts, so a ratio
+  near 1 says the borders are joined as well as the patches inside are.
+
+The nearest patches are found exactly on a PCA of the patches (scipy's k-d tree) and re-ranked
+at full dimension (``candidates`` per query). With 12 dimensions and 8 candidates the
+distances equal those of a 16-dimension faiss search re-ranking 4 (on the brick photo's
+quilts: 4% of patches a little farther, 8% nearer) at a quarter of its time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+PATCH = 16  # structure patches: larger than a mortar line or a thread, smaller than a block
+STRIDE = 3  # patch grid of the structure measure (texels)
+_BATCH = 4096  # queries (and sample rows) per batch: bounds the gathered patches' memory
+
+
+@dataclass(frozen=True)
+class Borders:
+    """Border lines of an image.
+
+    ``rows``: horizontal lines, each between texel rows ``y - 1`` and ``y``; ``cols`` the
+    same for vertical lines. With ``wrap`` the image is a torus (a periodic texture): line 0
+    is its wrap, between the last row (column) and the first. With ``region``
+    ``(y0, y1, x0, x1)`` only that part of the image is judged (a tile framed by its
+    neighbours, :meth:`framed`): the lines' segments along it, their sides within it, and its
+    inside.
+    """
+
+    rows: tuple[int, ...]
+    cols: tuple[int, ...]
+    wrap: bool = False
+    region: tuple[int, int, int, int] | None = None
+
+    @staticmethod
+    def periodic() -> Borders:
+        """The wrap of a periodic texture."""
+        return Borders((0,), (0,), wrap=True)
+
+    @staticmethod
+    def framed(tile: tuple[int, int], margin: int) -> Borders:
+        """A tile in the middle of a frame of ``margin`` texels: its four borders."""
+        th, tw = tile
+        return Borders((margin, margin + th), (margin, margin + tw),
+                       region=(margin, margin + th, margin, margin + tw))
+
+    def within(self, shape: tuple[int, int]) -> tuple[slice, slice]:
+        """The judged part of an image of ``shape``."""
+        y0, y1, x0, x1 = self.region or (0, shape[0], 0, shape[1])
+        return slice(y0, y1), slice(x0, x1)
+
+    def lines(self) -> list[tuple[str, int]]:
+        """Every line as ``("row", y)`` or ``("col", x)``."""
+        return [("row", y) for y in self.rows] + [("col", x) for x in self.cols]
+
+
+@dataclass(frozen=True)
+class BorderFigures:
+    """Seam and structure ratios of every border line (see the module), and the worst."""
+
+    lines: tuple[tuple[str, int], ...]
+    seam: tuple[float, ...]
+    structure: tuple[float, ...]
+
+    @property
+    def worst_seam(self) -> float:
+        """The largest seam ratio over the lines."""
+        return max(self.seam)
+
+    @property
+    def worst_structure(self) -> float:
+        """The largest structure ratio over the lines."""
+        return max(self.structure)
+
+    @property
+    def worst(self) -> float:
+        """The larger of the two worst ratios: what a bound on both must hold."""
+        return max(self.worst_seam, self.worst_structure)
+
+    def worst_line(self) -> str:
+        """The line with the largest ratio of either kind, e.g. ``"row 0 (structure 1.41)"``."""
+        kind, ratios = max((("seam", self.seam), ("structure", self.structure)),
+                           key=lambda kr: max(kr[1]))
+        k = int(np.argmax(ratios))
+        return f"{self.lines[k][0]} {self.lines[k][1]} ({kind} {ratios[k]:.2f})"
+
+
+def _offsets(centres: np.ndarray, line: int, n: int, wrap: bool) -> np.ndarray:
+    """Signed distance of centre lines (positions between texels) from a border line."""
+    d = centres - line
+    if wrap:
+        d = (d + n / 2) % n - n / 2
+    return d
+
+
+def _near(centres: np.ndarray, lines: tuple[int, ...], n: int, wrap: bool, reach: float
+          ) -> np.ndarray:
+    """Whether each centre lies within ``reach`` of some line."""
+    near = np.zeros(centres.shape, bool)
+    for line in lines:
+        near |= np.abs(_offsets(centres, line, n, wrap)) <= reach
+    return near
+
+
+def seam_ratios(image: np.ndarray, borders: Borders) -> tuple[float, ...]:
+    """Per line: mean absolute difference across it over the rest's, in its direction.
+
+    The rest: the pairs of the judged part that cross no line in the same direction
+    (horizontal lines: vertical pairs).
+    """
+    image = np.asarray(image, np.float64)
+    if image.ndim == 2:
+        image = image[..., None]
+    h, w = image.shape[:2]
+    if borders.wrap:
+        dy = np.abs(image - np.roll(image, 1, axis=0)).mean(-1)  # dy[y]: rows y - 1 and y
+        dx = np.abs(image - np.roll(image, 1, axis=1)).mean(-1)
+    else:
+        dy = np.pad(np.abs(np.diff(image, axis=0)).mean(-1), ((1, 0), (0, 0)),
+                    constant_values=np.nan)
+        dx = np.pad(np.abs(np.diff(image, axis=1)).mean(-1), ((0, 0), (1, 0)),
+                    constant_values=np.nan)
+    ys, xs = borders.within((h, w))
+    on_row = np.isin(np.arange(h), borders.rows)
+    on_col = np.isin(np.arange(w), borders.cols)
+    # pairs inside the judged part (dy[y] pairs rows y - 1, y: its first row's reach out),
+    # each direction on its own: a line is compared with the pairs that cross it the same way
+    inner_dy = dy[ys][1:][~on_row[ys][1:]][:, xs]
+    inner_dx = dx[:, xs][:, 1:][ys][:, ~on_col[xs][1:]]
+    scale_y, scale_x = (max(float(np.nanmean(p)), 1e-12) for p in (inner_dy, inner_dx))
+    return tuple([float(dy[y, xs].mean()) / scale_y for y in borders.rows]
+                 + [float(dx[ys, x].mean()) / scale_x for x in borders.cols])
+
+
+class PatchExemplar:
+    """The patches of a sample, searchable for the nearest patch of any image.
+
+    Parameters
+    ----------
+    sample
+        ``(h, w[, channels])`` the exemplar (e.g. quilting's reference image).
+    patch
+        Patch side ``p`` in texels.
+    dims
+        PCA dimensions of the exact search before re-ranking at full dimension.
+    candidates
+        Nearest patches in PCA space re-ranked per query.
+    """
+
+    def __init__(self, sample: np.ndarray, *, patch: int = PATCH, dims: int = 12,
+                 candidates: int = 8):
+        from scipy.spatial import cKDTree
+
+        sample = np.asarray(sample, np.float32)
+        if sample.ndim == 2:
+            sample = sample[..., None]
+        if min(sample.shape[:2]) < patch:
+            raise ValueError(f"the sample ({sample.shape[0]} x {sample.shape[1]}) is smaller "
+                             f"than a structure patch ({patch})")
+        self.patch, self.candidates = patch, candidates
+        self.windows = sliding_window_view(sample, (patch, patch), axis=(0, 1))
+        ny, nx = self.windows.shape[:2]
+        # the PCA basis from an evenly spread subset (deterministic: no random state)
+        step = max(1, int(np.sqrt(ny * nx / 4096)))
+        subset = self.windows[::step, ::step].reshape(-1, self.windows[0, 0].size)
+        self.mean = subset.mean(axis=0)
+        _, _, vt = np.linalg.svd(subset - self.mean, full_matrices=False)
+        self.basis = np.ascontiguousarray(vt[: min(dims, vt.shape[0])].T)
+        rows = max(1, _BATCH // nx)
+        self.tree = cKDTree(np.concatenate([
+            self._project(self.windows[y : y + rows].reshape(-1, self.mean.size))
+            for y in range(0, ny, rows)]))
+        self.width = nx
+        contrast = float(np.sqrt(np.mean((sample - sample.mean(axis=(0, 1))) ** 2)))
+        self.floor = 0.02 * contrast  # below this nothing is visible
+        self._repeat = None
+
+    @property
+    def own_repeat(self) -> float:
+        """How far the sample's patches lie from their nearest other patch (see below)."""
+        if self._repeat is None:
+            self._repeat = self._own_repeat()
+        return self._repeat
+
+    def _own_repeat(self, count: int = 1024) -> float:
+        """How far the sample's patches lie from their nearest other patch.
+
+        The median, over evenly spread patches, of the distance to the nearest patch that does
+        not overlap it (among the k-d tree's candidates).
+        """
+        ny, nx = self.windows.shape[:2]
+        p = self.patch
+        step = max(1, int(np.sqrt(ny * nx / count)))
+        ys, xs = (g.ravel() for g in np.mgrid[0:ny:step, 0:nx:step])
+        flat = self.windows[ys, xs].reshape(len(ys), -1)
+        k = min(4 * self.candidates, ny * nx)
+        _, found = self.tree.query(self._project(flat), k=k, workers=-1)
+        fy, fx = np.divmod(found.reshape(len(ys), k), self.width)
+        apart = (np.abs(fy - ys[:, None]) >= p) | (np.abs(fx - xs[:, None]) >= p)
+        diff = self.windows[fy, fx].reshape(len(ys), k, -1) - flat[:, None, :]
+        d = np.sqrt(np.einsum("qkd,qkd->qk", diff, diff) / flat.shape[1])
+        d = np.where(apart, d, np.inf).min(axis=1)
+        return float(np.median(d[np.isfinite(d)])) if np.isfinite(d).any() else 0.0
+
+    def _project(self, flat: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray((flat - self.mean) @ self.basis, np.float32)
+
+    def distances(self, queries: np.ndarray) -> np.ndarray:
+        """RMS distance of each flattened ``(channels, p, p)`` query patch to its nearest."""
+        out = np.empty(len(queries), np.float64)
+        for i in range(0, len(queries), _BATCH):
+            q = np.asarray(queries[i : i + _BATCH], np.float32)
+            _, found = self.tree.query(self._project(q), k=self.candidates, workers=-1)
+            found = found.reshape(len(q), self.candidates)
+            sy, sx = np.divmod(found, self.width)
+            near = self.windows[sy, sx].reshape(*found.shape, -1)
+            diff = near - q[:, None, :]
+            out[i : i + _BATCH] = np.einsum("qkd,qkd->qk", diff, diff).min(axis=1)
+        return np.sqrt(out / queries.shape[1])
+
+    def distance_map(self, image: np.ndarray, *, wrap: bool, stride: int = STRIDE
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nearest-patch distances of an image's patches on a grid of ``stride``.
+
+        Returns the ``(ny, nx)`` distances and the positions of the patches' centre lines
+        (rows, columns: between texel ``c - 1`` and ``c``). With ``wrap`` the image is a
+        torus and every position is a patch origin.
+        """
+        image = np.asarray(image, np.float32)
+        if image.ndim == 2:
+            image = image[..., None]
+        p = self.patch
+        h, w = image.shape[:2]
+        if wrap:
+            image = np.pad(image, ((0, p - 1), (0, p - 1), (0, 0)), mode="wrap")
+        windows = sliding_window_view(image, (p, p), axis=(0, 1))[::stride, ::stride]
+        ny, nx = windows.shape[:2]
+        d = np.empty((ny, nx))
+        rows = max(1, _BATCH // nx)
+        for y in range(0, ny, rows):
+            block = windows[y : y + rows]
+            d[y : y + rows] = self.distances(block.reshape(-1, block[0, 0].size)).reshape(
+                block.shape[:2])
+        cy = np.arange(ny) * stride + p / 2
+        cx = np.arange(nx) * stride + p / 2
+        if wrap:
+            cy, cx = cy % h, cx % w
+        return d, cy, cx
+
+
+def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
+                     reach: float, stride: int = STRIDE) -> tuple[float, ...]:
+    """Per line: the worse side's mean nearest-patch distance over the inside's mean.
+
+    A side of a line is the patches centred within ``reach`` of it on that side (one centred
+    on the line counts on both); the inside is the patches centred farther than ``reach`` from
+    every line. Measuring the sides on their own keeps a break on one side from being averaged
+    with a clean other side, and makes a tile's side of its borders depend only on the tile
+    and the texels within half a patch beyond them. For a quilted texture ``reach`` is half the
+    patch step: a side then holds one seam of patches per step, as the inside does, so equally
+    good seams give a ratio of 1. Means below :attr:`PatchExemplar.floor` (2% of the
+    sample's contrast, where nothing is visible) count as the floor. An inside that copies
+    the sample unchanged (a roller tile: its mean is below the floor) has no seams to compare
+    with; there a border is compared with :attr:`PatchExemplar.own_repeat`, how far the
+    sample's own patches lie from their nearest other one (how much its periods differ), at
+    least the floor.
+    """
+    h, w = np.shape(image)[:2]
+    d, cy, cx = exemplar.distance_map(image, wrap=borders.wrap, stride=stride)
+    ys, xs = borders.within((h, w))
+    in_y = (cy >= ys.start) & (cy <= ys.stop)  # centre lines within the judged part
+    in_x = (cx >= xs.start) & (cx <= xs.stop)
+    inside = ((~_near(cy, borders.rows, h, borders.wrap, reach) & in_y)[:, None]
+              & (~_near(cx, borders.cols, w, borders.wrap, reach) & in_x)[None, :])
+    if not inside.any():
+        raise ValueError(f"no patch of the {h} x {w} image lies farther than {reach} texels "
+                         "from every border: nothing to compare the borders with")
+    scale = float(d[inside].mean())
+    if scale <= exemplar.floor:
+        scale = max(exemplar.own_repeat, exemplar.floor)
+    out = []
+    for kind, line in borders.lines():
+        centres, n, values, inner, along = ((cy, h, d, in_y, in_x) if kind == "row"
+                                            else (cx, w, d.T, in_x, in_y))
+        offset = _offsets(centres, line, n, borders.wrap)
+        values = values[:, along]  # the line's segment along the judged part
+        sides = [values[(offset >= -reach) & (offset <= 0) & inner],
+                 values[(offset >= 0) & (offset <= reach) & inner]]
+        out.append(max(max(float(side.mean()), exemplar.floor) for side in sides if side.size)
+                   / scale)
+    return tuple(out)
+
+
+def border_figures(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
+                   reach: float, stride: int = STRIDE) -> BorderFigures:
+    """Both measures of every line of ``borders`` (see the module)."""
+    return BorderFigures(tuple(borders.lines()), seam_ratios(image, borders),
+                         structure_ratios(exemplar, image, borders, reach=reach,
+                                          stride=stride))
+
+
+def cell_figures(exemplar: PatchExemplar, image: np.ndarray, cells: np.ndarray, *,
+                 reach: float, stride: int = STRIDE) -> tuple[float, float]:
+    """Seam and structure ratios of the borders between the cells of a tiling.
+
+    For tilings whose borders are not straight lines (the roller's cuts on a sheared
+    lattice): ``cells`` ``(h, w, 2)`` names each texel's cell. Seam: the mean difference of
+    the pairs whose texels lie in different cells over that of the pairs within a cell, per
+    direction, the larger; structure: the mean nearest-patch distance of the patches centred
+    within ``reach`` of a texel of another cell over that of the others (with the floor and
+    the unchanged-copy rule of :func:`structure_ratios`), both sides together.
+    """
+    from scipy import ndimage
+
+    image = np.asarray(image, np.float64)
+    if image.ndim == 2:
+        image = image[..., None]
+    seams = []
+    for axis in (0, 1):
+        diff = np.abs(np.diff(image, axis=axis)).mean(-1)
+        across = np.any(np.diff(cells, axis=axis) != 0, axis=-1)
+        seams.append(float(diff[across].mean()) / max(float(diff[~across].mean()), 1e-12))
+    edge = np.zeros(cells.shape[:2], bool)
+    edge[:-1] |= np.any(cells[1:] != cells[:-1], -1)
+    edge[1:] |= np.any(cells[1:] != cells[:-1], -1)
+    edge[:, :-1] |= np.any(cells[:, 1:] != cells[:, :-1], -1)
+    edge[:, 1:] |= np.any(cells[:, 1:] != cells[:, :-1], -1)
+    distance = ndimage.distance_transform_edt(~edge)
+    d, cy, cx = exemplar.distance_map(image, wrap=False, stride=stride)
+    near = distance[np.ix_(np.minimum(cy.astype(int), image.shape[0] - 1),
+                           np.minimum(cx.astype(int), image.shape[1] - 1))] <= reach
+    if near.all() or not near.any():
+        raise ValueError("the cells leave no patch near a border, or none away from one")
+    scale = float(d[~near].mean())
+    if scale <= exemplar.floor:
+        scale = max(exemplar.own_repeat, exemplar.floor)
+    return max(seams), max(float(d[near].mean()), exemplar.floor) / scale
