@@ -65,6 +65,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "and peak memory), e.g. 256,1024,4096")
     parser.add_argument("--scaling-options", default="",
                         help="btf enlarge options of the scaling runs (with '=', as above)")
+    parser.add_argument("--tile-seams", type=int, default=0, metavar="N",
+                        help="also measure the tile borders of btf enlarge --tile 128 "
+                             "(wood 256^2, rank 16) for N seeds, each on its own "
+                             "(benchmarks/seams.py; 0: not)")
+    parser.add_argument("--tile-seams-only", action="store_true",
+                        help="measure the tile borders only (with --tile-seams, default 20)")
     parser.add_argument("--timing-rank", type=int, default=64,
                         help="rank of the timing run (wood 128^2 -> 256^2, one photo; 0: none)")
 
@@ -351,6 +357,10 @@ def run(args: argparse.Namespace) -> dict:
     """Every material and constraint set (see the module), the timing and scaling runs."""
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-enlarge-"))
     try:
+        tile_seams = _tile_seams(args, tmp)
+        if args.tile_seams_only:
+            return {"suite": SUITE, "tile_seams": tile_seams, "machine": machine(),
+                    "revision": git_revision()}
         materials = []
         for name in [m for m in args.materials.split(",") if m]:
             folder = tmp / name
@@ -365,10 +375,99 @@ def run(args: argparse.Namespace) -> dict:
         return {"suite": SUITE, "size": args.size, "sample": args.size // 2, "rank": args.rank,
                 "sampling": SAMPLING, "enlarge_options": args.enlarge_options,
                 "materials": materials, "timing": timing, "scaling": scaling,
-                "scaling_options": args.scaling_options, "machine": machine(),
-                "revision": git_revision()}
+                "scaling_options": args.scaling_options, "tile_seams": tile_seams,
+                "machine": machine(), "revision": git_revision()}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+TILE_SEAMS_SAMPLING = "abtf:6,4"
+
+
+def enlarge_tile_seams(seeds, *, tmp, material: str = "wood", size: int = 256,
+                       tile: int = 128, rank: int = 16, log=None) -> dict:
+    """Tile borders of a tiled enlargement (``btf enlarge --tile``), seed by seed.
+
+    A generated ``material`` of ``size^2`` texels (24 lights) stands for the truth; its central
+    half, compressed at ``rank``, is the sample, and its light closest to the normal the photo.
+    Each seed enlarges with ``--tile tile --seed S``; three lights of the result (log
+    luminance, one channel each) are measured along the tile grid's inner lines against the
+    tiles' insides, with the reach of the tiles' blend (their halo) and the sample's same
+    three layers as exemplar (:func:`tasks.seams.border_figures`).
+    """
+    import zarr
+
+    from benchmarks.seams import summary
+    from pipeline.graphs.enlarge import HALO
+    from tasks.seams import Borders, PatchExemplar, border_figures
+    from tasks.svd import reconstruct_layers
+
+    m, sample, svd, photo = (tmp / n for n in ("M.zarr", "S.zarr", "S_svd.zarr", "C.zarr"))
+    half, origin = size // 2, size // 4
+    _btf("generate", m, "--material", material, "--size", size, "--sampling", TILE_SEAMS_SAMPLING,
+         "--seed", 1)
+    _btf("crop", m, sample, "--region", f"{origin}:{origin + half},{origin}:{origin + half}")
+    _btf("compress", sample, svd, "--rank", rank)
+    theta = zarr.open_group(m, mode="r")["theta_light"][...]
+    _btf("crop", m, photo, "--light", int(np.argmin(theta)))
+    lights = np.linspace(0, len(theta) - 1, 3).astype(int)
+
+    def log_luminance(radiance: np.ndarray) -> np.ndarray:  # (lights, h, w, 3) -> (h, w, 3)
+        lum = radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        return np.moveaxis(np.log(np.maximum(lum, 0) + 1e-3), 0, -1)
+
+    exemplar = PatchExemplar(log_luminance(zarr.open_array(sample, path="radiance",
+                                                           mode="r")[0, lights]))
+    borders = Borders(tuple(range(tile, size, tile)), tuple(range(tile, size, tile)))
+    rows = []
+    for seed in seeds:
+        out = tmp / f"E{seed}.zarr"
+        start = time.perf_counter()
+        _btf("enlarge", svd, photo, out, "--tile", tile, "--seed", seed, "--overwrite")
+        seconds = time.perf_counter() - start
+        u, s, v, eps, _ = _factors(out)
+        image = log_luminance(np.stack([reconstruct_layers(u[0, li], s, v, eps=eps)
+                                        for li in lights]))
+        f = border_figures(exemplar, image, borders, reach=HALO * 4)
+        rows.append({"seed": seed, "failed": None, "seam": f.worst_seam,
+                     "structure": f.worst_structure, "worst": f.worst_line(),
+                     "seconds": seconds})
+        shutil.rmtree(out)
+        if log is not None:
+            log(f"enlarge --tile {tile} seed {seed}: seam {f.worst_seam:.2f} structure "
+                f"{f.worst_structure:.2f} ({f.worst_line()}), {seconds:.1f} s")
+    return {"material": material, "size": size, "tile": tile, "rank": rank, "seeds": rows,
+            **summary(rows, keys=("seam", "structure", "seconds"))}
+
+
+def _tile_seams(args, tmp: Path) -> dict | None:
+    import sys
+
+    seeds = args.tile_seams or (20 if args.tile_seams_only else 0)
+    if not seeds:
+        return None
+    (tmp / "tile_seams").mkdir()
+    return enlarge_tile_seams(range(seeds), tmp=tmp / "tile_seams",
+                              log=lambda m: print(m, file=sys.stderr))
+
+
+def tile_seams_report(t: dict | None) -> list[str]:
+    """The per-seed tile-border table."""
+    if not t:
+        return []
+
+    def cell(key):
+        s = t[key]
+        return f"{s['worst']:.2f} (seed {s['worst_seed']}) | {s['median']:.2f}"
+
+    return ["", f"Tile borders of `btf enlarge --tile {t['tile']}` ({t['material']} "
+                f"{t['size']}^2 from its central half at rank {t['rank']}, one photo), "
+                f"{len(t['seeds'])} seeds each measured on its own (`benchmarks/seams.py`: "
+                "three lights' log luminance; 1.00 = as good as the tiles' insides):", "",
+            "| measure | worst | median |", "|---|---|---|",
+            f"| seam across the tile grid | {cell('seam')} |",
+            f"| structure along it | {cell('structure')} |",
+            f"| enlarge seconds | {cell('seconds')} |"]
 
 
 def _num(x) -> str:
@@ -377,6 +476,8 @@ def _num(x) -> str:
 
 def report(result: dict) -> str:
     """Markdown tables for BENCHMARKS.md."""
+    if "materials" not in result:
+        return "\n".join(tile_seams_report(result["tile_seams"])).strip()
     options = f", {result['enlarge_options']}" if result["enlarge_options"] else ""
     lines = [f"Enlargement of the central {result['sample']}^2 of a {result['size']}^2 "
              f"ground truth ({result['sampling']}, rank {result['rank']}{options}); "
@@ -414,4 +515,4 @@ def report(result: dict) -> str:
             first = base["seconds"] / base["texels"] * 2**20
             lines.append(f"| {row['side']}^2 | {row['texels']} | {row['seconds']:.1f} | "
                          f"{per:.1f} | {per / first:.2f} | {row['peak_rss'] / 2**20:.0f} |")
-    return "\n".join(lines)
+    return "\n".join(lines + tile_seams_report(result.get("tile_seams")))

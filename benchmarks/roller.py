@@ -60,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lattices", type=int, default=400, metavar="N",
                         help="random lattices to detect (benchmarks.lattices; 0 skips; default "
                              "400)")
+    parser.add_argument("--seam-seeds", type=int, default=20, metavar="N",
+                        help="random lattices rolled into 3 tiles and laid with their seed, "
+                             "each measured on its own (benchmarks/seams.py; 0: none)")
+    parser.add_argument("--seams-only", action="store_true",
+                        help="measure the per-seed tile borders only")
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs of each timing; the fastest is kept (default 3)")
 
@@ -135,8 +140,14 @@ def _seams(store: Path, roller: Path, quilt: Path) -> dict:
 
 def run(args: argparse.Namespace) -> dict:
     """Analyse, tile, render and compare, with their references, in this run."""
+    from benchmarks.seams import roller_seams
     from pipeline.session import RuntimeOptions, Session
 
+    per_seed = roller_seams(range(args.seam_seeds),
+                            log=lambda m: print(m, file=sys.stderr)) if args.seam_seeds else None
+    if args.seams_only:
+        return {"suite": SUITE, "per_seed": per_seed, "machine": machine(),
+                "git": git_revision()}
     btf = btf_executable()
     detection = detection_rates(args.lattices, seed=1, threshold=0.5) if args.lattices else None
     if detection:
@@ -167,12 +178,38 @@ def run(args: argparse.Namespace) -> dict:
     return {"suite": SUITE, "material": args.material, "sampling": SAMPLING,
             "repeat": args.repeat, "analysis": analysis,
             "roller_cli": {"size": sizes[-1], "seconds": cli.seconds, "peak_rss": cli.peak_rss},
-            "rendering": rendering, "seams": seams, "detection": detection, "machine": machine(),
+            "rendering": rendering, "seams": seams, "per_seed": per_seed,
+            "detection": detection, "machine": machine(),
             "git": git_revision()}
+
+
+def per_seed_report(p: dict | None) -> list[str]:
+    """The per-seed tile-border table of :func:`benchmarks.seams.roller_seams`."""
+    if not p:
+        return []
+
+    def cell(key):
+        s = p[key]
+        return (f"{s['worst']:.2f} (seed {s['worst_seed']}: {s['worst_case']}) | "
+                f"{s['median']:.2f}")
+
+    failed = "; ".join(f"seed {s}: {why}" for s, why in p["failed"]) or "none"
+    return ["", f"Tile borders of the roller, seed by seed: {len(p['seeds'])} random lattices "
+                f"(`benchmarks/lattices.py`, drawn from the seed), {p['tiles']} tiles each, a "
+                f"{384}^2 surface laid with the seed; borders of the lattice cells against "
+                "their insides (`benchmarks/seams.py`; 1.00 = as good as the inside, which "
+                "copies the sample: there the sample's own period-to-period distance is the "
+                f"reference). Not rolled: {failed}.", "",
+            "| measure | worst (seed: texture) | median |", "|---|---|---|",
+            f"| seam across cell borders | {cell('seam')} |",
+            f"| structure along them | {cell('structure')} |",
+            f"| sharpness vs the sample (lowest) | {cell('sharpness')} |"]
 
 
 def report(result: dict) -> str:
     """Markdown tables of a result."""
+    if "analysis" not in result:
+        return "\n".join(per_seed_report(result["per_seed"])).strip()
     mib = 1 << 20
     lines = [f"`btf bench roller`: {result['material']} samples, {result['sampling']} "
              f"(24 lights, one view); best of {result['repeat']} runs.", "",
@@ -205,6 +242,7 @@ def report(result: dict) -> str:
               f"{s['roller']['all_pairs']:.2f} |",
               f"| quilting (periodic tile, defaults) | {s['quilt']['tile_border']:.2f} | "
               f"{s['quilt']['all_pairs']:.2f} |"]
+    lines += per_seed_report(result.get("per_seed"))
     if result.get("detection"):
         lines += ["", *detection_report(result["detection"])]
     return "\n".join(lines)

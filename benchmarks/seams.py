@@ -1,149 +1,280 @@
-"""Seams of quilted textures made from photos: wrap seams, tile borders and blur.
+"""Seams of quilted textures, seed by seed: what a user who quilts one seed gets.
 
-A photo (scikit-image ships ``brick``, ``gravel`` and ``grass``; generated materials by name)
+A texture (scikit-image's ``brick``, ``gravel``, ``grass`` and ``moon`` photos, their top-left
+256 x 256 texels; a random lattice of :mod:`benchmarks.lattices`; generated materials by name)
 becomes a three-layer reference image through three tone curves (``g``, ``sqrt g``, ``g^2``),
-as a user quilting a photo would. For each seed:
+as a user quilting a photo would, and is quilted as ``btf quilt`` does (the automatic block or
+a given one, the sample's lattice, the border check; :func:`tasks.corner_tiles.plan_first`).
+For every seed:
 
-- **wrap** (one corner type): the mean absolute difference of the texel pairs that meet across
-  the periodic texture's wrap (last column / first column, last row / first row), divided by the
-  mean over all neighbour pairs inside the texture;
-- **tile borders** (two corner types, 16 tiles): a 4 x 4 mosaic of corner-compatible tiles laid
-  by random corner types; pairs across tile borders against all pairs inside the mosaic;
-- **blur**: the texture's mean neighbour difference divided by the photo's (1 = as sharp).
+- **V = 1**: the periodic texture as the torus it is;
+- **V = 2**: a 4 x 4 mosaic of corner-compatible tiles laid by random corner types, itself
+  periodic, every tile measured framed by what its neighbours put within half a block of it;
 
-A single line of texels carries a lot of chance on a structured texture (a wrap that runs along
-a mortar line measures high without any defect), so the ratios are pooled over seeds: total
-difference across seams over all seeds divided by the pooled interior mean; the per-seed range
-is reported next to it.
+each border line's seam and structure ratios (:mod:`tasks.seams`, with the reach of the
+planner's check, half a patch step), the worst line of the texture or of any tile; and the
+sharpness, the texture's mean neighbour difference over the photo's (1 = as sharp). A seed
+whose plan fails the check (:class:`tasks.corner_tiles.SeamError`) is counted as failed.
+Per texture and setting the table gives the worst seed's figure, the median and which seed
+was worst: a pooled mean would say nothing about the texture a user gets.
 """
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
-PHOTOS = ("brick", "gravel", "grass")
+PHOTOS = ("brick", "gravel", "grass", "moon")
+SEEDS = 20
 
 
 def reference_of(name: str, size: int = 256) -> np.ndarray:
-    """The three-tone-curve reference image of a photo or a generated material (size^2 crop)."""
+    """The three-tone-curve reference image of a texture (see the module), ``size^2``."""
     if name in PHOTOS:
         from skimage import data
 
         g = getattr(data, name)().astype(np.float32) / 255.0
         if g.ndim == 3:
             g = g[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    elif name == "lattice":  # an oblique lattice of blobs with noise: nothing tuned on it
+        from benchmarks.lattices import random_lattice_texture
+
+        rng = np.random.default_rng(11)
+        case = random_lattice_texture(rng, motif="blobs", noise=0.1, gradient=0.0, low=20,
+                                      high=36)
+        while min(case.image.shape) < size:  # the first oblique lattice drawn that is large
+            case = random_lattice_texture(rng, motif="blobs", noise=0.1, gradient=0.0,
+                                          low=20, high=36)
+        g = case.image.astype(np.float32)
+        g = (g - g.min()) / max(float(np.ptp(g)), 1e-6)
     else:
         from tasks.materials import Material
 
         albedo = Material(name, seed=1).fields(0, 0, size, size).albedo
         g = (albedo @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
         g = (g - g.min()) / max(float(np.ptp(g)), 1e-6)
+    if min(g.shape) < size:
+        raise ValueError(f"{name} is smaller than {size} x {size}")
     g = g[:size, :size]
     return np.stack([g, np.sqrt(g), g * g], axis=-1)
 
 
-def _pairs(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean absolute differences of horizontal and vertical neighbour pairs (per pair)."""
-    return (np.abs(np.diff(img, axis=1)).mean(axis=-1), np.abs(np.diff(img, axis=0)).mean(axis=-1))
-
-
-def wrap_seam(tile: np.ndarray) -> tuple[float, float, int]:
-    """Sum of differences across the wrap, the interior mean, and the number of wrap pairs."""
-    dx, dy = _pairs(tile)
-    across = np.abs(tile[:, -1] - tile[:, 0]).mean(-1).sum() + np.abs(
-        tile[-1] - tile[0]).mean(-1).sum()
-    interior = (dx.sum() + dy.sum()) / (dx.size + dy.size)
-    return float(across), float(interior), tile.shape[0] + tile.shape[1]
-
-
-def mosaic_seams(tiles: list[np.ndarray], corners: np.ndarray, types: int, count: int,
-                 rng: np.random.Generator) -> tuple[float, float, int]:
-    """A ``count x count`` mosaic of corner-compatible tiles: sum across borders, interior mean,
-    border pairs."""
-    th, tw = tiles[0].shape[:2]
-    lookup = {tuple(c): k for k, c in enumerate(corners.tolist())}
-    grid = rng.integers(types, size=(count + 1, count + 1))
-    rows = []
-    for i in range(count):
-        row = [tiles[lookup[(grid[i, j], grid[i, j + 1], grid[i + 1, j], grid[i + 1, j + 1])]]
-               for j in range(count)]
-        rows.append(np.concatenate(row, axis=1))
-    image = np.concatenate(rows, axis=0)
-    dx, dy = _pairs(image)
-    bx = np.zeros(dx.shape, bool)
-    bx[:, tw - 1 :: tw] = True
-    by = np.zeros(dy.shape, bool)
-    by[th - 1 :: th] = True
-    across = dx[bx].sum() + dy[by].sum()
-    interior = (dx[~bx].sum() + dy[~by].sum()) / ((~bx).sum() + (~by).sum())
-    return float(across), float(interior), int(bx.sum() + by.sum())
-
-
 def neighbour_difference(img: np.ndarray) -> float:
-    dx, dy = _pairs(img)
+    """Mean absolute difference of horizontal and vertical neighbour pairs."""
+    dx = np.abs(np.diff(img, axis=1)).mean(axis=-1)
+    dy = np.abs(np.diff(img, axis=0)).mean(axis=-1)
     return float((dx.sum() + dy.sum()) / (dx.size + dy.size))
 
 
-def texture_seams(name: str, *, block: int | None, overlap: int | None, seeds: int,
-                  candidates: int = 5, tile_steps: int = 7, mosaic_seeds: int = 2) -> dict:
-    """Pooled wrap and tile-border seam ratios and blur of one texture (see module)."""
-    import time
+def mosaic(plan, count: int, rng: np.random.Generator) -> np.ndarray:
+    """A periodic ``count x count`` mosaic of corner-compatible tiles (random corner types)."""
+    types = int(plan.corners.max()) + 1
+    lookup = {tuple(c): k for k, c in enumerate(plan.corners.tolist())}
+    grid = rng.integers(types, size=(count, count))
+    grid = np.pad(grid, ((0, 1), (0, 1)), mode="wrap")  # the mosaic wraps: every tile framed
+    rows = [np.concatenate([plan.tiles[lookup[(grid[i, j], grid[i, j + 1], grid[i + 1, j],
+                                                grid[i + 1, j + 1])]].value
+                            for j in range(count)], axis=1) for i in range(count)]
+    return np.concatenate(rows, axis=0)
 
-    from tasks.quilting import QuiltParams, choose_block, plan_tiles
 
-    reference = reference_of(name, 512 if name in PHOTOS else 256)
-    why = "given"
-    if block is None:
-        block, auto_overlap, why = choose_block(reference)
-        overlap = auto_overlap if overlap is None else overlap
-    overlap = max(2, block // 4) if overlap is None else overlap
-    step = block - overlap
-    size = max(2, tile_steps) * step
-    own = neighbour_difference(reference)
-    wraps, per_seed, sharpness, seconds = [], [], [], 0.0
-    for seed in range(seeds):
-        start = time.perf_counter()
-        plan = plan_tiles(reference, QuiltParams(block, overlap, candidates, 1, (size, size)),
-                          seed=seed)
-        seconds += time.perf_counter() - start
-        tile = plan.tiles[0].value
-        across, interior, n = wrap_seam(tile)
-        wraps.append((across, interior, n))
-        per_seed.append(across / n / interior)
-        sharpness.append(interior / own)
-    wrap = sum(a for a, _, _ in wraps) / sum(n for _, _, n in wraps) / np.mean(
-        [i for _, i, _ in wraps])
-    borders, border_seeds = [], []
-    mosaic_size = max(2, tile_steps // 2) * step
-    for seed in range(mosaic_seeds):
-        plan = plan_tiles(reference, QuiltParams(block, overlap, candidates, 2,
-                                                 (mosaic_size, mosaic_size)), seed=seed)
-        across, interior, n = mosaic_seams([t.value for t in plan.tiles], plan.corners, 2, 4,
-                                           np.random.default_rng(seed))
-        borders.append((across, interior, n))
-        border_seeds.append(across / n / interior)
-    border = (sum(a for a, _, _ in borders) / sum(n for _, _, n in borders)
-              / np.mean([i for _, i, _ in borders])) if borders else float("nan")
-    return {"texture": name, "block": block, "overlap": overlap, "why": why, "tile": size,
-            "seeds": seeds, "wrap": float(wrap), "wrap_range": [min(per_seed), max(per_seed)],
-            "border": float(border), "border_range": ([min(border_seeds), max(border_seeds)]
-                                                      if border_seeds else None),
-            "sharpness": float(np.mean(sharpness)),
-            "sharpness_range": [min(sharpness), max(sharpness)],
-            "plan_seconds": seconds / max(seeds, 1)}
+def mosaic_figures(exemplar, image: np.ndarray, tile: tuple[int, int], margin: int,
+                   reach: float):
+    """Figures of every tile of a periodic mosaic, framed by ``margin`` texels of neighbours."""
+    from tasks.seams import Borders, border_figures
+
+    th, tw = tile
+    wrapped = np.pad(image, ((margin, margin), (margin, margin), (0, 0)), mode="wrap")
+    borders = Borders.framed(tile, margin)
+    out = []
+    for y in range(0, image.shape[0], th):
+        for x in range(0, image.shape[1], tw):
+            frame = wrapped[y : y + th + 2 * margin, x : x + tw + 2 * margin]
+            out.append(((y // th, x // tw), border_figures(exemplar, frame, borders,
+                                                           reach=reach)))
+    return out
+
+
+def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None,
+                 overlap: int | None, corners: int, seed: int, candidates: int = 5) -> dict:
+    """One seed of one texture and setting quilted and measured (see the module)."""
+    from tasks.corner_tiles import BorderCheck, SeamError, plan_first
+    from tasks.quilt_layout import commensurate_sizes, layouts, phase_lattice
+    from tasks.quilting import QuiltParams
+    from tasks.seams import Borders, border_figures
+
+    phase = phase_lattice(lattice, reference.shape[:2])
+
+    def params():
+        for layout in layouts(reference, block=block, overlap=overlap, tile=None,
+                              lattice=lattice):
+            tile = layout.tile
+            if corners > 1:  # a tile set of small tiles: three steps, or whole periods
+                side = 3 * layout.step
+                if lattice is not None:
+                    sizes = [commensurate_sizes(side, layout.step, a, lattice, count=1)
+                             for a in (0, 1)]
+                    tile = tuple(s[0] if s else side for s in sizes)
+                else:
+                    tile = (side, side)
+            yield QuiltParams(layout.block, layout.overlap, candidates, corners, tile,
+                              lattice=phase)
+
+    start = time.perf_counter()
+    try:
+        plan, qp = plan_first(reference, params(), seed=seed)
+    except SeamError as exc:
+        return {"seed": seed, "failed": str(exc), "seconds": time.perf_counter() - start}
+    seconds = time.perf_counter() - start
+    exemplar = BorderCheck(reference, qp).exemplar
+    reach = qp.step / 2
+    if corners == 1:
+        image = plan.tiles[0].value
+        figures = [((0, 0), border_figures(exemplar, image, Borders.periodic(), reach=reach))]
+    else:
+        image = mosaic(plan, 4, np.random.default_rng(seed))
+        figures = mosaic_figures(exemplar, image, qp.tile, qp.block // 2, reach)
+    where, worst = max(figures, key=lambda f: f[1].worst)
+    return {"seed": seed, "failed": None, "block": qp.block, "overlap": qp.overlap,
+            "tile": list(qp.tile), "seconds": seconds,
+            "seam": max(f.worst_seam for _, f in figures),
+            "structure": max(f.worst_structure for _, f in figures),
+            "worst": f"tile {where}: {worst.worst_line()}" if corners > 1 else worst.worst_line(),
+            "plans": max(c.plans for c in plan.checks),
+            "sharpness": neighbour_difference(image) / neighbour_difference(reference)}
+
+
+def texture_seams(name: str, *, block: int | None, seeds, corners: int = 1,
+                  candidates: int = 5, log=None) -> dict:
+    """Every seed of one texture and setting (see the module), and the summary."""
+    from tasks.quilt_layout import sample_lattice
+
+    reference = reference_of(name)
+    lattice = sample_lattice(reference)
+    overlap = None if block is None else block // 4
+    rows = []
+    for seed in seeds:
+        rows.append(seed_figures(name, reference, lattice, block=block, overlap=overlap,
+                                 corners=corners, seed=seed, candidates=candidates))
+        if log is not None:
+            r = rows[-1]
+            log(f"seams {name} block {block or 'auto'} V {corners} seed {seed}: "
+                + (f"FAILED {r['failed']}" if r["failed"] else
+                   f"seam {r['seam']:.2f} structure {r['structure']:.2f} ({r['worst']}), "
+                   f"{r['seconds']:.1f} s"))
+    ok = [r for r in rows if not r["failed"]]
+    return {"texture": name, "given_block": block, "corners": corners, "seeds": rows,
+            "blocks": sorted({(r["block"], r["overlap"], tuple(r["tile"])) for r in ok}),
+            **summary(rows)}
+
+
+LOWER_IS_WORSE = ("sharpness",)
+
+
+def summary(rows: list[dict], keys=("seam", "structure", "sharpness", "seconds")) -> dict:
+    """Worst, median and worst seed of each figure over the seeds that did not fail."""
+    ok = [r for r in rows if not r["failed"]]
+    out = {"failed": [(r["seed"], r["failed"]) for r in rows if r["failed"]]}
+    for key in keys:
+        if not ok:
+            out[key] = None
+            continue
+        values = [r[key] for r in ok]
+        worst = min if key in LOWER_IS_WORSE else max
+        pick = worst(range(len(ok)), key=lambda i: values[i])
+        out[key] = {"worst": values[pick], "median": float(np.median(values)),
+                    "worst_seed": ok[pick]["seed"]}
+    return out
 
 
 def seams_report(rows: list[dict]) -> list[str]:
-    """Markdown table of :func:`texture_seams` rows."""
-    lines = ["| texture | block / overlap | tile | wrap seam (pooled; per seed) | tile borders, "
-             "V = 2 (pooled; per seed) | sharpness vs photo (mean; range) | plan s |",
-             "|---|---|---|---|---|---|---|"]
+    """Markdown table of :func:`texture_seams` results."""
+    lines = ["| texture | block | V | seeds | failed | seam: worst (seed) / median | "
+             "structure: worst (seed) / median | sharpness: lowest / median | "
+             "plan s: worst / median |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        br = r["border_range"]
+        blocks = ", ".join(f"{b}/{o} ({t[0]}x{t[1]})" for b, o, t in r["blocks"])
+        given = "given" if r["given_block"] else "auto"
+
+        def cell(key, r=r):
+            s = r[key]
+            return "-" if s is None else (f"{s['worst']:.2f} ({s['worst_seed']}) / "
+                                          f"{s['median']:.2f}")
+
+        sharp = r["sharpness"]
         lines.append(
-            f"| {r['texture']} | {r['block']} / {r['overlap']} ({r['why']}) | {r['tile']}^2 | "
-            f"{r['wrap']:.2f} ({r['wrap_range'][0]:.2f}-{r['wrap_range'][1]:.2f}) | "
-            + (f"{r['border']:.2f} ({br[0]:.2f}-{br[1]:.2f})" if br else "-")
-            + f" | {r['sharpness']:.2f} ({r['sharpness_range'][0]:.2f}-"
-              f"{r['sharpness_range'][1]:.2f}) | {r['plan_seconds']:.1f} |")
+            f"| {r['texture']} | {blocks} {given} | {r['corners']} | {len(r['seeds'])} | "
+            f"{len(r['failed'])} | {cell('seam')} | {cell('structure')} | "
+            + ("-" if sharp is None else f"{sharp['worst']:.2f} / {sharp['median']:.2f}")
+            + " | " + ("-" if r["seconds"] is None else
+                       f"{r['seconds']['worst']:.1f} / {r['seconds']['median']:.1f}") + " |")
     return lines
+
+
+ROLLER_REGION = 384  # texels per side of the rendered roller surface
+
+
+def roller_seed(seed: int, *, tiles: int = 3) -> dict:
+    """A random lattice (benchmarks.lattices, drawn from ``seed``) rolled and measured.
+
+    The texture's own lattice is detected, ``tiles`` double toroidal tiles are planned on it
+    (:func:`tasks.roller.plan_roller`, its defaults), a ``ROLLER_REGION^2`` surface is laid
+    from them with the seed (:func:`tasks.placement.lattice_gather`), and the borders of its
+    lattice cells are measured against the cells' insides (:func:`tasks.seams.cell_figures`,
+    reach: half a structure patch): the roller's cuts are not straight lines.
+    """
+    from benchmarks.lattices import random_lattice_texture
+    from tasks.lattice import lattice_cells
+    from tasks.periodicity import detect_lattice
+    from tasks.placement import lattice_gather
+    from tasks.reference import luminance
+    from tasks.roller import RollerParams, plan_roller
+    from tasks.seams import PATCH, PatchExemplar, cell_figures
+
+    case = random_lattice_texture(np.random.default_rng(seed))
+    g = case.image.astype(np.float32)
+    g = (g - g.min()) / max(float(np.ptp(g)), 1e-6)
+    image = np.stack([g, np.sqrt(g), g * g], axis=-1)
+    lattice = detect_lattice(luminance(image.astype(np.float64)))
+    row = {"seed": seed, "case": case.describe(), "confidence": lattice.confidence}
+    if lattice.confidence < 0.5:
+        return {**row, "failed": "not periodic (confidence below 0.5)"}
+    start = time.perf_counter()
+    try:
+        plan = plan_roller(image, lattice.u, lattice.v, RollerParams(tiles=tiles))
+    except ValueError as exc:
+        return {**row, "failed": str(exc)}
+    seconds = time.perf_counter() - start
+    flat = image.reshape(-1, 3)
+    stored = np.einsum("tnk,tnkc->tnc", plan.weight, flat[np.maximum(plan.index, 0)])
+    stored = stored.reshape(tiles, *plan.tile_shape, 3)
+    n = ROLLER_REGION
+    surface = lattice_gather(stored, 0, 0, n, n, hnf=plan.hnf, basis=(plan.U, plan.V),
+                             representative=plan.representative, seed=seed)
+    cells = lattice_cells(0, 0, n, n, hnf=plan.hnf, basis=(plan.U, plan.V),
+                          representative=plan.representative)
+    seam, structure = cell_figures(PatchExemplar(image), surface, cells, reach=PATCH / 2)
+    return {**row, "failed": None, "seam": seam, "structure": structure, "seconds": seconds,
+            "tile": list(plan.tile_shape), "sharpness": neighbour_difference(surface)
+            / neighbour_difference(image)}
+
+
+def roller_seams(seeds, *, tiles: int = 3, log=None) -> dict:
+    """:func:`roller_seed` for every seed, and the summary (seeds whose lattice is not found
+    count as failed, with the reason)."""
+    rows = []
+    for seed in seeds:
+        rows.append(roller_seed(seed, tiles=tiles))
+        if log is not None:
+            r = rows[-1]
+            log(f"roller seed {seed} ({r['case']}): " + (
+                f"FAILED {r['failed']}" if r["failed"] else
+                f"seam {r['seam']:.2f} structure {r['structure']:.2f}"))
+    worst = summary(rows, keys=("seam", "structure", "sharpness"))
+    for key in ("seam", "structure", "sharpness"):
+        if worst[key] is not None:
+            worst[key]["worst_case"] = next(r["case"] for r in rows
+                                            if r["seed"] == worst[key]["worst_seed"])
+    return {"tiles": tiles, "seeds": rows, **worst}
+

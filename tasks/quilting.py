@@ -41,7 +41,6 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,13 +58,24 @@ FEATHER = 4.0  # the blend mask is blurred with sigma = overlap / FEATHER
 
 @dataclass(frozen=True)
 class QuiltParams:
-    """Block size, overlap, number of candidates, corner types and tile size (pixels)."""
+    """Block size, overlap, candidates, corner types, tile size (pixels) and border check.
+
+    ``max_seam``: the most a tile's borders may stand out from its inside (seam and structure
+    ratios, :class:`tasks.corner_tiles.BorderCheck`); ``attempts``: rounds of planning again
+    (:func:`tasks.corner_tiles.plan_tiles`); ``lattice``: the sample's periodicity vectors,
+    whose phase every corner patch then shares, so that strips between any two corner types
+    meet in phase.
+    """
 
     block: int = 32
     overlap: int = 8
     candidates: int = 5
     corners: int = 1
     tile: tuple[int, int] = (256, 256)
+    max_seam: float = 1.3
+    attempts: int = 12
+    # the sample's lattice (u, v), when it has one: corner patches share its phase
+    lattice: tuple[tuple[float, float], tuple[float, float]] | None = None
 
     def __post_init__(self):
         def refuse(name: str, message: str):
@@ -79,6 +89,12 @@ class QuiltParams:
             refuse("candidates", f"candidates must be at least 1, got {self.candidates}")
         if self.corners < 1:
             refuse("corners", f"corners must be at least 1, got {self.corners}")
+        if not self.max_seam > 0:
+            refuse("max_seam", f"max_seam must be positive, got {self.max_seam}")
+        if self.attempts < 1:
+            refuse("attempts", f"attempts must be at least 1, got {self.attempts}")
+        if self.lattice is not None and abs(np.linalg.det(np.asarray(self.lattice))) < 1:
+            refuse("lattice", f"lattice vectors must span a cell, got {self.lattice}")
         for n in self.tile:
             if n < 2 * self.step or n % self.step:
                 refuse("tile", f"tile size {self.tile} must be a multiple of block - overlap "
@@ -323,12 +339,13 @@ class Planner:
         return (self.flat[sy : sy + b, sx : sx + b],
                 self.reference[sy : sy + b, sx : sx + b])
 
-    def place(self, canvas: Canvas, name: str, y0: int, x0: int, border: str | None = None
-              ) -> Blend:
+    def place(self, canvas: Canvas, name: str, y0: int, x0: int, border: str | None = None,
+              allowed: np.ndarray | None = None) -> Blend:
         """Choose a patch for the window at ``(y0, x0)`` and blend it in along its best cut.
 
         ``border``: ``"row"``, ``"col"`` or ``"both"`` when a tile border will run through the
-        patch's middle row, column or both (see :func:`border_positions`).
+        patch's middle row, column or both (see :func:`border_positions`); ``allowed``: a mask
+        of the sample positions that may be chosen (all if none of them may).
         """
         b, o = self.params.block, self.params.overlap
         rows, cols = canvas.window(y0, x0, b, b)
@@ -338,8 +355,11 @@ class Planner:
         filled[np.ix_(rows - y0, cols - x0)] = canvas.filled[np.ix_(rows, cols)]
         target = np.zeros((b, b, self.reference.shape[-1]), np.float32)
         target[np.ix_(rows - y0, cols - x0)] = canvas.value[np.ix_(rows, cols)]
-        source = self.search.choose(target, filled, self.params.candidates, self.rng,
-                                    None if border is None else self.borders[border])
+        mask = None if border is None else self.borders[border]
+        if allowed is not None:
+            both = allowed if mask is None else mask & allowed
+            mask = both if both.any() else mask
+        source = self.search.choose(target, filled, self.params.candidates, self.rng, mask)
         index, value = self._patch(source)
         inner = np.zeros((b, b), bool)
         inner[o : b - o, o : b - o] = True
@@ -367,145 +387,3 @@ class Planner:
         canvas.place(index, value, alpha, y0, x0)
         self.placements.append(Placement(name, (y0, x0), source, flags))
         return Blend(index, value, alpha, y0, x0)
-
-
-@dataclass
-class TileSet:
-    """A planned tile set: one canvas per tile and the corner types of each."""
-
-    tiles: list[Canvas]
-    corners: np.ndarray  # (tiles, 4) corner types: top-left, top-right, bottom-left, bottom-right
-    placements: list[Placement]
-    sample_shape: tuple[int, int]
-    # the edge strips by ("horizontal" | "vertical", first corner type, last corner type)
-    strips: dict[tuple[str, int, int], Canvas] = field(default_factory=dict)
-
-
-def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
-    """Plan a corner tile set (``V^4`` tiles; one periodic tile for ``V = 1``), see the module.
-
-    Parameters
-    ----------
-    reference
-        Reference image ``(h, w, channels)`` (float).
-    params
-        Block, overlap, candidates, corner types and tile size.
-    seed
-        Seed of every random choice: the same seed gives the same plan.
-    """
-    reference = np.asarray(reference, np.float32)
-    if reference.ndim == 2:
-        reference = reference[..., None]
-    planner = Planner(reference, params, np.random.default_rng(seed))
-    b, s = params.block, params.step
-    th, tw = params.tile
-    half = b // 2
-    channels = reference.shape[-1]
-    v = params.corners
-    # Phase 1: one corner patch per corner type
-    corner_canvas = []
-    for c in range(v):
-        canvas = Canvas.empty(b, b, channels)
-        planner.place(canvas, f"corner {c}", 0, 0, border="both")
-        corner_canvas.append(canvas)
-    # Phases 2 and 3: one edge strip per ordered pair of corner types
-    def strip(a: int, z: int, length: int, horizontal: bool) -> tuple[Canvas, list[Blend]]:
-        shape = (b, length + b) if horizontal else (length + b, b)
-        canvas = Canvas.empty(*shape, channels)
-        ends = [(0, 0), (0, length)] if horizontal else [(0, 0), (length, 0)]
-        for (y, x), c in zip(ends, (a, z), strict=True):
-            canvas.copy_from(corner_canvas[c], slice(y, y + b), slice(x, x + b),
-                             slice(None), slice(None))
-        name = f"{'horizontal' if horizontal else 'vertical'} edge {a}{z}"
-        blends = [planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
-                                border="row" if horizontal else "col")
-                  for k in range(1, length // s)]
-        return canvas, blends
-
-    horizontal = {(a, z): strip(a, z, tw, True)[0] for a in range(v) for z in range(v)}
-    vertical = {(a, z): strip(a, z, th, False) for a in range(v) for z in range(v)}
-    # the tile rows of its corner quadrants, where vertical edge patches are blended again
-    quadrants = np.r_[0:half, th - half : th]
-    # Phase 4: every tile, from its edges inwards
-    tiles, corners = [], []
-    for tl, tr, bl, br in itertools.product(range(v), repeat=4):
-        canvas = Canvas.empty(th, tw, channels)
-        top, bottom = horizontal[(tl, tr)], horizontal[(bl, br)]
-        (left, left_blends), (right, right_blends) = vertical[(tl, bl)], vertical[(tr, br)]
-        canvas.copy_from(top, slice(0, half), slice(0, tw), slice(half, b),
-                         slice(half, half + tw))
-        canvas.copy_from(bottom, slice(th - half, th), slice(0, tw), slice(0, half),
-                         slice(half, half + tw))
-        canvas.copy_from(left, slice(half, th - half), slice(0, half), slice(b, th),
-                         slice(half, b))
-        canvas.copy_from(right, slice(half, th - half), slice(tw - half, tw), slice(b, th),
-                         slice(0, half))
-        for blend in left_blends:
-            blend.again(canvas, -half, -half, quadrants)
-        for blend in right_blends:
-            blend.again(canvas, -half, tw - half, quadrants)
-        for i in range(1, th // s):
-            for j in range(1, tw // s):
-                planner.place(canvas, f"tile {tl}{tr}{bl}{br}", i * s - half, j * s - half)
-        if not canvas.filled.all():
-            raise AssertionError("a tile was left with empty pixels")
-        tiles.append(canvas)
-        corners.append((tl, tr, bl, br))
-    strips = {("horizontal", *k): c for k, c in horizontal.items()}
-    strips.update({("vertical", *k): c for k, (c, _) in vertical.items()})
-    return TileSet(tiles, np.array(corners, np.int64), planner.placements,
-                   reference.shape[:2], strips)
-
-
-DEFAULT_BLOCK = 32
-BLOCK_RANGE = (16, 96)
-
-
-def overlap_for(block: int) -> int:
-    """The default overlap of a block: a quarter of it, even, at least 2."""
-    return max(2, 2 * round(block / 8))
-
-
-def choose_block(reference: np.ndarray, min_confidence: float = 0.5,
-                 tile: tuple[int, int] | None = None) -> tuple[int, int, str]:
-    """Block and overlap for a reference image, and why (when the user gave no block size).
-
-    A periodic texture gets blocks of one lattice period (the longer reduced periodicity
-    vector, rounded to an even size, within 16-96 texels and at most half the sample), so
-    every patch holds a whole cell and overlaps compare like with like; the overlap is a
-    quarter of the block. Without a clear lattice (confidence below ``min_confidence``) the
-    default 32 / 8 stays. With a given ``tile`` size, the block nearest the period whose step
-    divides the tile is taken (within a quarter of the period), else the default. The lattice
-    is detected on the central 512 x 512 texels at most.
-    """
-    from tasks.periodicity import detect_lattice
-    from tasks.reference import luminance
-
-    reference = np.asarray(reference, np.float64)
-    gray = luminance(reference) if reference.ndim == 3 and reference.shape[-1] == 3 else (
-        reference.mean(axis=-1) if reference.ndim == 3 else reference)
-    default = (DEFAULT_BLOCK, overlap_for(DEFAULT_BLOCK))
-    if min(gray.shape) < 32:
-        return (*default, "the sample is too small to detect a lattice: the default")
-    crop = tuple(slice(max(0, (n - 512) // 2), max(0, (n - 512) // 2) + 512) for n in gray.shape)
-    lattice = detect_lattice(gray[crop])
-    if lattice.confidence < min_confidence:
-        return (*default, f"no clear lattice (confidence {lattice.confidence:.2f}): the default")
-    period = max(lattice.lengths_px)
-    low, high = BLOCK_RANGE[0], min(BLOCK_RANGE[1], min(gray.shape) // 2)
-    wanted = int(np.clip(2 * round(period / 2), low, high))
-    wanted -= wanted % 2
-    why = f"one period of the detected lattice ({period:.1f} px, confidence " \
-          f"{lattice.confidence:.2f})"
-    if tile is None:
-        return wanted, overlap_for(wanted), why
-    reach = max(2, int(period / 4))
-    for block in sorted(range(max(low, wanted - reach), min(high, wanted + reach) + 1, 2),
-                        key=lambda b: (abs(b - wanted), b)):
-        step = block - overlap_for(block)
-        if all(n % step == 0 and n >= 2 * step for n in tile):
-            return block, overlap_for(block), why + (
-                f", the nearest whose step divides the tile {tile[0]} x {tile[1]}"
-                if block != wanted else "")
-    return (*default, why + f", but no block near it divides the tile {tile[0]} x {tile[1]}: "
-                            "the default")

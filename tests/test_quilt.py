@@ -17,12 +17,15 @@ from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
 from tasks.canvas import TERMS
+from tasks.corner_tiles import plan_tiles
 from tasks.materials import Material
 from tasks.prescription import apply, check, to_csr
-from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut, plan_tiles
+from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.svd import reconstruct_layers
 
 PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
+# the invariants of a plan hold for any plan: no planning again for the border bound
+ANY_SEAM = {"max_seam": 1e9}
 
 
 def _sample(tmp_path_factory, material, size=72, sampling="abtf:4,2"):
@@ -121,7 +124,8 @@ def test_a_tiles_border_bands_are_exactly_its_edge_strips(steps):
     half, band, step = block // 2, block // 2 - overlap, block - overlap
     size = step * steps
     reference = np.random.default_rng(5).random((50, 54, 3))
-    plan = plan_tiles(reference, QuiltParams(block, overlap, 3, 2, (size, size)), seed=2)
+    plan = plan_tiles(reference, QuiltParams(block, overlap, 3, 2, (size, size), **ANY_SEAM),
+                      seed=2)
     for tile, (tl, tr, bl, br) in zip(plan.tiles, plan.corners, strict=True):
         pieces = [
             (np.s_[:band, :], plan.strips[("horizontal", tl, tr)], np.s_[half : half + band,
@@ -249,12 +253,12 @@ def test_no_two_neighbouring_output_pixels_join_two_patches_without_a_blend(smoo
         reference = ndimage.gaussian_filter(reference, (3, 3, 0))
     step = block - overlap
     for seed in range(3):
-        one = plan_tiles(reference, QuiltParams(block, overlap, 4, 1, (step * steps,) * 2),
-                         seed=seed).tiles[0]
+        one = plan_tiles(reference, QuiltParams(block, overlap, 4, 1, (step * steps,) * 2,
+                                                **ANY_SEAM), seed=seed).tiles[0]
         bad, total = _hard_seams(one.index, one.weight, 64, wrap=True)
         assert total > 0 and bad == 0, (seed, bad, total)
-        two = plan_tiles(reference, QuiltParams(block, overlap, 4, 2, (step * steps,) * 2),
-                         seed=seed)
+        two = plan_tiles(reference, QuiltParams(block, overlap, 4, 2, (step * steps,) * 2,
+                                                **ANY_SEAM), seed=seed)
         types = np.random.default_rng(seed).integers(0, 2, (4, 4))
         bad, total = _hard_seams(*_tile_mosaic(two, types), 64, wrap=False)
         assert total > 0 and bad == 0, (seed, bad, total)
@@ -311,8 +315,8 @@ def test_prescription_rows_sum_to_one_and_index_valid_sample_pixels(block_overla
     step = block - overlap
     rng = np.random.default_rng(seed)
     reference = rng.random((block + 2 + seed % 7, block + 5, 3)).astype(np.float32)
-    plan = plan_tiles(reference, QuiltParams(block, overlap, 3, corners, (step * steps,) * 2),
-                      seed=seed)
+    plan = plan_tiles(reference, QuiltParams(block, overlap, 3, corners, (step * steps,) * 2,
+                                             **ANY_SEAM), seed=seed)
     samples = reference.shape[0] * reference.shape[1]
     for tile in plan.tiles:
         assert check(tile.index.reshape(-1, TERMS), tile.weight.reshape(-1, TERMS),
@@ -618,7 +622,7 @@ def test_light_sums_of_blocks_combine_to_the_sums_over_all_lights():
 
 def test_the_block_size_follows_the_detected_period():
     from benchmarks.lattices import random_lattice_texture, stochastic_texture
-    from tasks.quilting import choose_block
+    from tasks.quilt_layout import choose_block
 
     rng = np.random.default_rng(5)
     for _ in range(6):
@@ -666,27 +670,87 @@ def test_border_positions_match_a_direct_count():
     assert 0 < fit["both"].mean() < 1
 
 
-@pytest.mark.parametrize("texture,block", [("brick", 48), ("brick", None), ("tiles", None),
-                                           ("fabric", None)])
-def test_structured_textures_wrap_and_meet_without_rougher_borders(texture, block):
-    """The bug report: a brick photo quilted with wrap seams 1.66x the interior's differences.
+SEEDS = st.integers(0, 2**31 - 1)
 
-    Borders are pooled over seeds (one border line is mostly chance on a structured texture;
-    see benchmarks/seams.py). The issue also asks for sharpness within 10% of the photo's;
-    on these structured textures single seeds reach 0.85-1.07 (BENCHMARKS.md), so the bound
-    here is 0.85.
-    """
+
+def _worst_seed(texture: str, block: int | None, corners: int, seeds) -> list[dict]:
     from benchmarks.seams import texture_seams
 
-    r = texture_seams(texture, block=block, overlap=None if block is None else block // 4,
-                      seeds=3, mosaic_seeds=1)
-    assert r["wrap"] <= 1.3 and r["border"] <= 1.3, r
-    assert r["sharpness"] >= 0.85, r
+    result = texture_seams(texture, block=block, seeds=seeds, corners=corners)
+    assert not result["failed"], result
+    return result
+
+
+@pytest.mark.parametrize("texture,block,corners", [
+    ("brick", 48, 1),  # the bug report's setting
+    ("brick", None, 1),
+    ("brick", 48, 2),
+    ("fabric", None, 1),  # a lattice with an 11.3-texel period: tiles of whole periods
+])
+@settings(max_examples=2, deadline=None, derandomize=False)
+@given(seed=SEEDS)
+def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners, seed):
+    """The bug report: one brick seed in six left a mortar line along the wrap, others a band
+    where the rows of bricks break. Every border is measured on its own, for seeds the test
+    did not pick: seams across it and the structure along it (tasks/seams.py) at most 1.3x
+    the tile's inside, measured on the texture (V = 1) or a mosaic of tiles (V = 2)."""
+    r = _worst_seed(texture, block, corners, [seed])
+    assert r["seam"]["worst"] <= 1.3 and r["structure"]["worst"] <= 1.3, r["seeds"]
+    assert r["sharpness"]["worst"] >= 0.8, r["seeds"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("texture", ["brick", "gravel", "grass", "moon", "lattice", "tiles"])
+@pytest.mark.parametrize("corners", [1, 2])
+def test_twenty_seeds_keep_every_border_within_the_bound(texture, corners):
+    seeds = np.random.default_rng().integers(0, 2**31 - 1, 20).tolist()
+    r = _worst_seed(texture, None, corners, seeds)
+    assert r["seam"]["worst"] <= 1.3 and r["structure"]["worst"] <= 1.3, r["seeds"]
+
+
+def test_the_border_check_refuses_a_tile_that_breaks_the_pattern():
+    from benchmarks.seams import reference_of
+    from tasks.corner_tiles import BorderCheck
+
+    reference = reference_of("tiles")  # strictly periodic, 64 texels
+    params = QuiltParams(64, 16, 5, 1, (192, 192))
+    plan = plan_tiles(reference, params, seed=3)
+    check = BorderCheck(reference, params)
+    assert check.figures(plan.tiles[0], *[None] * 4).worst <= 1.3
+    broken = plan.tiles[0]
+    broken.value[:, 96:] = np.roll(broken.value[:, 96:], 20, axis=0)  # half shifted by 20 rows
+    assert check.figures(broken, *[None] * 4).worst_structure > 1.3
+
+
+def test_the_default_tile_holds_whole_periods_and_a_given_one_that_does_not_is_named(
+        tmp_path, btf):
+    from benchmarks.seams import reference_of
+    from tasks.quilt_layout import default_tile, sample_lattice, tile_mismatch
+
+    lattice = sample_lattice(reference_of("fabric"))  # a centred lattice, 16 texels along axes
+    tile = default_tile((256, 256), 12, lattice)
+    assert max(tile_mismatch(tile, lattice)) <= 1.0 and all(n % 12 == 0 for n in tile), tile
+    assert max(tile_mismatch((252, 252), lattice)) > 1.0  # the previous default: 15.75 periods
+    tiles = generate_store(tmp_path / "tiles.zarr", "--material", "tiles", "--size", "160",
+                           "--scale", "40", "--sampling", "abtf:4,2", "--chunk", "32")
+    result = btf("quilt", tiles, tmp_path / "q.zarr", "--block", "40", "--overlap", "10",
+                 "--size", "150,150", "--max-seam", "10")
+    assert result.code == 0, result.err
+    assert "out of phase with the sample's lattice" in result.err
+    assert "sizes that close: 120,120" in result.err
+
+
+def test_a_plan_that_cannot_pass_stops_with_the_tile_and_its_figure(tmp_path, btf, samples):
+    out = tmp_path / "q.zarr"
+    result = btf("quilt", samples["stone"], out, *PARAMS, "--max-seam", "0.3")
+    assert result.code == 1
+    assert "tile 0000: after" in result.err and "stands out" in result.err
+    assert "bound 0.3" in result.err and not out.exists()
 
 
 def test_the_automatic_block_fits_a_given_tile_size():
     from benchmarks.lattices import random_lattice_texture
-    from tasks.quilting import choose_block
+    from tasks.quilt_layout import choose_block
 
     case = random_lattice_texture(np.random.default_rng(2), motif="blobs", noise=0.0,
                                   gradient=0.0, low=39, high=41)

@@ -25,7 +25,17 @@ from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.tileset import TileSet
 from tasks.canvas import TERMS
-from tasks.quilting import QuiltParams, choose_block, overlap_for, plan_tiles
+from tasks.corner_tiles import plan_first
+from tasks.quilt_layout import (
+    commensurate_sizes,
+    default_tile,
+    layouts,
+    overlap_for,
+    phase_lattice,
+    sample_lattice,
+    tile_mismatch,
+)
+from tasks.quilting import QuiltParams
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +59,10 @@ class QuiltStageParams:
         None, metavar="H,W", help="tile size in texels, multiples of B - O (default: the "
                                   "sample's size rounded down to such a multiple)")
     seed: int = option(0, metavar="S", help="seed of the random choices")
+    max_seam: float = option(
+        1.3, metavar="R", help="the most any tile border may stand out from the tile's inside "
+                               "(seam and structure ratios; tiles are planned again until "
+                               "they pass, a bounded number of times, else quilt stops)")
     weights: str = option("1,0.5,0.5", metavar="D,H,R", help=WEIGHTS_HELP)
     view: int | None = option(None, metavar="J",
                               help="view for the reference image (default: closest to normal)")
@@ -64,22 +78,28 @@ class QuiltStageParams:
         if self.size is not None and len(self.size) not in (1, 2):
             raise ParamError("size", f"expected H,W or N, got {self.size}")
         check_seed(self.seed)
+        if not self.max_seam > 0:
+            raise ParamError("max_seam", f"must be positive, got {self.max_seam}")
         if self.block is not None:  # the planner's own checks, under this stage's names
-            self.quilt_params((max(self.block, 1) * 64,) * 2, self.block, self.overlap)
+            overlap = overlap_for(self.block) if self.overlap is None else self.overlap
+            self.quilt_params(self.block, overlap, self.tile_shape(
+                (max(self.block, 1) * 64,) * 2, self.block - overlap))
+
+    @property
+    def tile(self) -> tuple[int, int] | None:
+        """The given tile size, if any."""
+        return None if self.size is None else (self.size[0], self.size[-1])
 
     def tile_shape(self, sample: tuple[int, int], step: int) -> tuple[int, int]:
-        """The tile size for a sample of the given size."""
-        if self.size is None:
-            return tuple(max(2 * step, (n // step) * step) for n in sample)
-        return (self.size[0], self.size[-1])
+        """The tile size for a sample of the given size (without its lattice: for plans)."""
+        return self.tile or default_tile(sample, step, None)
 
-    def quilt_params(self, sample: tuple[int, int], block: int, overlap: int | None
-                     ) -> QuiltParams:
-        """The planner's parameters for a sample of the given size and the block."""
-        overlap = overlap_for(block) if overlap is None else overlap
+    def quilt_params(self, block: int, overlap: int, tile: tuple[int, int],
+                     lattice=None) -> QuiltParams:
+        """The planner's parameters."""
         try:
-            return QuiltParams(block, overlap, self.candidates, self.corners,
-                               self.tile_shape(sample, block - overlap))
+            return QuiltParams(block, overlap, self.candidates, self.corners, tile,
+                               max_seam=self.max_seam, lattice=lattice)
         except ParamError as exc:
             raise ParamError({"tile": "size"}.get(exc.name, exc.name), exc.message) from None
 
@@ -97,37 +117,12 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
                        f"than a block ({params.block})")
     maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
                                    view=params.view, session=session)
-    block, overlap = params.block, params.overlap
-    if block is None:
-        tile = None if params.size is None else (params.size[0], params.size[-1])
-        block, auto_overlap, why = choose_block(maps.reference, tile=tile)
-        overlap = auto_overlap if overlap is None else overlap
-        session.log(f"quilt: block {block}, overlap {overlap}: {why}")
-        if min(sample) < block:
-            raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
-                           f"than a block ({block}); give a smaller --block")
-    try:
-        qp = params.quilt_params(sample, block, overlap)
-    except ParamError as exc:  # with the automatic block: name the option to give
-        raise BTFError(f"--{exc.name} (with --block {block}): {exc.message}") from None
-    need = qp.plan_bytes(sample, layers.sizes["channel"])
-    available = psutil.virtual_memory().available
-    if need > 0.8 * available:
-        raise BTFError(f"{params.store}: planning {qp.corners ** 4} tiles of {qp.tile[0]} x "
-                       f"{qp.tile[1]} texels needs about {need / 2**30:.1f} GiB, more than the "
-                       f"{available / 2**30:.1f} GiB available: use fewer --corners or a "
-                       "smaller --size")
-    session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
-                f"texels on the {sample[0]} x {sample[1]} reference image (about "
-                f"{need / 2**20:.0f} MiB)")
-    try:
-        plan = plan_tiles(maps.reference, qp, seed=params.seed)
-    except ValueError as exc:
-        raise BTFError(f"{params.store}: {exc}") from None
+    plan, qp = _plan(params, maps.reference, sample, layers.sizes["channel"], session)
     attrs = {
         "source": "quilt",
         "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
                   "weights": list(parse_weights(params.weights)), "reference_view": view},
+        "border_check": {"bound": qp.max_seam, "tiles": [c.to_dict() for c in plan.checks]},
         "corner_types": qp.corners,
         "seed": params.seed,
         "placements": [{"canvas": p.canvas, "window": list(p.window),
@@ -144,3 +139,73 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     del plan  # the canvases' values and the strips are not needed any more
     return write_tileset(tiles, params.out, source=params.store, session=session,
                          label="quilt", overwrite=params.overwrite, needs=needs)
+
+
+def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels: int,
+          session: Session):
+    """The tile set's plan and its parameters: the first layout whose borders pass."""
+    lattice = sample_lattice(reference)
+    if lattice is not None:
+        session.log(f"quilt: the sample repeats every {lattice.lengths_px[0]:.1f} and "
+                    f"{lattice.lengths_px[1]:.1f} texels (confidence {lattice.confidence:.2f})")
+
+    def candidates():
+        for layout in layouts(reference, block=params.block, overlap=params.overlap,
+                              tile=params.tile, lattice=lattice):
+            if min(sample) < layout.block:
+                raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is "
+                               f"smaller than a block ({layout.block})"
+                               + ("; give a smaller --block" if params.block is None else ""))
+            if layout.why != "given":
+                session.log(f"quilt: block {layout.block}, overlap {layout.overlap}: "
+                            f"{layout.why}")
+            try:
+                qp = params.quilt_params(layout.block, layout.overlap, layout.tile,
+                                         phase_lattice(lattice, sample))
+            except ParamError as exc:  # with the automatic block: name the option to give
+                raise BTFError(f"--{exc.name} (with --block {layout.block}): {exc.message}"
+                               ) from None
+            _check_phase(params, qp, lattice, session)
+            _check_memory(params, qp, sample, channels, session)
+            yield qp
+
+    try:
+        plan, qp = plan_first(reference, candidates(), seed=params.seed,
+                              on_failure=lambda exc: session.log(f"quilt: {exc}"))
+    except ValueError as exc:  # SeamError too: the last layout's
+        raise BTFError(f"{params.store}: {exc}") from None
+    worst = max(plan.checks, key=lambda c: c.figures.worst)
+    session.log(f"quilt: every tile border within {qp.max_seam}x of its tile's inside "
+                f"(worst {worst.tile}: {worst.figures.worst_line()}; up to "
+                f"{max(c.plans for c in plan.checks)} plan(s) of a tile's interior)")
+    return plan, qp
+
+
+def _check_phase(params: QuiltStageParams, qp: QuiltParams, lattice, session: Session):
+    """Warn when a given tile size is out of phase with the sample's lattice."""
+    if lattice is None or params.tile is None:
+        return
+    mismatch = tile_mismatch(qp.tile, lattice)
+    if max(mismatch) <= 1.0:
+        return
+    sizes = [commensurate_sizes(n, qp.step, axis, lattice) for axis, n in enumerate(qp.tile)]
+    hint = (f"; sizes that close: {sizes[0][0]},{sizes[1][0]}" if sizes[0] and sizes[1]
+            else "")
+    session.log(f"quilt: warning: a {qp.tile[0]} x {qp.tile[1]} tile is out of phase with "
+                f"the sample's lattice by {mismatch[0]:.1f} x {mismatch[1]:.1f} texels, so its "
+                f"borders break the pattern and may not pass the border check{hint}")
+
+
+def _check_memory(params: QuiltStageParams, qp: QuiltParams, sample: tuple[int, int],
+                  channels: int, session: Session) -> None:
+    """Refuse a plan that cannot fit in the memory available."""
+    need = qp.plan_bytes(sample, channels)
+    available = psutil.virtual_memory().available
+    if need > 0.8 * available:
+        raise BTFError(f"{params.store}: planning {qp.corners ** 4} tiles of {qp.tile[0]} x "
+                       f"{qp.tile[1]} texels needs about {need / 2**30:.1f} GiB, more than the "
+                       f"{available / 2**30:.1f} GiB available: use fewer --corners or a "
+                       "smaller --size")
+    session.log(f"quilt: planning {qp.corners ** 4} tile(s) of {qp.tile[0]} x {qp.tile[1]} "
+                f"texels on the {sample[0]} x {sample[1]} reference image (about "
+                f"{need / 2**20:.0f} MiB)")

@@ -1,0 +1,381 @@
+"""Corner tile sets from quilting's pieces, every tile's borders checked (paper 003, 2.4).
+
+:mod:`tasks.quilting` places patches; this module plans a whole tile set with them: one corner
+patch per corner type, one edge strip per ordered pair of types and direction, then every tile
+from its four strips inwards (see :mod:`tasks.quilting` for the geometry).
+
+**Why a check.** A tile's interior is filled row by row from its top-left, so its last row and
+column of patches must join the bottom and right strips, planned before it, as well as the
+patches above and to the left. On a structured texture no sample window may fit all of that:
+on scikit-image's brick photo one plan in three (block 48) left a band along the bottom or
+right border where the vertical mortar lines of the interior and of the strip do not meet,
+and re-planning the interior alone with new random choices rarely helped (the strip, not the
+interior, decides what can join it). So every tile is measured once planned
+(:class:`BorderCheck`: the seam and structure ratios of :mod:`tasks.seams` on the tile framed
+by the outer halves of its strips, i.e. what its neighbours show there), and while its worst
+border stands out more than ``max_seam`` times its inside:
+
+1. its interior is planned again from another random stream, up to ``attempts`` times;
+2. if none passes, the strip along its worst border is planned again from another stream
+   (the corner patches stay), and so is every tile that uses that strip; at most
+   ``attempts`` plans per strip.
+
+The best plan of a tile is kept; when a tile's best still exceeds the bound, planning stops
+with :class:`SeamError` naming the tile, its worst border and the figure. Every stream is
+derived from the seed and the piece's name, so the same seed gives the same tile set.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from tasks.canvas import Canvas
+from tasks.periodicity import Lattice
+from tasks.quilt_layout import in_phase
+from tasks.quilting import Blend, Placement, Planner, QuiltParams
+from tasks.seams import PATCH, BorderFigures, Borders, PatchExemplar, border_figures
+
+HORIZONTAL, VERTICAL = "horizontal", "vertical"
+
+
+@dataclass(frozen=True)
+class TileCheck:
+    """How a tile's borders compare with its inside, and the interiors planned until then."""
+
+    tile: str
+    plans: int
+    figures: BorderFigures
+    bound: float
+
+    @property
+    def passed(self) -> bool:
+        """Whether both ratios of every border are within the bound."""
+        return self.figures.worst <= self.bound
+
+    def to_dict(self) -> dict:
+        """JSON-able record (store attrs)."""
+        f = self.figures
+        return {"tile": self.tile, "plans": self.plans, "seam": round(f.worst_seam, 4),
+                "structure": round(f.worst_structure, 4), "worst": f.worst_line()}
+
+
+class SeamError(ValueError):
+    """No plan of a tile kept its borders within the bound."""
+
+    def __init__(self, check: TileCheck, bound: float):
+        super().__init__(
+            f"{check.tile}: after {check.plans} plans of its interior, its best border still "
+            f"stands out {check.figures.worst:.2f}x from its inside (worst: "
+            f"{check.figures.worst_line()}; bound {bound}); try another seed, more "
+            "candidates or another block size, or allow more with a larger bound")
+        self.check = check
+
+
+class BorderCheck:
+    """Seam and structure ratios of a planned tile's borders (:mod:`tasks.seams`).
+
+    A periodic tile (``V = 1``) is measured as the torus it is. A tile of a larger set is
+    measured framed by the halves of its four edge strips that lie beyond its borders: its
+    side of every border sees the tile and, within half a structure patch beyond, the strip
+    its neighbours share; their sides are theirs to pass. Either way each side of a border is
+    compared with the tile's inside, the patches whose centres lie more than half a block
+    from every border. Structure patches are ``min(16, block)`` texels, compared with the
+    reference image's own.
+    """
+
+    def __init__(self, reference: np.ndarray, params: QuiltParams):
+        self.half = params.block // 2
+        self.reach = params.step / 2
+        self.periodic = params.corners == 1
+        self.exemplar = PatchExemplar(reference, patch=min(PATCH, params.block))
+
+    def frame(self, tile: Canvas, top: Canvas, bottom: Canvas, left: Canvas, right: Canvas
+              ) -> np.ndarray:
+        """The tile's values framed by the outer halves of its edge strips."""
+        h = self.half
+        th, tw = tile.shape
+        out = np.empty((th + 2 * h, tw + 2 * h, tile.value.shape[-1]), np.float32)
+        out[:h] = top.value[:h]  # horizontal strips span the corner patches at both ends
+        out[h + th :] = bottom.value[h:]
+        out[h : h + th, :h] = left.value[h : h + th, :h]
+        out[h : h + th, h + tw :] = right.value[h : h + th, h:]
+        out[h : h + th, h : h + tw] = tile.value
+        return out
+
+    def figures(self, tile: Canvas, top: Canvas, bottom: Canvas, left: Canvas,
+                right: Canvas) -> BorderFigures:
+        """Both ratios of the tile's borders (periodic: its wrap, rows then columns)."""
+        if self.periodic:
+            return border_figures(self.exemplar, tile.value, Borders.periodic(),
+                                  reach=self.reach)
+        return border_figures(self.exemplar, self.frame(tile, top, bottom, left, right),
+                              Borders.framed(tile.shape, self.half), reach=self.reach)
+
+
+@dataclass
+class TileSet:
+    """A planned tile set: one canvas per tile and the corner types of each."""
+
+    tiles: list[Canvas]
+    corners: np.ndarray  # (tiles, 4) corner types: top-left, top-right, bottom-left, bottom-right
+    placements: list[Placement]
+    sample_shape: tuple[int, int]
+    # the edge strips by ("horizontal" | "vertical", first corner type, last corner type)
+    strips: dict[tuple[str, int, int], Canvas] = field(default_factory=dict)
+    checks: list[TileCheck] = field(default_factory=list)  # per tile
+
+    @property
+    def worst(self) -> float:
+        """The largest border ratio over the tiles."""
+        return max(c.figures.worst for c in self.checks)
+
+
+@dataclass
+class _Piece:
+    """A planned canvas and the placements that made it."""
+
+    canvas: Canvas
+    placements: list[Placement]
+    blends: list[Blend] = field(default_factory=list)
+
+
+@dataclass
+class _Tile:
+    """A tile's best plan so far and its check."""
+
+    piece: _Piece
+    check: TileCheck
+
+    @property
+    def passed(self) -> bool:
+        return self.check.passed
+
+
+class _TileSetPlanner:
+    """The pieces of one tile set, each planned from a random stream of its own.
+
+    A piece's stream is ``(seed, kind, its key, generation)``: planning a piece again takes
+    the next generation, so a retry never repeats a plan and the same seed repeats them all.
+    """
+
+    KINDS: ClassVar[dict[str, int]] = {"corner": 0, HORIZONTAL: 1, VERTICAL: 2, "tile": 3}
+
+    def __init__(self, reference: np.ndarray, params: QuiltParams, seed: int):
+        self.params, self.seed = params, seed
+        self.planner = Planner(reference, params, np.random.default_rng(seed))
+        self.channels = reference.shape[-1]
+        self.check = BorderCheck(reference, params)
+        v = range(params.corners)
+        self.types = list(itertools.product(v, repeat=4))
+        self.strip_keys = [(d, a, z) for d in (HORIZONTAL, VERTICAL) for a in v for z in v]
+        self.generation: dict[tuple, int] = {}
+        self.plans = [0] * len(self.types)  # interiors planned, per tile
+        self.corners: list[_Piece] = []
+        self.strips: dict[tuple[str, int, int], _Piece] = {}
+        self.tiles: dict[int, _Tile] = {}
+
+    def _plan(self, key: tuple, place, canvas: Canvas) -> _Piece:
+        """Plan one piece on ``canvas`` with the next stream of ``key``."""
+        generation = self.generation.get(key, 0)
+        self.generation[key] = generation + 1
+        self.planner.rng = np.random.default_rng(
+            (self.seed, self.KINDS[key[0]], *key[1:], generation))
+        first = len(self.planner.placements)
+        blends = place(canvas)
+        placed = self.planner.placements[first:]
+        del self.planner.placements[first:]
+        return _Piece(canvas, placed, blends or [])
+
+    def plan_all(self) -> None:
+        """Corner patches (phase 1) and edge strips (phases 2, 3), all of them again."""
+        b = self.params.block
+        self.corners, phase = [], None
+        for c in range(self.params.corners):
+            self.corners.append(self._plan(("corner", c), lambda canvas, c=c, phase=phase: [
+                self.planner.place(canvas, f"corner {c}", 0, 0, border="both",
+                                   allowed=phase)], Canvas.empty(b, b, self.channels)))
+            if self.params.lattice is not None and phase is None:
+                u, v = self.params.lattice
+                phase = in_phase(self.planner.search.valid,
+                                 self.corners[0].placements[0].source, Lattice(u, v, 1.0))
+        for key in self.strip_keys:
+            self.plan_strip(key)
+        self.tiles = {}
+
+    def plan_strip(self, key: tuple[str, int, int]) -> None:
+        """Edge strip ``key`` (phases 2 and 3) again; the tiles along it must be planned again."""
+        direction, a, z = key
+        b, s = self.params.block, self.params.step
+        horizontal = direction == HORIZONTAL
+        length = self.params.tile[1] if horizontal else self.params.tile[0]
+        canvas = Canvas.empty(*((b, length + b) if horizontal else (length + b, b)),
+                              self.channels)
+        ends = [(0, 0), (0, length)] if horizontal else [(0, 0), (length, 0)]
+        for (y, x), c in zip(ends, (a, z), strict=True):
+            canvas.copy_from(self.corners[c].canvas, slice(y, y + b), slice(x, x + b),
+                             slice(None), slice(None))
+        name = f"{direction} edge {a}{z}"
+
+        def place(canvas):
+            return [self.planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
+                                       border="row" if horizontal else "col")
+                    for k in range(1, length // s)]
+
+        self.strips[key] = self._plan(key, place, canvas)
+        for number, types in enumerate(self.types):
+            if key in self.tile_strips(types):
+                self.tiles.pop(number, None)
+
+    def tile_strips(self, types: tuple[int, int, int, int]) -> list[tuple[str, int, int]]:
+        """The strips along a tile's top, bottom, left and right borders."""
+        tl, tr, bl, br = types
+        return [(HORIZONTAL, tl, tr), (HORIZONTAL, bl, br), (VERTICAL, tl, bl),
+                (VERTICAL, tr, br)]
+
+    def fill(self, number: int) -> _Piece:
+        """Phase 4: tile ``number`` from its edge strips inwards."""
+        b, s = self.params.block, self.params.step
+        th, tw = self.params.tile
+        half = b // 2
+        types = self.types[number]
+        top, bottom, left, right = (self.strips[k] for k in self.tile_strips(types))
+        canvas = Canvas.empty(th, tw, self.channels)
+        canvas.copy_from(top.canvas, slice(0, half), slice(0, tw), slice(half, b),
+                         slice(half, half + tw))
+        canvas.copy_from(bottom.canvas, slice(th - half, th), slice(0, tw), slice(0, half),
+                         slice(half, half + tw))
+        canvas.copy_from(left.canvas, slice(half, th - half), slice(0, half), slice(b, th),
+                         slice(half, b))
+        canvas.copy_from(right.canvas, slice(half, th - half), slice(tw - half, tw),
+                         slice(b, th), slice(0, half))
+        # the corner quadrants: vertical edge patches blended again (see tasks.quilting)
+        quadrants = np.r_[0:half, th - half : th]
+        for blend in left.blends:
+            blend.again(canvas, -half, -half, quadrants)
+        for blend in right.blends:
+            blend.again(canvas, -half, tw - half, quadrants)
+        name = "tile " + "".join(map(str, types))
+
+        def place(canvas):
+            for i in range(1, th // s):
+                for j in range(1, tw // s):
+                    self.planner.place(canvas, name, i * s - half, j * s - half)
+            if not canvas.filled.all():
+                raise AssertionError("a tile was left with empty pixels")
+
+        self.plans[number] += 1
+        return self._plan(("tile", number), place, canvas)
+
+    def plan_tile(self, number: int, attempts: int) -> _Tile:
+        """A tile's interior, planned until its borders pass, at most ``attempts`` times."""
+        strips = [self.strips[k].canvas for k in self.tile_strips(self.types[number])]
+        best = None
+        for _ in range(attempts):
+            piece = self.fill(number)
+            figures = self.check.figures(piece.canvas, *strips)
+            if best is None or figures.worst < best[1].worst:
+                best = (piece, figures)
+            if figures.worst <= self.params.max_seam:
+                break
+        name = "tile " + "".join(map(str, self.types[number]))
+        check = TileCheck(name, self.plans[number], best[1], self.params.max_seam)
+        return _Tile(best[0], check)
+
+    def worst_strip(self, number: int) -> tuple[str, int, int]:
+        """The strip along the tile's border with the largest ratio of either kind."""
+        figures = self.tiles[number].check.figures
+        worst = int(np.argmax(np.maximum(figures.seam, figures.structure)))
+        strips = self.tile_strips(self.types[number])
+        # a periodic tile's lines are its wrap: rows (its top = bottom strip), columns
+        return strips[2 * worst] if len(figures.lines) == 2 else strips[worst]
+
+    def result(self, reference_shape: tuple[int, int]) -> TileSet:
+        """The tile set as planned (every tile planned)."""
+        n = len(self.types)
+        placements = [p for c in self.corners for p in c.placements]
+        placements += [p for k in self.strip_keys for p in self.strips[k].placements]
+        placements += [p for i in range(n) for p in self.tiles[i].piece.placements]
+        return TileSet([self.tiles[i].piece.canvas for i in range(n)],
+                       np.array(self.types, np.int64), placements, reference_shape,
+                       {k: self.strips[k].canvas for k in self.strip_keys},
+                       [self.tiles[i].check for i in range(n)])
+
+
+INTERIOR_ATTEMPTS = 3  # plans of a tile's interior along one set of strips
+STRIP_ATTEMPTS = 3  # plans of a strip before the whole tile set is planned again
+
+
+def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
+    """Plan a corner tile set (``V^4`` tiles; one periodic tile for ``V = 1``), see the module.
+
+    Parameters
+    ----------
+    reference
+        Reference image ``(h, w, channels)`` (float).
+    params
+        Block, overlap, candidates, corner types, tile size and the border check's bound
+        (``max_seam``) and budget (``attempts``: rounds of planning again).
+    seed
+        Seed of every random choice: the same seed gives the same plan.
+
+    Raises
+    ------
+    SeamError
+        When no round kept every tile within ``params.max_seam`` (see the module).
+    """
+    reference = np.asarray(reference, np.float32)
+    if reference.ndim == 2:
+        reference = reference[..., None]
+    plan = _TileSetPlanner(reference, params, seed)
+    best: TileSet | None = None
+    strip_plans: dict[tuple, int] = {}
+    plan.plan_all()
+    for round_ in range(params.attempts):
+        for number in range(len(plan.types)):
+            if number not in plan.tiles:
+                plan.tiles[number] = plan.plan_tile(number, INTERIOR_ATTEMPTS)
+        result = plan.result(reference.shape[:2])
+        if best is None or result.worst < best.worst:
+            best = result
+        failed = [n for n, t in plan.tiles.items() if not t.passed]
+        if not failed:
+            return result
+        if round_ + 1 == params.attempts:
+            break
+        # plan again the strip along each failed tile's worst border (and the tiles along
+        # it); a strip planned too often: the whole set, from new corner patches
+        offending = sorted({plan.worst_strip(n) for n in failed})
+        if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
+            plan.plan_all()
+            strip_plans = {}
+            continue
+        for key in offending:
+            plan.plan_strip(key)
+            strip_plans[key] = strip_plans.get(key, 1) + 1
+    worst = max(best.checks, key=lambda c: c.figures.worst)
+    raise SeamError(worst, params.max_seam)
+
+
+def plan_first(reference: np.ndarray, params: Iterable[QuiltParams], *, seed: int,
+               on_failure=None) -> tuple[TileSet, QuiltParams]:
+    """The first of ``params`` (e.g. :func:`tasks.quilt_layout.layouts`) whose plan passes.
+
+    ``on_failure(error)`` is called with the :class:`SeamError` of each one that does not;
+    when none passes, the last error is raised.
+    """
+    failure = None
+    for qp in params:
+        try:
+            return plan_tiles(reference, qp, seed=seed), qp
+        except SeamError as exc:
+            failure = exc
+            if on_failure is not None:
+                on_failure(exc)
+    if failure is None:
+        raise ValueError("no layout to plan with")
+    raise failure
