@@ -88,13 +88,15 @@ def _planning(store: Path, args, session) -> tuple[dict, object, object]:
     from pipeline.stages.reference import compute_reference
     from pipeline.stores import open_layers
     from pipeline.stores.base import RADIANCE
-    from tasks.quilting import QuiltParams, plan_tiles
+    from tasks.corner_tiles import plan_tiles
+    from tasks.quilting import QuiltParams
 
     maps, view = compute_reference(store, weights=(1.0, 0.5, 0.5), view=None, session=session)
     sample = maps.reference.shape[:2]
     step = args.block - args.overlap
+    # one plan and its border check, no planning again: the same work on every layer
     params = QuiltParams(args.block, args.overlap, args.candidates, 1,
-                         tuple((n // step) * step for n in sample))
+                         tuple((n // step) * step for n in sample), max_seam=1e9)
     seconds, plan = fastest(args.repeat, lambda: plan_tiles(maps.reference, params, seed=0))
     layers = open_layers(store)[RADIANCE].data[view].compute()
     main = None

@@ -38,7 +38,7 @@ Choices where the paper is not specific:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -63,6 +63,8 @@ class RollerParams:
     sigma: float = 1.0
     border: int = 4
     ramp: int = 4
+    max_seam: float = 1.3
+    attempts: int = 16
 
     def __post_init__(self):
         def refuse(name: str, message: str):
@@ -76,6 +78,9 @@ class RollerParams:
             refuse("band", f"band must be at least 1, got {self.band}")
         if not 0.25 <= self.sigma <= 8:
             refuse("sigma", f"sigma must be between 0.25 and 8, got {self.sigma}")
+        if not self.max_seam > 0 or self.attempts < 1:
+            refuse("max_seam", f"max_seam must be positive and attempts at least 1, got "
+                               f"{self.max_seam} and {self.attempts}")
         if self.border < 3 * self.sigma or self.ramp < 1:
             refuse("border", f"border must be at least 3 sigma = {3 * self.sigma:g} (the blend "
                              "across a cut stays inside it) and ramp at least 1")
@@ -96,6 +101,7 @@ class RollerPlan:
     weight: np.ndarray  # (tiles, h * w, TERMS) float32
     representative: np.ndarray  # (h, w, 2) int64, position in the cut tile relative to origin
     periods: tuple[int, int] = (1, 1)
+    check: tuple[float, float] | None = None  # seam and structure of its borders (see below)
 
     @property
     def tile_shape(self) -> tuple[int, int]:
@@ -145,15 +151,28 @@ def _lattice_shifts(u, v, reach: int = 6) -> list[tuple[int, int]]:
     return sorted(out, key=lambda d: (out[d], d))
 
 
-def choose_periods(shape, u, v, params: RollerParams) -> tuple[int, int]:
-    """``(a, b)`` for a large rhomboid, at most a quarter of the sample, that fits.
+DRIFT = 0.2  # texels: tile vectors this close to whole periods leave no visible jog
 
-    Among those, the largest ``area * sqrt(short side / long side)``: large but not elongated.
+
+def choose_periods(shape, u, v, params: RollerParams) -> tuple[int, int]:
+    """The preferred ``(a, b)`` of :func:`period_candidates`."""
+    return period_candidates(shape, u, v, params)[0]
+
+
+def period_candidates(shape, u, v, params: RollerParams) -> list[tuple[int, int]]:
+    """``(a, b)`` for large rhomboids, at most a quarter of the sample, that fit, best first.
+
+    The tile vectors are ``a u``, ``b v`` rounded to whole texels; the rounding is the drift
+    the cuts must absorb each tile (a jog in every line of a noiseless pattern: a checkerboard
+    at 0.5 texel measured 3.7x its sample's own period-to-period distance along the cuts).
+    Among those that fit and are at least a quarter the size of the largest (by ``area *
+    sqrt(short side / long side)``: large but not elongated), the ones whose drift is at most
+    :data:`DRIFT` texels (else the least drift), and among those the largest.
     """
     lu, lv = math.hypot(*u), math.hypot(*v)
     limit = shape[0] * shape[1] / 4.0
     shifts = [(0, 0), *_lattice_shifts(u, v)[: 4 * (params.tiles - 1)]]
-    best = None
+    candidates = []
     for a in range(1, int(max(shape) / lu) + 2):
         for b in range(1, int(max(shape) / lv) + 2):
             U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
@@ -165,14 +184,19 @@ def choose_periods(shape, u, v, params: RollerParams) -> tuple[int, int]:
             if len(ys) == 0 or len(xs) == 0:
                 continue
             sides = sorted((math.hypot(*U), math.hypot(*V)))
-            key = (area * math.sqrt(sides[0] / sides[1]), area)  # large, not too elongated
-            if best is None or key > best[0]:
-                best = (key, (a, b))
-    if best is None:
+            drift = max(math.hypot(*(np.asarray(U) - a * np.asarray(u))),
+                        math.hypot(*(np.asarray(V) - b * np.asarray(v))))
+            candidates.append((area * math.sqrt(sides[0] / sides[1]), area, drift, (a, b)))
+    if not candidates:
         raise ValueError(f"the sample ({shape[0]} x {shape[1]}) is too small for one period "
                          f"u = {tuple(round(c, 1) for c in u)}, v = "
                          f"{tuple(round(c, 1) for c in v)} plus the cut bands")
-    return best[1]
+    largest = max(c[0] for c in candidates)
+    ranked = sorted((c for c in candidates if c[0] >= largest / 4),
+                    key=lambda c: (max(c[2] - DRIFT, 0.0), -c[0], -c[1]))
+    # then the smaller ones, largest first: a gradient-lit sample's periods differ less nearby
+    ranked += sorted((c for c in candidates if c[0] < largest / 4), key=lambda c: -c[0])
+    return [c[3] for c in ranked]
 
 
 def _overlap_error(img: np.ndarray, shift) -> np.ndarray:
@@ -246,16 +270,82 @@ def _feather(frac: np.ndarray, cut: np.ndarray, along: np.ndarray, width: float,
     return main.astype(np.int64), other.astype(np.int64), alpha
 
 
+class RollerSeamError(ValueError):
+    """No tile of the periods tried kept its borders within the bound."""
+
+
 def plan_roller(image: np.ndarray, u, v, params: RollerParams) -> RollerPlan:
-    """Plan the tile set on ``image`` (``(y, x, channel)``) for periodicity vectors ``u``, ``v``."""
+    """Plan the tile set on ``image`` (``(y, x, channel)``) for periodicity vectors ``u``, ``v``.
+
+    Every tile planned is checked (:func:`border_check`); while its borders stand out more
+    than ``params.max_seam`` times what the sample has there (seam) or its own
+    period-to-period variation (structure), the next periods of :func:`period_candidates`
+    are tried, at most ``params.attempts`` (given ``periods``: only those). The first that
+    passes is returned; when none does, :class:`RollerSeamError` names the best and its
+    figures.
+    """
+    from tasks.seams import PatchExemplar
+
     img = np.asarray(image, np.float64)
     if img.ndim == 2:
         img = img[..., None]
-    shape = img.shape[:2]
     if min(math.hypot(*u), math.hypot(*v)) < 2.0:
         raise ValueError(f"the periodicity vectors {tuple(u)} and {tuple(v)} must be at least "
                          "2 texels long")
-    a, b = params.periods or choose_periods(shape, u, v, params)
+    periods = ([params.periods] if params.periods else
+               period_candidates(img.shape[:2], u, v, params)[: params.attempts])
+    exemplar = PatchExemplar(img.astype(np.float32))
+    best = None
+    for ab in periods:
+        plan = _plan(img, u, v, ab, params)
+        plan = replace(plan, check=border_check(img, plan, exemplar))
+        if best is None or max(plan.check) < max(best.check):
+            best = plan
+        if max(plan.check) <= params.max_seam:
+            return plan
+    raise RollerSeamError(
+        f"after {len(periods)} tile size(s), the best tile ({best.periods[0]} x "
+        f"{best.periods[1]} periods) still has borders standing out {max(best.check):.2f}x "
+        f"from the sample's own variation (seam {best.check[0]:.2f}, structure "
+        f"{best.check[1]:.2f}; bound {params.max_seam}): the sample may not be periodic "
+        "enough (an illumination gradient, a drifting lattice); try btf quilt, other "
+        "--periods, or allow more with a larger --max-seam")
+
+
+CHECK_REGION = (128, 512)  # texels per side of the surface a tile is checked on
+
+
+def border_check(image: np.ndarray, plan: RollerPlan, exemplar) -> tuple[float, float]:
+    """Seam and structure of a tile set's borders (:func:`tasks.seams.cell_figures`).
+
+    Tile 0 (every tile has its borders) is laid over a surface of about two tiles per side
+    and the borders of its lattice cells measured: the seam against the sample's pairs at
+    the same places, the structure against its own period-to-period variation.
+    """
+    from tasks.placement import lattice_gather
+    from tasks.seams import PATCH, cell_figures
+
+    flat = image.reshape(-1, image.shape[-1])
+    stored = np.einsum("nk,nkc->nc", plan.weight[0], flat[np.maximum(plan.index[0], 0)])
+    stored = stored.reshape(1, *plan.tile_shape, image.shape[-1])
+    main = plan.index[0][np.arange(plan.index.shape[1]), np.argmax(plan.weight[0], axis=1)]
+    extent = 2 * (max(abs(c) for c in plan.U) + max(abs(c) for c in plan.V)) + 2 * PATCH
+    n = int(np.clip(extent, *CHECK_REGION))
+    basis = (plan.U, plan.V)
+    surface = lattice_gather(stored, 0, 0, n, n, hnf=plan.hnf, basis=basis,
+                             representative=plan.representative)
+    cells = lattice_cells(0, 0, n, n, hnf=plan.hnf, basis=basis,
+                          representative=plan.representative)
+    sources = lattice_gather(main.reshape(1, *plan.tile_shape, 1), 0, 0, n, n, hnf=plan.hnf,
+                             basis=basis, representative=plan.representative)[..., 0]
+    return cell_figures(exemplar, surface, cells, reach=PATCH / 2, sources=sources)
+
+
+def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
+          ) -> RollerPlan:
+    """The tile set of ``periods`` ``(a, b)`` (see the module)."""
+    shape = img.shape[:2]
+    a, b = periods
     U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
     V = tuple(int(c) for c in np.rint(b * np.asarray(v)))
     if U[0] * V[1] - U[1] * V[0] == 0:

@@ -179,6 +179,7 @@ class PatchExemplar:
         sample = np.asarray(sample, np.float32)
         if sample.ndim == 2:
             sample = sample[..., None]
+        self.sample = sample
         if min(sample.shape[:2]) < patch:
             raise ValueError(f"the sample ({sample.shape[0]} x {sample.shape[1]}) is smaller "
                              f"than a structure patch ({patch})")
@@ -197,7 +198,7 @@ class PatchExemplar:
             for y in range(0, ny, rows)]))
         self.width = nx
         contrast = float(np.sqrt(np.mean((sample - sample.mean(axis=(0, 1))) ** 2)))
-        self.floor = 0.02 * contrast  # below this nothing is visible
+        self.floor = max(0.02 * contrast, 1e-9)  # below this nothing is visible
         self._repeat = None
 
     @property
@@ -325,15 +326,25 @@ def border_figures(exemplar: PatchExemplar, image: np.ndarray, borders: Borders,
 
 
 def cell_figures(exemplar: PatchExemplar, image: np.ndarray, cells: np.ndarray, *,
-                 reach: float, stride: int = STRIDE) -> tuple[float, float]:
+                 reach: float, sources: np.ndarray | None = None, stride: int = STRIDE
+                 ) -> tuple[float, float]:
     """Seam and structure ratios of the borders between the cells of a tiling.
 
     For tilings whose borders are not straight lines (the roller's cuts on a sheared
-    lattice): ``cells`` ``(h, w, 2)`` names each texel's cell. Seam: the mean difference of
-    the pairs whose texels lie in different cells over that of the pairs within a cell, per
-    direction, the larger; structure: the mean nearest-patch distance of the patches centred
-    within ``reach`` of a texel of another cell over that of the others (with the floor and
-    the unchanged-copy rule of :func:`structure_ratios`), both sides together.
+    lattice): ``cells`` ``(h, w, 2)`` names each texel's cell.
+
+    Seam: the mean difference of the pairs whose texels lie in different cells, per
+    direction, the larger; over the pairs within a cell, or, with ``sources`` (each texel's
+    main sample texel, flat index), over what the sample has at the same place: the pair of
+    the first texel's source and its neighbour in that direction. A cut along the texture's
+    own edges (the mortar of a tiled floor) then counts as natural, a brightness step across
+    it (a gradient-lit sample) does not.
+
+    Structure: the mean nearest-patch distance of the patches centred within ``reach`` of a
+    texel of another cell, both sides together, over the larger of the others' mean and
+    :attr:`PatchExemplar.own_repeat`: a tiling whose cells copy the sample (the roller's) has
+    no seams inside to compare with, and a border as far from the sample as the sample's own
+    periods are from each other stands out no more than they do.
     """
     from scipy import ndimage
 
@@ -341,10 +352,23 @@ def cell_figures(exemplar: PatchExemplar, image: np.ndarray, cells: np.ndarray, 
     if image.ndim == 2:
         image = image[..., None]
     seams = []
+    sample = exemplar.sample.reshape(-1, exemplar.sample.shape[-1])
+    sh, sw = exemplar.sample.shape[:2]
     for axis in (0, 1):
         diff = np.abs(np.diff(image, axis=axis)).mean(-1)
         across = np.any(np.diff(cells, axis=axis) != 0, axis=-1)
-        seams.append(float(diff[across].mean()) / max(float(diff[~across].mean()), 1e-12))
+        if sources is None:
+            natural = diff[~across]
+        else:
+            first = (sources[:-1] if axis == 0 else sources[:, :-1])[across]
+            sy, sx = np.divmod(first, sw)
+            ok = (sy + 1 < sh) if axis == 0 else (sx + 1 < sw)
+            step = sw if axis == 0 else 1
+            natural = np.abs(sample[first[ok] + step] - sample[first[ok]]).mean(-1)
+            diff = np.where(across, diff, np.nan)
+            across = across.copy()
+            across[across] = ok
+        seams.append(float(diff[across].mean()) / max(float(natural.mean()), 1e-12))
     edge = np.zeros(cells.shape[:2], bool)
     edge[:-1] |= np.any(cells[1:] != cells[:-1], -1)
     edge[1:] |= np.any(cells[1:] != cells[:-1], -1)
@@ -354,9 +378,8 @@ def cell_figures(exemplar: PatchExemplar, image: np.ndarray, cells: np.ndarray, 
     d, cy, cx = exemplar.distance_map(image, wrap=False, stride=stride)
     near = distance[np.ix_(np.minimum(cy.astype(int), image.shape[0] - 1),
                            np.minimum(cx.astype(int), image.shape[1] - 1))] <= reach
-    if near.all() or not near.any():
-        raise ValueError("the cells leave no patch near a border, or none away from one")
-    scale = float(d[~near].mean())
-    if scale <= exemplar.floor:
-        scale = max(exemplar.own_repeat, exemplar.floor)
+    if not near.any():
+        raise ValueError("the cells leave no patch near a border")
+    inside = float(d[~near].mean()) if not near.all() else 0.0  # small cells: borders only
+    scale = max(inside, exemplar.own_repeat, exemplar.floor)
     return max(seams), max(float(d[near].mean()), exemplar.floor) / scale

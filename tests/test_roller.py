@@ -291,12 +291,13 @@ def test_btf_bench_roller_reports_its_tables():
     from benchmarks import roller as suite
 
     args = argparse.Namespace(material="tiles", sizes="256", render=512, repeat=1, json=None,
-                              lattices=8)
+                              lattices=8, seam_seeds=2, seams_only=False)
     result = suite.run(args)
     text = suite.report(result)
     assert "| 256^2 | 64.0 at 0, 64.0 at 90 | 1.00 |" in text
     assert "Lattice detection on 8 random lattices" in text and "| all |" in text
     assert result["rendering"]["render_gbps"] > 0 and result["rendering"]["tile_gbps"] > 0
+    assert "Tile borders of the roller, seed by seed: 2 random lattices" in text
     seams = result["seams"]
     # both are seamless on this periodic material: no rougher than the sample across tiles
     assert seams["roller"]["tile_border"] < 1.5 and seams["quilt"]["tile_border"] < 1.5
@@ -320,3 +321,49 @@ def test_btf_bench_tradeoff_sweeps_and_plots(tmp_path):
     assert compress["rank 8"] > compress["rank 16"] > compress["rank 32"] > compress["rank 64"]
     assert compress["rank 32, q = 0"] >= compress["rank 32"]
     assert "| 1 tile(s) * |" in text
+
+
+@pytest.mark.slow
+def test_a_tile_whose_borders_stand_out_is_replaced_by_another_size():
+    """A gradient-lit checkerboard (benchmarks.lattices, seed 16): the preferred periods join
+    cells whose brightness differs by the gradient across the tile; the border check takes
+    another tile size, and a surface of all its tiles, measured independently, passes."""
+    from benchmarks.lattices import random_lattice_texture
+    from tasks.lattice import lattice_cells
+    from tasks.periodicity import detect_lattice
+    from tasks.placement import lattice_gather
+    from tasks.roller import RollerParams, border_check, period_candidates, plan_roller
+    from tasks.seams import PATCH, PatchExemplar, cell_figures
+
+    case = random_lattice_texture(np.random.default_rng(16))
+    g = (case.image - case.image.min()) / np.ptp(case.image)
+    image = np.stack([g, np.sqrt(g), g * g], axis=-1)
+    lattice = detect_lattice(g)
+    exemplar = PatchExemplar(image.astype(np.float32))
+    params = RollerParams(tiles=3)
+    first = period_candidates(image.shape[:2], lattice.u, lattice.v, params)[0]
+    unchecked = plan_roller(image, lattice.u, lattice.v,
+                            RollerParams(tiles=3, periods=first, max_seam=100))
+    assert max(border_check(image, unchecked, exemplar)) > 1.5
+    plan = plan_roller(image, lattice.u, lattice.v, params)
+    assert plan.periods != first and max(plan.check) <= 1.3
+    flat = image.reshape(-1, 3)
+    stored = np.einsum("tnk,tnkc->tnc", plan.weight, flat[np.maximum(plan.index, 0)])
+    stored = stored.reshape(3, *plan.tile_shape, 3)
+    surface = lattice_gather(stored, 0, 0, 384, 384, hnf=plan.hnf, basis=(plan.U, plan.V),
+                             representative=plan.representative, seed=7)
+    cells = lattice_cells(0, 0, 384, 384, hnf=plan.hnf, basis=(plan.U, plan.V),
+                          representative=plan.representative)
+    assert max(cell_figures(exemplar, surface, cells, reach=PATCH / 2)) <= 1.5
+
+
+def test_a_sample_no_tile_size_closes_is_refused_with_the_best_figure():
+    from benchmarks.lattices import random_lattice_texture
+    from tasks.periodicity import detect_lattice
+    from tasks.roller import RollerParams, RollerSeamError, plan_roller
+
+    case = random_lattice_texture(np.random.default_rng(15))  # a weave whose cuts jog
+    g = (case.image - case.image.min()) / np.ptp(case.image)
+    lattice = detect_lattice(g)
+    with pytest.raises(RollerSeamError, match=r"tile size\(s\), the best tile .* bound 1.3"):
+        plan_roller(np.stack([g, g, g], -1), lattice.u, lattice.v, RollerParams(attempts=2))

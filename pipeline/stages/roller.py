@@ -54,6 +54,10 @@ class RollerStageParams:
                                   "a quarter of the sample)")
     seed: int = option(0, metavar="S", help="seed recorded for rendering (placement of tiles)")
     band: int = option(4, metavar="PX", help="half-width of the band the cuts may use")
+    max_seam: float = option(
+        1.3, metavar="R", help="the most a tile border may stand out from what the sample has "
+                               "there (seam and structure ratios); other tile sizes are tried "
+                               "until one passes, else roller stops")
     min_confidence: float = option(0.5, metavar="C",
                                    help="refuse to build tiles below this confidence")
     image: str = option("layer", choices=("layer", "reference"),
@@ -80,7 +84,8 @@ class RollerStageParams:
 
     def roller_params(self) -> RollerParams:
         """The planner's parameters."""
-        return RollerParams(tiles=self.tiles, periods=self.periods, band=self.band)
+        return RollerParams(tiles=self.tiles, periods=self.periods, band=self.band,
+                            max_seam=self.max_seam)
 
 
 def analysis_image(path: str, image: str, session: Session) -> tuple[np.ndarray, str]:
@@ -144,7 +149,8 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
     h, w, _ = plan.hnf
     session.log(f"roller: {params.tiles} tile(s) spanned by U = {plan.U}, V = {plan.V} "
                 f"({plan.periods[0]} x {plan.periods[1]} periods, {plan.area} texels, stored "
-                f"{h} x {w}) at {plan.origin}")
+                f"{h} x {w}) at {plan.origin}; borders: seam {plan.check[0]:.2f}, structure "
+                f"{plan.check[1]:.2f} of the sample's own variation")
     attrs = {
         "source": "roller",
         "placement": "lattice",
@@ -155,6 +161,8 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
                     "image": what},
         "roller": {**dataclasses.asdict(params.roller_params()), "seed": params.seed,
                    "cut_u": plan.cut_u.tolist(), "cut_v": plan.cut_v.tolist()},
+        "border_check": {"bound": params.max_seam, "seam": round(plan.check[0], 4),
+                         "structure": round(plan.check[1], 4)},
         "seed": params.seed,
         "provenance": provenance("roller", params),
     }
