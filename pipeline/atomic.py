@@ -13,6 +13,25 @@ the out-of-memory killer) continues in it (:mod:`pipeline.resume`); partial outp
 same NAME made with other parameters are removed then. A run holds an exclusive lock
 (``.NAME.lock``, :func:`fcntl.flock`) while it writes, so a second run of the same output
 fails at once instead of writing into the first one's partial output.
+
+**Object storage** (``s3://`` outputs; :mod:`pipeline.storage`) has no rename, so the same
+guarantees take another protocol, written down in the README:
+
+- a new output is written in place, under its final prefix, with its root ``zarr.json`` kept
+  aside (:data:`pipeline.storage.ASIDE`) and a record of the run's provenance key beside it
+  (``.NAME.record``); nothing opens the prefix as a zarr group until the commit, which writes
+  the root ``zarr.json`` last (after the consolidated metadata): one ``PUT``. A rerun of the
+  same command finds the record and resumes (markers are objects, ``.btf-done/``); a rerun
+  with other parameters removes the partial prefix first; a prefix holding objects without a
+  record or a root is refused (btf did not write it);
+- an existing output is replaced (``overwrite``) through a hidden sibling prefix
+  ``.NAME.resume-KEY`` written the same way; once it is complete it is marked
+  (``.btf-complete``) and swapped in: the old root ``zarr.json`` is deleted (the old output
+  stops opening), then its other objects, then the new objects are copied in on the server,
+  the root last, and the sibling is deleted. A run killed during the swap leaves the
+  complete sibling: the next run of the same output finishes the swap first. The old output
+  is lost only once the new one is complete, and never silently;
+- the lock is an object with a lease (:mod:`pipeline.locks`).
 """
 
 from __future__ import annotations
@@ -26,8 +45,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from pipeline import storage
 from pipeline.errors import BTFError
+from pipeline.locks import lock as output_lock
 from pipeline.resume import DONE, Progress
+
+COMPLETE = ".btf-complete"  # a complete replacement waiting to be swapped in
 
 _EXPORTED = {".exr", ".png", ".csv"}
 
@@ -45,14 +68,18 @@ def _sibling(path: Path, tag: str, key: str | None = None) -> Path:
     return path.with_name(f".{stem}.{tag}-{key or uuid.uuid4().hex[:8]}{suffix}")
 
 
+def _key(record: dict) -> str:
+    return hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()
+                          ).hexdigest()[:16]
+
+
 def _resumable(path: Path, record: dict) -> Path:
     """The partial output of ``path`` for the provenance ``record``; stale ones removed.
 
     A partial output whose skeleton was never completed (killed while it was being created)
     is started over.
     """
-    key = hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()
-    tmp = _sibling(path, "resume", key[:16])
+    tmp = _sibling(path, "resume", _key(record))
     for stale in path.parent.glob(_sibling(path, "resume", "*").name):
         if stale != tmp:
             _remove(stale)
@@ -85,7 +112,7 @@ def _check_replaceable(path: Path, shown: Path, directory: bool) -> None:
                        "(no btf store or exported layers in it)")
 
 
-def consolidate(store: Path) -> None:
+def consolidate(store: str | Path) -> None:
     """Write the store's consolidated metadata (zarr v3), so that opening it reads one file.
 
     Called on every store a stage finishes, after its last write and before it appears at its
@@ -101,7 +128,7 @@ def consolidate(store: Path) -> None:
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
-        zarr.consolidate_metadata(str(store))
+        zarr.consolidate_metadata(storage.store(str(store)))
 
 
 @contextmanager
@@ -126,6 +153,14 @@ def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool =
     BTFError
         If ``path`` exists and may not be replaced.
     """
+    location = storage.parse(path, what="output")
+    if storage.is_url(location):
+        if not directory:
+            raise BTFError(f"{path}: only zarr stores are written to object storage; give a "
+                           "local path for an image or report file")
+        with _object_output(location, str(path), overwrite=overwrite, resume=resume) as tmp:
+            yield tmp
+        return
     shown = Path(path)
     path = shown.absolute()  # tasks may run on workers in another directory
     if path.exists() or path.is_symlink():
@@ -133,31 +168,11 @@ def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool =
             raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
         _check_replaceable(path, shown, directory)
     path.parent.mkdir(parents=True, exist_ok=True)
-    lock = None if resume is None else _lock(path, shown)
-    try:
-        tmp = _sibling(path, "partial") if resume is None else _resumable(path, resume)
-        yield from _fill(tmp, path, shown, directory)
-    finally:
-        if lock is not None:
-            _unlock(lock)
-
-
-def _lock(path: Path, shown: Path):
-    import fcntl
-
-    lock = path.with_name(f".{path.name}.lock").open("w")
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        lock.close()
-        raise BTFError(f"{shown}: another btf run is writing this output (it holds "
-                       f"{lock.name}); wait for it to end") from None
-    return lock
-
-
-def _unlock(lock) -> None:
-    Path(lock.name).unlink(missing_ok=True)
-    lock.close()
+    if resume is None:
+        yield from _fill(_sibling(path, "partial"), path, shown, directory)
+        return
+    with output_lock(str(path), str(shown)):
+        yield from _fill(_resumable(path, resume), path, shown, directory)
 
 
 def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]:
@@ -188,3 +203,125 @@ def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]
         _remove(tmp)
         raise
     _remove(old)
+
+
+def _root_attrs(location: str) -> dict | None:
+    """The attrs in a store's root metadata, or ``None`` when it has none."""
+    raw = storage.read(storage.join(location, storage.ROOT))
+    if raw is None:
+        return None
+    try:
+        return json.loads(raw).get("attributes", {})
+    except ValueError:
+        return {}
+
+
+def _finish_swaps(url: str, shown: str) -> bool:
+    """Complete a replacement a killed run had started swapping in (see the module).
+
+    Returns whether there was one. The caller holds the output's lock.
+    """
+    prefix = f".{storage.name(url)}.resume-"
+    finished = False
+    for child in storage.children(storage.parent(url)):
+        staged = storage.join(storage.parent(url), child)
+        if child.startswith(prefix) and storage.exists(storage.join(staged, COMPLETE)):
+            _swap(staged, url)
+            finished = True
+    return finished
+
+
+def finish_swaps(url: str, shown: str) -> bool:
+    """:func:`_finish_swaps` for a reader that found no store at ``url``, under the lock.
+
+    A run killed while it copied a complete replacement into place leaves ``url`` without its
+    root metadata; the replacement is whole beside it, and the first reader puts it in place.
+    """
+    prefix = f".{storage.name(url)}.resume-"
+    if not any(c.startswith(prefix) for c in storage.children(storage.parent(url))):
+        return False
+    with output_lock(url, shown):
+        return _finish_swaps(url, shown)
+
+
+def _swap(staged: str, url: str) -> None:
+    """Replace ``url`` by the complete output at ``staged`` (see the module)."""
+    storage.remove(storage.join(url, storage.ROOT))  # the old output stops opening first
+    storage.remove(url)
+    storage.copy_tree(staged, url, last=(storage.ROOT,), skip=(COMPLETE,))
+    storage.remove(staged)  # its mark of completeness last: a kill before this copies again
+
+
+@contextmanager
+def _object_output(url: str, shown: str, *, overwrite: bool, resume: dict | None
+                   ) -> Iterator[str]:
+    """:func:`atomic_output` on object storage (see the module)."""
+    with output_lock(url, shown):
+        _finish_swaps(url, shown)
+        attrs = _root_attrs(url)
+        if attrs is not None:
+            if not overwrite:
+                raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
+            if "btf_kind" not in attrs and "provenance" not in attrs:
+                raise BTFError(f"{shown}: refusing to replace a store that btf did not write")
+            staged = storage.join(storage.parent(url), f".{storage.name(url)}.resume-"
+                                  + (_key(resume) if resume else uuid.uuid4().hex[:16]))
+            for child in storage.children(storage.parent(url)):  # stale replacements
+                other = storage.join(storage.parent(url), child)
+                if child.startswith(f".{storage.name(url)}.resume-") and other != staged:
+                    storage.remove(other)
+            if storage.any_below(staged) and not Progress(staged).created:
+                storage.remove(staged)  # killed while its skeleton was made or committed
+            yield from _fill_object(staged, shown)
+            storage.write(storage.join(staged, COMPLETE), b"")
+            _swap(staged, url)
+            return
+        key = _key(resume) if resume else uuid.uuid4().hex[:16]
+        record_at = _record(url)
+        record = storage.read(record_at)
+        if record is None and storage.any_below(url):
+            raise BTFError(f"{shown}: holds objects btf did not write (no {storage.ROOT}, no "
+                           f"{record_at}); refusing to write over them")
+        if record is not None and (resume is None or record.decode() != key
+                                   or not Progress(url).created):
+            storage.remove(url)  # of other parameters, or killed before it could resume
+        storage.write(record_at, key.encode())
+        storage.hide_root(url)
+        try:
+            yield from _fill_object(url, shown, in_place=True)
+        finally:
+            storage.show_root(url)
+
+
+def _record(url: str) -> str:
+    """Where an in-place partial output's provenance key is kept: beside it."""
+    return storage.join(storage.parent(url), f".{storage.name(url)}.record")
+
+
+def _fill_object(tmp: str, shown: str, *, in_place: bool = False) -> Iterator[str]:
+    """Yield ``tmp``; then drop its markers and commit its metadata (root last).
+
+    An error or an interrupt removes the partial output, as locally: resuming is for runs
+    that were killed before they could clean up.
+    """
+    try:
+        yield tmp
+    except BaseException as exc:
+        try:
+            storage.remove(tmp)
+            if in_place:
+                storage.remove(_record(tmp))
+        except BTFError as err:
+            exc.add_note(f"the partial output {tmp} could not be removed: {err}")
+        raise
+    if not storage.any_below(tmp):
+        raise BTFError(f"{shown}: the stage finished without writing its output")
+    storage.remove(storage.join(tmp, DONE))
+    if not in_place:
+        consolidate(tmp)
+        return
+    consolidate(tmp)  # writes the root metadata aside (storage.ASIDE)
+    root = storage.join(tmp, storage.ASIDE)
+    storage.write(storage.join(tmp, storage.ROOT), storage.read(root))  # the commit
+    storage.remove(root)
+    storage.remove(_record(tmp))

@@ -12,7 +12,7 @@ from pathlib import Path
 from pipeline import __version__
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, add_arguments, from_namespace
-from pipeline.session import LOCAL_SCHEDULERS, RuntimeOptions, Session, check_scheduler
+from pipeline.session import LOCAL_SCHEDULERS, TLS, RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES, Stage
 
 EPILOG = """\
@@ -67,8 +67,18 @@ def _runtime_parser() -> argparse.ArgumentParser:
     group = parent.add_argument_group("scheduling")
     group.add_argument(
         "--scheduler", type=_scheduler, default=None, metavar="NAME",
-        help=f"where to compute: {', '.join(LOCAL_SCHEDULERS)} (dask's local schedulers) or "
-             "tcp://HOST:PORT of a running dask scheduler (default: threads)")
+        help=f"where to compute: {', '.join(LOCAL_SCHEDULERS)} (dask's local schedulers), "
+             "tcp://HOST:PORT of a running dask scheduler, or tls://HOST:PORT of one that "
+             "only admits clients with certificates (default: threads)")
+    group.add_argument("--tls-ca-file", metavar="PEM", default=None,
+                       help="CA certificate a tls:// scheduler's certificate must be signed by "
+                            "(default: dask config distributed.comm.tls.ca-file)")
+    group.add_argument("--tls-cert", metavar="PEM", default=None,
+                       help="this client's certificate, signed by the same CA (default: dask "
+                            "config distributed.comm.tls.client.cert)")
+    group.add_argument("--tls-key", metavar="PEM", default=None,
+                       help="this client's private key, if not in --tls-cert (default: dask "
+                            "config distributed.comm.tls.client.key)")
     group.add_argument("--workers", type=_positive, default=None, metavar="N",
                        help="local worker threads or processes (default: one per core)")
     group.add_argument("-q", "--quiet", action="store_true",
@@ -78,7 +88,8 @@ def _runtime_parser() -> argparse.ArgumentParser:
 
 def _options(args: argparse.Namespace) -> RuntimeOptions:
     return RuntimeOptions(scheduler=args.scheduler or "threads", workers=args.workers,
-                          quiet=args.quiet)
+                          quiet=args.quiet, tls=TLS(args.tls_ca_file, args.tls_cert,
+                                                    args.tls_key))
 
 
 def _run_stage(stage: Stage, parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:

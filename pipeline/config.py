@@ -32,14 +32,13 @@ per stage.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from pipeline import yaml_lines
+from pipeline import storage, yaml_lines
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, from_mapping, names_path, paths
 from pipeline.provenance import up_to_date
@@ -155,10 +154,10 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
             if field.metadata.get("path") != "in" or getattr(params, field.name) is None:
                 continue
             value = getattr(params, field.name)
-            if not os.path.exists(value) and os.path.abspath(value) not in made:
+            if storage.parse(value) not in made and not storage.any_below(storage.parse(value)):
                 fail(lines.get(field.name, line), f"{where}.{field.name}",
                      f"{value!r} does not exist and no earlier stage makes it")
-        made.update(os.path.abspath(p) for p in paths(params, "out"))
+        made.update(storage.parse(p) for p in paths(params, "out"))
         planned.append(PlannedStage(name, params, f"{path}:{line}: {where}"))
     if "scene" not in data:
         return Plan(path, tuple(planned), scheduler, workers)
@@ -183,7 +182,8 @@ def _scene_section(data, path: str, made: set, fail):
     if (spec.format == "zarr") != out.lower().endswith(".zarr"):
         fail(section.lines["out"], "scene.out", f"{out!r} does not suit format {spec.format} "
                                                 "(zarr: a .zarr path; exr, png: a folder)")
-    if not os.path.exists(spec.source) and os.path.abspath(spec.source) not in made:
+    if storage.parse(spec.source) not in made and not storage.any_below(
+            storage.parse(spec.source)):
         fail(section.lines["source"], "scene.source",
              f"{spec.source!r} does not exist and no stage makes it")
     return spec, out

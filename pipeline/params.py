@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import difflib
-import os
 import types
 import typing
 from collections.abc import Mapping
@@ -163,9 +162,21 @@ def coerce(value: Any, tp: Any, name: str, choices=None) -> Any:
 
 
 def check_paths(params: Any) -> Any:
-    """Refuse parameters whose output path is also one of their inputs; returns ``params``."""
+    """Refuse bad paths, and an output that is also an input; returns ``params``.
+
+    A bad path is a URL that names no place: an unsupported scheme, an ``s3`` URL without a
+    key (:func:`pipeline.storage.parse`).
+    """
+    from pipeline import storage
+    from pipeline.errors import BTFError
+
     for f in dataclasses.fields(params):
         value = getattr(params, f.name)
+        if f.metadata.get("path") and value is not None:
+            try:
+                storage.parse(value)
+            except BTFError as exc:
+                raise ParamError(f.name, str(exc)) from None
         if f.metadata.get("path") == "out" and value is not None:
             if names_path(params, "in", value):
                 raise ParamError(f.name, f"{value!r} is also an input of this stage")
@@ -220,8 +231,13 @@ def paths(params: Any, direction: str) -> list[str]:
 
 
 def names_path(params: Any, direction: str, path: str) -> bool:
-    """Whether the parameters name ``path`` among their inputs or outputs (as absolute paths)."""
-    return os.path.abspath(path) in {os.path.abspath(p) for p in paths(params, direction)}
+    """Whether the parameters name ``path`` among their inputs or outputs.
+
+    Compared as locations: absolute paths or URLs.
+    """
+    from pipeline.storage import parse
+
+    return parse(path) in {parse(p) for p in paths(params, direction)}
 
 
 def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:

@@ -13,7 +13,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__
+from pipeline import __version__, storage
 from pipeline.params import key_of, paths, to_record
 
 
@@ -36,7 +36,14 @@ def command_line(stage: str, params: Any) -> str:
 
 
 def digest(path: str | Path) -> str:
-    """Fingerprint of an input: a file's SHA-256, or a folder's listing (names, sizes, mtimes)."""
+    """Fingerprint of an input: a file's SHA-256, or a folder's listing (names, sizes, mtimes).
+
+    A store in object storage: its root metadata's entity tag and size (the root is written
+    last, by every commit: :mod:`pipeline.atomic`).
+    """
+    location = storage.parse(path)
+    if storage.is_url(location):
+        return "etag:" + storage.fingerprint(storage.join(location, storage.ROOT))
     path = Path(path)
     h = hashlib.sha256()
     if path.is_file():
@@ -61,7 +68,8 @@ def provenance(stage: str, params: Any) -> dict[str, Any]:
         "stage": stage,
         "command": command_line(stage, params),
         "parameters": to_record(params),
-        "inputs": {p: digest(p) for p in paths(params, "in") if Path(p).exists()},
+        "inputs": {p: digest(p) for p in paths(params, "in")
+                   if storage.any_below(storage.parse(p))},
         "version": __version__,
     }
     if hasattr(params, "seed"):
@@ -73,11 +81,11 @@ def up_to_date(path: str | Path, stage: str, params: Any) -> bool:
     """Whether the store at ``path`` was made by ``stage`` with these parameters and version."""
     import zarr
 
-    if not (Path(path) / "zarr.json").is_file():
+    if not storage.exists(storage.join(storage.parse(path), storage.ROOT)):
         return False
     try:
-        recorded = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.get(
-            "provenance")
+        group = zarr.open_group(storage.store(str(path)), mode="r", use_consolidated=False)
+        recorded = group.attrs.get("provenance")
     except Exception:  # an unreadable store is not up to date; it will be rebuilt
         return False
     return recorded == provenance(stage, params)

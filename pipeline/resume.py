@@ -19,30 +19,35 @@ from __future__ import annotations
 
 import os
 import pickle
-import uuid
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from typing import Any
+
+from pipeline import storage
 
 DONE = ".btf-done"
 CREATED = "_created"
 
 
 class Progress:
-    """The finished units of a partial output (``partial/.btf-done/NAME`` marker files)."""
+    """The finished units of a partial output: ``partial/.btf-done/NAME`` markers.
+
+    Files on a local disk, objects in object storage (:mod:`pipeline.storage`).
+    """
 
     def __init__(self, partial: str | os.PathLike):
-        self.dir = Path(partial) / DONE
+        self.dir = storage.join(str(partial), DONE)
+
+    def _names(self) -> set[str]:
+        return {n for n in storage.children(self.dir) if not n.endswith(".tmp")}
 
     @property
     def created(self) -> bool:
         """Whether the output's skeleton (its metadata and client-written arrays) is complete."""
-        return (self.dir / CREATED).is_file()
+        return storage.exists(storage.join(self.dir, CREATED))
 
     def mark_created(self) -> None:
         """Record that the skeleton is complete: a rerun resumes instead of starting over."""
-        self.dir.mkdir(parents=True, exist_ok=True)
-        _touch(self.dir / CREATED)
+        storage.write(storage.join(self.dir, CREATED), b"")
 
     def skeleton(self, create: Callable[[], Any]):
         """The partial output's zarr group, made once.
@@ -60,17 +65,16 @@ class Progress:
         """The partial output's zarr group, opened for writing (a resumed run's store)."""
         import zarr
 
-        return zarr.open_group(str(self.dir.parent), mode="r+", use_consolidated=False)
+        return zarr.open_group(storage.store(storage.parent(self.dir)), mode="r+",
+                               use_consolidated=False)
 
     def done(self, name: str) -> bool:
         """Whether unit ``name`` is finished."""
-        return (self.dir / _file(name)).is_file()
+        return storage.exists(storage.join(self.dir, _file(name)))
 
     def count(self) -> int:
         """Finished units (the skeleton aside)."""
-        if not self.dir.is_dir():
-            return 0
-        return sum(1 for p in self.dir.iterdir() if p.name != CREATED and p.suffix != ".tmp")
+        return len(self._names() - {CREATED})
 
     def pending(self, units: Iterable[tuple[str, Any]]) -> tuple[list, int]:
         """Delayed ``units`` (``(name, delayed)``) not yet done, each marking itself when done.
@@ -79,13 +83,14 @@ class Progress:
         """
         import dask
 
-        self.dir.mkdir(parents=True, exist_ok=True)
+        finished = self._names()  # one look at the markers
         todo, skipped = [], 0
         for name, unit in units:
-            if self.done(name):
+            if _file(name) in finished:
                 skipped += 1
                 continue
-            todo.append(dask.delayed(_keep, pure=True)(unit, str(self.dir / _file(name))))
+            todo.append(dask.delayed(_keep, pure=True)(unit, storage.join(self.dir,
+                                                                          _file(name))))
         return todo, skipped
 
     def run(self, compute: Callable[..., tuple], units: list[tuple[str, Any]]) -> list:
@@ -96,14 +101,14 @@ class Progress:
         """
         import dask
 
-        self.dir.mkdir(parents=True, exist_ok=True)
+        finished = self._names()  # one look at the markers
         results, todo, where = [None] * len(units), [], []
-        for i, (name, unit) in enumerate(units):  # one look at the markers
-            path = self.dir / _file(name)
-            if path.is_file():
-                results[i] = _load(path)
+        for i, (name, unit) in enumerate(units):
+            marker = storage.join(self.dir, _file(name))
+            if _file(name) in finished:
+                results[i] = _load(marker)
             else:
-                todo.append(dask.delayed(_keep, pure=True)(unit, str(path)))
+                todo.append(dask.delayed(_keep, pure=True)(unit, marker))
                 where.append(i)
         for i, value in zip(where, compute(*todo) if todo else (), strict=True):
             results[i] = value
@@ -111,12 +116,11 @@ class Progress:
 
     def memo(self, name: str, compute: Callable[[], Any]) -> tuple[Any, bool]:
         """``compute()``, or its result stored by an earlier run; and whether it was stored."""
-        path = self.dir / _file(name)
-        if path.is_file():
-            return _load(path), True
+        marker = storage.join(self.dir, _file(name))
+        if storage.exists(marker):
+            return _load(marker), True
         value = compute()
-        self.dir.mkdir(parents=True, exist_ok=True)
-        _keep(value, str(path))
+        _keep(value, marker)
         return value, False
 
 
@@ -124,27 +128,15 @@ def _file(name: str) -> str:
     return name.replace("/", "~")
 
 
-def _touch(path: Path) -> None:
-    with path.open("w") as f:
-        f.flush()
-        os.fsync(f.fileno())
-
-
 def _keep(result: Any, marker: str) -> Any:
-    """Store ``result`` as the marker of its unit (written whole, then renamed into place).
+    """Store ``result`` as the marker of its unit, written whole.
 
-    Runs after the unit it depends on: its data is written, so it is done.
+    A file renamed into place, or one object. Runs after the unit it depends on: its data is
+    written, so it is done.
     """
-    path = Path(marker)
-    tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex[:8]}.tmp")  # a retried task: its own
-    with tmp.open("wb") as f:
-        pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.rename(path)
+    storage.write(marker, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
     return result
 
 
-def _load(path: Path) -> Any:
-    with path.open("rb") as f:
-        return pickle.load(f)
+def _load(marker: str) -> Any:
+    return pickle.loads(storage.read(marker))

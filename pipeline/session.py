@@ -1,8 +1,13 @@
 """Where graphs run: one option picks a local scheduler or a dask.distributed cluster.
 
 ``synchronous``, ``threads`` and ``processes`` are dask's local schedulers; ``tcp://HOST:PORT``
-connects to a running ``dask scheduler``. Results are identical on all of them, because every
-random number comes from a seed and chunk coordinates, never from scheduling order.
+connects to a running ``dask scheduler``, and ``tls://HOST:PORT`` to one that only lets in
+clients with a certificate its CA signed (mutual TLS: the CA, this client's certificate and
+key, from ``--tls-ca-file``, ``--tls-cert``, ``--tls-key`` or dask's own configuration,
+``distributed.comm.tls.ca-file`` / ``.client.cert`` / ``.client.key``, e.g.
+``DASK_DISTRIBUTED__COMM__TLS__CA_FILE``, which every dask client honours). Results are
+identical on all of them, because every random number comes from a seed and chunk
+coordinates, never from scheduling order.
 """
 
 from __future__ import annotations
@@ -31,14 +36,50 @@ def progress_after() -> float:
     return float(dask.config.get("btf.progress-after", PROGRESS_AFTER))
 
 
+PROTOCOLS = ("tcp://", "tls://")
+
+
+def is_cluster(scheduler: str) -> bool:
+    """Whether a scheduler option names a dask.distributed scheduler's address."""
+    return scheduler.startswith(PROTOCOLS)
+
+
 def check_scheduler(text: str) -> str:
-    """Return ``text`` if it names a local scheduler or a ``tcp://`` address, else raise."""
-    if text in LOCAL_SCHEDULERS or (text.startswith("tcp://") and len(text) > len("tcp://")):
+    """Return ``text`` if it names a local scheduler or a scheduler address, else raise."""
+    if text in LOCAL_SCHEDULERS or (is_cluster(text) and len(text) > len("tcp://")):
         return text
     raise ValueError(
         f"unknown scheduler {text!r}; use one of {', '.join(LOCAL_SCHEDULERS)} "
-        "or the address of a dask scheduler, tcp://HOST:PORT"
+        "or the address of a dask scheduler, tcp://HOST:PORT or tls://HOST:PORT"
     )
+
+
+@dataclass(frozen=True)
+class TLS:
+    """A client's TLS files (``None``: from dask's configuration)."""
+
+    ca_file: str | None = None
+    cert: str | None = None
+    key: str | None = None
+
+    def security(self):
+        """``distributed.security.Security`` for a ``tls://`` scheduler (mutual TLS)."""
+        import dask
+        from distributed.security import Security
+
+        ca = self.ca_file or dask.config.get("distributed.comm.tls.ca-file", None)
+        cert = self.cert or dask.config.get("distributed.comm.tls.client.cert", None)
+        key = self.key or dask.config.get("distributed.comm.tls.client.key", None)
+        missing = [name for name, value in (("--tls-ca-file", ca), ("--tls-cert", cert))
+                   if not value]
+        if missing:
+            raise ValueError(f"a tls:// scheduler needs {' and '.join(missing)} (or dask's "
+                             "distributed.comm.tls.ca-file / .client.cert configuration)")
+        for path in (ca, cert, key):
+            if path and not os.path.isfile(path):
+                raise ValueError(f"{path}: no such TLS file")
+        return Security(tls_ca_file=ca, tls_client_cert=cert, tls_client_key=key,
+                        require_encryption=True)
 
 
 @dataclass(frozen=True)
@@ -48,6 +89,7 @@ class RuntimeOptions:
     scheduler: str = "threads"
     workers: int | None = None
     quiet: bool = False
+    tls: TLS = TLS()
 
     def __post_init__(self):
         check_scheduler(self.scheduler)
@@ -99,15 +141,21 @@ class Session:
         self._pin_blas = False
 
     def __enter__(self) -> Session:
-        if self.options.scheduler.startswith("tcp://"):
+        if is_cluster(self.options.scheduler):
             from distributed import Client
 
+            from pipeline.errors import BTFError
+
+            security = None
+            if self.options.scheduler.startswith("tls://"):
+                try:
+                    security = self.options.tls.security()
+                except ValueError as exc:
+                    raise BTFError(f"{self.options.scheduler}: {exc}") from None
             try:
                 self.client = Client(self.options.scheduler, timeout=CONNECT_TIMEOUT,
-                                     set_as_default=False)
+                                     set_as_default=False, security=security)
             except OSError as exc:
-                from pipeline.errors import BTFError
-
                 raise BTFError(
                     f"cannot reach the dask scheduler at {self.options.scheduler}: {exc}"
                 ) from exc

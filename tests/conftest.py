@@ -71,3 +71,21 @@ def local_cluster():
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                       dashboard_address=":0") as cluster:  # any free port
         yield cluster.scheduler_address
+
+
+@pytest.fixture(scope="session")
+def s3_server(tmp_path_factory):
+    """A SeaweedFS S3 server on loopback with a bucket (benchmarks/s3server.py), for the session."""
+    from benchmarks.s3server import start
+
+    server = start(tmp_path_factory.mktemp("s3"))
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def s3(s3_server, monkeypatch):
+    """The S3 server's environment set for the test (as a user's AWS set-up would be)."""
+    for key, value in s3_server.environment.items():
+        monkeypatch.setenv(key, value)
+    return s3_server

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
 from tasks.svd import BlockCheck, check_block
@@ -58,7 +59,7 @@ class Guide:
         """
         import zarr
 
-        array = zarr.open_array(self.store, path=RADIANCE, mode="r")
+        array = zarr.open_array(storage.store(self.store), path=RADIANCE, mode="r")
         h, w = self.shape
         cols = slice(x0 * factor, min(x1 * factor, w))
         # level rows a strip at a time: a few dozen MiB of full-resolution values at most
@@ -88,7 +89,7 @@ def check_photos(guide: Guide, block: int = 1024) -> list:
 def _check_block(store: str, k: int, v: int, li: int, y: int, x: int, block: int):
     import zarr
 
-    layer = zarr.open_array(store, path=RADIANCE, mode="r")[v, li, y : y + block,
+    layer = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")[v, li, y : y + block,
                                                             x : x + block]
     return k, check_block(layer, (y, x, 0))
 
@@ -133,7 +134,7 @@ def _start(out: str, coarse: str | None, coarse_shape, shape, grown) -> np.ndarr
     y0, y1, x0, x1 = grown
     cy, cx = (coarse_rows(y0, y1, coarse_shape[0], shape[0]),
               coarse_rows(x0, x1, coarse_shape[1], shape[1]))
-    block = zarr.open_array(out, path=coarse, mode="r")[cy[0] : cy[1], cx[0] : cx[1]]
+    block = zarr.open_array(storage.store(out), path=coarse, mode="r")[cy[0] : cy[1], cx[0] : cx[1]]
     return upsample_region(block, (cy[0], cx[0]), coarse_shape, shape, (y0, x0),
                            (y1 - y0, x1 - x0))
 
@@ -174,9 +175,10 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
             y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]
         report.update(residual2=float(np.sum(d**2)), values=int(d.size))
     if slot is None:
-        zarr.open_array(out, path=name, mode="r+")[y0:y1, x0:x1] = inner
+        zarr.open_array(storage.store(out), path=name, mode="r+")[y0:y1, x0:x1] = inner
     else:
-        zarr.open_array(out, path=name, mode="r+")[slot, : x.shape[0], : x.shape[1]] = x
+        target = zarr.open_array(storage.store(out), path=name, mode="r+")
+        target[slot, : x.shape[0], : x.shape[1]] = x
     return report
 
 
@@ -205,7 +207,7 @@ def blend_task(out: str, grown_name: str, name: str, region, boxes, *, shape,
     """
     import zarr
 
-    grown = zarr.open_array(out, path=grown_name, mode="r")
+    grown = zarr.open_array(storage.store(out), path=grown_name, mode="r")
     y0, y1, x0, x1 = region
     total = np.zeros((y1 - y0, x1 - x0, grown.shape[-1]), np.float64)
     norm = np.zeros((y1 - y0, x1 - x0, 1), np.float64)
@@ -218,7 +220,7 @@ def blend_task(out: str, grown_name: str, name: str, region, boxes, *, shape,
         part = grown[slot, a - gy0 : b - gy0, c - gx0 : d - gx0]
         total[a - y0 : b - y0, c - x0 : d - x0] += weight * part
         norm[a - y0 : b - y0, c - x0 : d - x0] += weight
-    zarr.open_array(out, path=name, mode="r+")[y0:y1, x0:x1] = (total / norm).astype(
+    zarr.open_array(storage.store(out), path=name, mode="r+")[y0:y1, x0:x1] = (total / norm).astype(
         np.float32)
 
 
@@ -232,8 +234,8 @@ def gram_task(out: str, name: str, region) -> np.ndarray:
     import zarr
 
     y0, y1, x0, x1 = region
-    c = np.asarray(zarr.open_array(out, path=name, mode="r")[y0:y1, x0:x1], np.float64)
-    c = c.reshape(-1, c.shape[-1])
+    c = zarr.open_array(storage.store(out), path=name, mode="r")[y0:y1, x0:x1]
+    c = np.asarray(c, np.float64).reshape(-1, c.shape[-1])
     return c.T @ c
 
 
@@ -242,12 +244,13 @@ def factor_task(out: str, name: str, region, w: np.ndarray, s: np.ndarray) -> No
     import zarr
 
     y0, y1, x0, x1 = region
-    c = np.asarray(zarr.open_array(out, path=name, mode="r")[y0:y1, x0:x1], np.float64)
+    c = zarr.open_array(storage.store(out), path=name, mode="r")[y0:y1, x0:x1]
+    c = np.asarray(c, np.float64)
     kept = s > (s[0] * 1e-12 if s.size else 0.0)
     v = c @ w
     v[..., kept] /= s[kept]
     v[..., ~kept] = 0.0
-    zarr.open_array(out, path="V", mode="r+")[y0:y1, x0:x1] = v.astype(np.float32)
+    zarr.open_array(storage.store(out), path="V", mode="r+")[y0:y1, x0:x1] = v.astype(np.float32)
 
 
 def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,

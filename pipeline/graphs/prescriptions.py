@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
 
 APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
@@ -33,8 +34,8 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
 
     from tasks.prescription import apply
 
-    source = zarr.open_array(store, path=RADIANCE, mode="r")
-    target = zarr.open_array(out, path=RADIANCE, mode="r+")
+    source = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")
+    target = zarr.open_array(storage.store(out), path=RADIANCE, mode="r+")
     ny, nx, nc = source.shape[-3:]
     layer = 4 * nc * (ny * nx + tile_shape[0] * tile_shape[1])  # a source and a tile layer
     step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
@@ -57,8 +58,8 @@ def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -
 
     from tasks.prescription import apply_texel_rows
 
-    source = zarr.open_array(store, path="V", mode="r")
-    target = zarr.open_array(out, path="V", mode="r+")
+    source = zarr.open_array(storage.store(store), path="V", mode="r")
+    target = zarr.open_array(storage.store(out), path="V", mode="r+")
     ny, nx, rank = source.shape
     columns = [matrices[t].tocsc() for t in tiles]
     results = [np.zeros((c.shape[0], rank), np.float32) for c in columns]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks
 from pipeline.stores.base import location
@@ -26,7 +27,7 @@ def _read_region(block_info=None, *, store: str, variable: str) -> np.ndarray:
 
     region = tuple(slice(a, b) for a, b in block_info[None]["array-location"])
     try:
-        return zarr.open_array(store, path=variable, mode="r")[region]
+        return zarr.open_array(storage.store(store), path=variable, mode="r")[region]
     except Exception as exc:  # re-raised with the block's key, whatever the codec raised
         where = ", ".join(f"{r.start}:{r.stop}" for r in region)
         raise BTFError(f"{store}: variable {variable!r}, block [{where}] is unreadable: "
@@ -39,7 +40,7 @@ def read_array(path: str | Path, name: str):
     import zarr
 
     store = location(path)
-    array = zarr.open_array(store, path=name, mode="r")
+    array = zarr.open_array(storage.store(store), path=name, mode="r")
     return da.map_blocks(_read_region, chunks=aligned_chunks(array), dtype=array.dtype,
                          meta=np.empty((0,) * array.ndim, array.dtype), store=store, variable=name)
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
 from tasks.svd import (
@@ -99,7 +100,7 @@ def read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = N
     """
     import zarr
 
-    array = zarr.open_array(store, path=RADIANCE, mode="r")
+    array = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")
     nc = array.shape[-1]
     ys, xs = region or (slice(0, array.shape[2]), slice(0, array.shape[3]))
     texels = (ys.stop - ys.start) * (xs.stop - xs.start)

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.scene import directions_per_chunk
 from tasks.scene import compressed_block, surface_block
@@ -204,7 +205,7 @@ def _tile_data(store: str, tile: int, layers, rank, path: str):
     """
     import zarr
 
-    array = zarr.open_array(store, path=path, mode="r")
+    array = zarr.open_array(storage.store(store), path=path, mode="r")
     if layers is None:
         return np.asarray(array[tile, :, :, :rank])
     return np.stack([array[tile, v, li] for v, li in layers], axis=2)

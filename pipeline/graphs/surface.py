@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE, check_computed, location
 from pipeline.stores.tileset import corner_order, open_tileset, stored_seed
@@ -23,7 +24,7 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
     """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32, in ``order``."""
     import zarr
 
-    group = zarr.open_group(store, mode="r", use_consolidated=False)
+    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
     if group.attrs["btf_kind"] == "tileset":
         tiles = group[RADIANCE][:, view, light]
     else:

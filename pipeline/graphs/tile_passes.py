@@ -18,6 +18,7 @@ import dataclasses
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.graphs.row_passes import (
     ROW_BLOCK_BYTES,
     RowBlock,
@@ -113,7 +114,7 @@ def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np
                                    region=tile.region)
         z += co_project(a, q[b.row0 : b.row0 + b.rows], exact=True)
     v = (z @ to_v).astype(np.float32)
-    target = zarr.open_array(out, path="V", mode="r+")
+    target = zarr.open_array(storage.store(out), path="V", mode="r+")
     target[tile.region] = v.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, -1)
     return PassPart({}, {}, BlockCheck(), 0.0)
 
@@ -127,7 +128,7 @@ def _verify_task(store: str, tile: TexelTile, blocks: list[RowBlock], u: np.ndar
     """
     import zarr
 
-    v = zarr.open_array(out, path="V", mode="r")[tile.region]
+    v = zarr.open_array(storage.store(out), path="V", mode="r")[tile.region]
     v = v.reshape(tile.texels, v.shape[-1])
     sse = np.zeros(tile.texels)
     residual, rows = 0.0, 0

@@ -12,6 +12,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.thumbnails import thumbnail
@@ -68,7 +69,7 @@ def _export_block(store: str, out: str, view: int, lights: list[int], names: lis
                   channels: tuple[str, ...], fmt: str, half: bool, scale: float) -> None:
     import zarr
 
-    array = zarr.open_array(store, path=RADIANCE, mode="r")
+    array = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")
     block = array.get_orthogonal_selection((view, lights))
     for pixels, name in zip(block, names, strict=True):
         if fmt == "exr":

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.params import option
@@ -43,13 +44,13 @@ class FitParams:
 def _fit_task(store: str, out: str, view: int, ys: slice, xs: slice, grid, elevations):
     import zarr
 
-    layers = zarr.open_array(store, path=RADIANCE, mode="r")[view, :, ys, xs]
+    layers = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")[view, :, ys, xs]
     bad = int(np.count_nonzero(~np.isfinite(layers)))
     if bad:
         return None, (f"{bad} NaN or Inf values in view {view}, y {ys.start}:{ys.stop}, "
                       f"x {xs.start}:{xs.stop}")
     h, s, coef, errors = fit_block(layers, grid, elevations)
-    target = zarr.open_group(out, mode="r+")
+    target = zarr.open_group(storage.store(out), mode="r+")
     target["hue"][view, ys, xs] = h
     target["saturation"][view, ys, xs] = s
     target["lightness"][view, :, :, ys, xs] = coef

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
@@ -108,7 +109,7 @@ def _stored_window(block_info=None, *, store: str, halo: int, ych, xch):
 
     i, j = block_info[None]["chunk-location"][:2]
     (y0, ny), (x0, nx) = _block(ych, i), _block(xch, j)
-    group = zarr.open_group(store, mode="r", use_consolidated=False)
+    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
     height, width = group["height"].shape
     ya, yb = max(0, y0 - halo), min(height, y0 + ny + halo)
     xa, xb = max(0, x0 - halo), min(width, x0 + nx + halo)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
@@ -195,7 +196,7 @@ def _stage_image(store: str, view: int, light: int, path: str, *, srgb: bool,
         y, x, c = np.argwhere(bad)[0]
         raise BTFError(f"{path}: {int(bad.sum())} non-finite pixel value(s) (NaN or Inf), "
                        f"the first at y={y}, x={x}, channel {info.channels[c]}")
-    zarr.open_array(store, path=STAGING, mode="r+")[view, light] = pixels
+    zarr.open_array(storage.store(store), path=STAGING, mode="r+")[view, light] = pixels
 
 
 def ingest(params: IngestParams, session: Session) -> Path:
@@ -235,5 +236,5 @@ def ingest(params: IngestParams, session: Session) -> Path:
             session.compute(*todo)
             staged = da.from_zarr(group[STAGING], chunks=aligned_chunks(radiance))
             session.compute(store_aligned([staged], [radiance], progress=progress))
-            del group[STAGING]
+            storage.remove(storage.join(location(tmp), STAGING))  # with its folder keys
     return Path(params.out)

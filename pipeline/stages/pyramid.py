@@ -34,10 +34,10 @@ Levels are written to a hidden subgroup and renamed into place once complete; th
 from __future__ import annotations
 
 import dataclasses
-import shutil
 import uuid
 from pathlib import Path
 
+from pipeline import storage
 from pipeline.atomic import consolidate
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
@@ -109,6 +109,25 @@ def _axes(dims: tuple[str, ...]) -> list[dict]:
     return [{"name": d, "type": kinds.get(d, "other")} for d in dims]
 
 
+def _swap_levels(root: str, partial: str, old: str) -> None:
+    """Put the new levels (``partial``) in place of the old ones (moved to ``old``).
+
+    Locally both are renames, so the old levels stay whole until the new are in place. In
+    object storage there is no rename: the old levels are deleted, then the new ones copied
+    in on the server (a run killed in between leaves a store without levels, which ``btf
+    pyramid`` makes again).
+    """
+    levels = storage.join(root, PYRAMID)
+    if storage.is_url(root):
+        storage.remove(levels)
+        storage.copy_tree(storage.join(root, partial), levels)
+        storage.remove(storage.join(root, partial))
+        return
+    if Path(levels).exists():
+        Path(levels).rename(old)
+    Path(storage.join(root, partial)).rename(levels)
+
+
 def _dataset(path: str, dims: tuple[str, ...], factor: int) -> dict:
     scale = [float(factor) if d in ("y", "x") else 1.0 for d in dims]
     shift = [(factor - 1) / 2 if d in ("y", "x") else 0.0 for d in dims]
@@ -156,12 +175,13 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
         raise BTFError(f"{params.store}: {what}{ny} x {nx} texels are too small for levels of "
                        f"detail (the smaller side halved would fall below {MIN_SIDE}); pass "
                        "--levels")
-    root = Path(params.store)
-    for stale in root.glob(f".{PYRAMID}.*"):  # left by a killed run
-        shutil.rmtree(stale, ignore_errors=True)
+    root = storage.parse(params.store)
+    for stale in storage.children(root):  # left by a killed run
+        if stale.startswith(f".{PYRAMID}."):
+            storage.remove(storage.join(root, stale))
     partial = f".{PYRAMID}.partial-{uuid.uuid4().hex[:8]}"
     try:
-        levels = zarr.open_group(str(root), path=partial, mode="w-", zarr_format=3)
+        levels = zarr.open_group(storage.store(str(root)), path=partial, mode="w-", zarr_format=3)
         previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
         basis = _basis(group) if name == "V" and params.method == "projected" else None
         for n in range(1, count + 1):
@@ -181,13 +201,11 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
             session.compute(store_aligned([coarse], [target]))
             previous = da.from_zarr(target, chunks=aligned_chunks(target))
     except BaseException:
-        shutil.rmtree(root / partial, ignore_errors=True)
+        storage.remove(storage.join(root, partial))
         raise
-    group = zarr.open_group(str(root), mode="r+", use_consolidated=False)
-    old = root / f".{PYRAMID}.old-{uuid.uuid4().hex[:8]}"
-    if (root / PYRAMID).exists():  # the old levels stay whole until the new are in place
-        (root / PYRAMID).rename(old)
-    (root / partial).rename(root / PYRAMID)
+    group = zarr.open_group(storage.store(str(root)), mode="r+", use_consolidated=False)
+    old = storage.join(root, f".{PYRAMID}.old-{uuid.uuid4().hex[:8]}")
+    _swap_levels(root, partial, old)
     datasets = [_dataset(name, dims, 1)] + [_dataset(f"{PYRAMID}/{n}/{name}", dims, 2**n)
                                             for n in range(1, count + 1)]
     group.attrs["multiscales"] = [{
@@ -200,7 +218,7 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
                      "radiance + eps",
                      "edges": "blocks beyond the last whole 2^n x 2^n block are left out"}}]
     consolidate(root)
-    shutil.rmtree(old, ignore_errors=True)
+    storage.remove(old)
     found = levels_of(group)
     session.log("pyramid: " + ", ".join(f"level {v['level']} {v['shape'][ay]} x "
                                         f"{v['shape'][ax]}" for v in found))

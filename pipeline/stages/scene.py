@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.params import option
@@ -163,8 +164,11 @@ def _restricted_region(group, spec: SceneSpec, request) -> None:
 
 
 def _open_source(spec: SceneSpec):
-    source = Path(spec.source)
-    if not source.exists():
+    try:
+        source = storage.parse(spec.source, what="source")
+    except BTFError as exc:
+        raise spec.error("source", str(exc)) from None
+    if not storage.any_below(source):
         raise spec.error("source", f"{spec.source!r} does not exist")
     try:
         group = open_group(source)
@@ -295,7 +299,7 @@ def build(spec: SceneSpec, session: Session):
             session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
         req = request(_level_window(spec, ny, nx, spec.level, session), stored is not None)
         _restricted_region(group, spec, req)
-        source = zarr.open_array(path, path=stored or RADIANCE, mode="r")
+        source = zarr.open_array(storage.store(path), path=stored or RADIANCE, mode="r")
         data = da.from_zarr(source)
         if kind == "surface":
             data = data[None, None]
@@ -320,7 +324,7 @@ def build(spec: SceneSpec, session: Session):
         u = group["U"]
         u_rows, u_read = graphs.read_u_rows(u, layers, rank)
         s = np.asarray(group["S"][:rank])
-        v = zarr.open_array(path, path=stored or "V", mode="r")
+        v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
         out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
                                       float(group.attrs["transform"]["eps"]), req)
         ys, xs = req.read_window()
@@ -396,7 +400,8 @@ def write_scene(spec: SceneSpec, out: str, session: Session, *, overwrite: bool 
     if spec.format != "zarr" and suffix == ".zarr":
         raise spec.error("format", f"{spec.format} output is a folder of images; {out!r} "
                                    "ends in .zarr")
-    if Path(out).exists() and not overwrite:  # before computing (atomic_output checks again)
+    # before computing (atomic_output checks again)
+    if storage.any_below(storage.parse(out)) and not overwrite:
         raise BTFError(f"{out}: already exists; pass --overwrite to replace it")
     data, directions, info = build(spec, session)
     nd, ny, nx, _ = data.shape

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from tasks.sampling import btf_kind
 
@@ -68,8 +69,11 @@ class Directions:
 
 
 def location(path: str | Path) -> str:
-    """The absolute form of a path, as handed to tasks: workers may run in another directory."""
-    return str(Path(path).absolute())
+    """A store's location as handed to tasks (:func:`pipeline.storage.parse`).
+
+    An absolute path (workers may run in another directory) or an object-store URL.
+    """
+    return storage.parse(path)
 
 
 def codec():
@@ -90,7 +94,7 @@ def create_store(path: str | Path, *, kind: str, attrs: dict[str, Any],
     """
     import zarr
 
-    group = zarr.open_group(location(path), mode="w-", zarr_format=3,
+    group = zarr.open_group(storage.store(location(path)), mode="w-", zarr_format=3,
                             attributes={**attrs, "btf_kind": kind})
     if directions is not None:
         for name, dim in DIRECTION_COORDS.items():
@@ -125,21 +129,27 @@ def open_group(path: str | Path):
     """Open a zarr v3 group for reading, with a clear error if it is not one."""
     import zarr
 
-    p = Path(path)
-    if not p.exists():
-        raise BTFError(f"{path}: no such store")
-    meta = p / "zarr.json"
-    if not meta.is_file():
-        hint = " (a zarr v2 store: convert it to zarr v3)" if (p / ".zgroup").exists() else ""
+    where = location(path)
+    meta = storage.read(storage.join(where, storage.ROOT))
+    if meta is None and storage.is_url(where):
+        from pipeline.atomic import finish_swaps
+
+        if finish_swaps(where, str(path)):  # a replacement a killed run had left half-swapped
+            meta = storage.read(storage.join(where, storage.ROOT))
+    if meta is None:
+        if not storage.any_below(where):
+            raise BTFError(f"{path}: no such store")
+        hint = (" (a zarr v2 store: convert it to zarr v3)"
+                if storage.exists(storage.join(where, ".zgroup")) else "")
         raise BTFError(f"{path}: not a zarr v3 store, there is no zarr.json{hint}")
     try:
-        node_type = json.loads(meta.read_text()).get("node_type")
-    except (OSError, ValueError) as exc:
+        node_type = json.loads(meta).get("node_type")
+    except ValueError as exc:
         raise BTFError(f"{path}: unreadable zarr.json ({exc})") from None
     if node_type != "group":
         raise BTFError(f"{path}: a zarr array, not a group of variables")
     # the files themselves, not the consolidated copy (written for other tools, see atomic)
-    return zarr.open_group(location(p), mode="r", use_consolidated=False)
+    return zarr.open_group(storage.store(where), mode="r", use_consolidated=False)
 
 
 def read_directions(group) -> Directions:

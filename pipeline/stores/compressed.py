@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -115,8 +116,9 @@ def open_compressed(path: str | Path, *, rank: int | None = None):
     if not 1 <= rank <= full:
         raise BTFError(f"{path}: --rank {rank} is not between 1 and the stored rank {full}")
     # zarr arrays, not a path: dask would open a path through fsspec instead of zarr's store
-    factors = {name: da.from_zarr(zarr.open_array(location(path), path=name, mode="r"))[
-        ..., :rank] for name in FACTOR_DIMS}
+    store = storage.store(location(path))
+    factors = {name: da.from_zarr(zarr.open_array(store, path=name, mode="r"))[..., :rank]
+               for name in FACTOR_DIMS}
     eps = float(group.attrs["transform"]["eps"])
     radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], eps=eps)
     d = read_directions(group)

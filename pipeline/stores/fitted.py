@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -72,7 +73,8 @@ def open_fitted(path: str | Path):
 
     group = open_group(path)
     check_fitted(group, path)
-    arrays = {n: da.from_zarr(zarr.open_array(location(path), path=n, mode="r")) for n in DIMS}
+    store = storage.store(location(path))
+    arrays = {n: da.from_zarr(zarr.open_array(store, path=n, mode="r")) for n in DIMS}
     grid = np.asarray(group.attrs["light_grid"])
     elevations = np.asarray(group.attrs["elevations"])
     radiance = da.blockwise(

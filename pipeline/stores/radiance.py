@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -151,7 +152,7 @@ def open_dataset(path: str | Path, group=None):
     from pipeline.graphs.blocks import read_chunks
 
     group = open_group(path) if group is None else group
-    ds = xr.open_zarr(location(path), consolidated=False, chunks=None)
+    ds = xr.open_zarr(storage.store(location(path)), consolidated=False, chunks=None)
     for name in ds.data_vars:
         ds[name] = ds[name].chunk(read_chunks(group, name))
     return ds

@@ -1,0 +1,268 @@
+"""Stores in object storage: every stage on a real S3 server, the commit protocol, bad input.
+
+The server is SeaweedFS (benchmarks/s3server.py) on loopback; the environment holds its endpoint
+and credentials as a user's AWS set-up would (the ``s3`` fixture).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline import storage
+
+BIN = Path(sys.executable).parent
+GEN = ("--material", "wood", "--size", "48", "--sampling", "abtf:4,2", "--chunk", "16",
+       "--dir-chunk", "4")
+
+
+def _arrays(store) -> dict[str, np.ndarray]:
+    """Every array of a store, by path (reads through btf's own opener)."""
+    group = zarr.open_group(storage.store(storage.parse(store)), mode="r",
+                            use_consolidated=False)
+    return {name: array[...] for name, array in group.arrays()}
+
+
+def _same(a, b) -> None:
+    left, right = _arrays(a), _arrays(b)
+    assert left.keys() == right.keys()
+    for name in left:
+        assert np.array_equal(left[name], right[name], equal_nan=True), name
+
+
+def test_a_url_names_a_store_or_is_refused_and_never_becomes_a_folder(tmp_path, btf,
+                                                                       monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for url, message in (("gs://bucket/x.zarr", "unsupported store URL scheme 'gs'"),
+                         ("s3:/bucket/x.zarr", "s3://BUCKET/KEY"),
+                         ("s3://bucket", "s3://BUCKET/KEY"),
+                         ("https://host/x.zarr", "unsupported store URL scheme 'https'")):
+        result = btf("generate", url, *GEN, "--quiet")
+        assert result.code == 2 and message in result.err, (url, result.err)
+    result = btf("run", _config(tmp_path, "gs://b/x.zarr"), "--quiet")
+    assert result.code == 1 and "stages[0].generate.out" in result.err
+    assert list(tmp_path.iterdir()) == [tmp_path / "run.yaml"]  # no folder named s3: or gs:
+    assert storage.parse(f"file://{tmp_path}/x.zarr") == str(tmp_path / "x.zarr")
+
+
+def _config(folder: Path, out: str) -> Path:
+    path = folder / "run.yaml"
+    path.write_text(f"stages:\n  - generate: {{out: '{out}', material: wood, size: 32, "
+                    "sampling: 'abtf:4,2'}\n")
+    return path
+
+
+def test_every_stage_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s3):
+    """generate, ingest, crop, compress, reconstruct, quilt, roller, enlarge, scene, inspect:
+    reading and writing S3 only, the same stores as on a local disk."""
+    local, remote = tmp_path / "local", "s3://btf/every"
+    local.mkdir()
+    steps = [
+        ("generate", "{d}/wood.zarr", *GEN),
+        ("export", "{d}/wood.zarr", str(tmp_path / "layers"), "--light", "0,1,2"),
+        ("ingest", str(tmp_path / "layers"), "{d}/again.zarr"),
+        ("crop", "{d}/wood.zarr", "{d}/sample.zarr", "--region", "8:40,8:40"),
+        ("crop", "{d}/wood.zarr", "{d}/photo.zarr", "--light", "0"),
+        ("compress", "{d}/sample.zarr", "{d}/sample_svd.zarr", "--rank", "4"),
+        ("compress", "{d}/wood.zarr", "{d}/wood_svd.zarr", "--rank", "4", "--verify"),
+        ("reconstruct", "{d}/wood_svd.zarr", "{d}/part.zarr", "--light", "1,3"),
+        ("quilt", "{d}/wood.zarr", "{d}/tiles.zarr", "--block", "16", "--overlap", "4",
+         "--size", "24,24", "--max-seam", "10"),
+        ("enlarge", "{d}/sample_svd.zarr", "{d}/photo.zarr", "{d}/big.zarr", "--levels", "1",
+         "--iterations", "1", "--no-statistics", "--sample-origin", "8,8"),
+        ("pyramid", "{d}/wood.zarr", "--levels", "1"),
+    ]
+    for step in steps:
+        for where in (str(local), remote):
+            if step[0] == "export" and where == remote:
+                continue  # the layer folder is local; ingest reads it into both
+            args = [a.format(d=where) for a in step]
+            result = btf(*args, "--quiet", "--scheduler", "synchronous")
+            assert result.code == 0, (args, result.err)
+    for name in ("wood", "again", "sample", "photo", "sample_svd", "wood_svd", "part", "tiles",
+                 "big"):
+        _same(local / f"{name}.zarr", f"{remote}/{name}.zarr")
+    scene = tmp_path / "scene.yaml"
+    for where in (str(local), remote):
+        scene.write_text(f"source: {where}/wood_svd.zarr\ndirections: [[30, 40, 0, 0]]\n"
+                         "region: [0, 32, 8, 40]\nlevel: 1\nformat: zarr\n")
+        assert btf("scene", scene, f"{where}/scene.zarr", "--quiet").code == 0
+    _same(local / "scene.zarr", f"{remote}/scene.zarr")
+    inspected = btf("inspect", f"{remote}/wood_svd.zarr", "--json")
+    assert inspected.code == 0 and json.loads(inspected.out)["kind"] == "compressed"
+
+
+def test_plain_zarr_and_xarray_open_an_s3_output_with_no_private_code(tmp_path, btf, s3):
+    url = s3.url("plain/wood.zarr")
+    assert btf("generate", url, *GEN, "--quiet").code == 0
+    import xarray as xr
+
+    group = zarr.open_group(url, mode="r")  # fsspec's s3fs, configured by the environment
+    assert group.attrs["btf_kind"] == "abtf" and group["radiance"].shape[:2] == (1, 8)
+    ds = xr.open_zarr(url)
+    assert ds["radiance"].dims == ("view", "light", "y", "x", "channel")
+    assert not [k for k in storage.list_below(url) if ".btf" in k]  # no markers left
+
+
+def _start(args, env=None):
+    return subprocess.Popen([BIN / "btf", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
+
+
+def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp_path, s3):
+    url, whole = s3.url("killed/wood.zarr"), s3.url("killed/whole.zarr")
+    args = ["generate", url, "--material", "wood", "--size", "96", "--sampling", "abtf:6,4",
+            "--chunk", "16", "--dir-chunk", "4", "--scheduler", "synchronous", "--quiet"]
+    env = {"BTF_LOCK_LEASE": "8"}
+    proc = _start(args, env)
+    deadline = time.monotonic() + 120
+    while not any(".btf-done/" in k and "_created" not in k for k in storage.list_below(url)):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()  # and its pipes closed
+    with pytest.raises(FileNotFoundError):  # nothing half-written opens at OUT
+        zarr.open_group(storage.store(url), mode="r")
+    refused = subprocess.run([BIN / "btf", *args], capture_output=True, text=True,
+                             env={**os.environ, **env})
+    assert refused.returncode == 1 and "another btf run is writing this output" in refused.stderr
+    time.sleep(8.5)  # the killed run's lock expires
+    again = subprocess.run([BIN / "btf", *args[:-1]], capture_output=True, text=True,
+                           env={**os.environ, **env})
+    assert again.returncode == 0, again.stderr
+    assert "kept" in again.stderr or "already" in again.stderr, again.stderr
+    done = subprocess.run([BIN / "btf", "generate", whole, *args[2:]], capture_output=True,
+                          text=True)
+    assert done.returncode == 0, done.stderr
+    _same(url, whole)
+
+
+def test_overwrite_keeps_the_old_output_until_the_new_one_is_complete(tmp_path, btf, s3,
+                                                                       monkeypatch):
+    url = s3.url("over/wood.zarr")
+    assert btf("generate", url, *GEN, "--seed", "1", "--quiet").code == 0
+    before = _arrays(url)
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("killed in the middle")
+
+    monkeypatch.setattr("pipeline.atomic.consolidate", fail)
+    with pytest.raises(RuntimeError, match="killed in the middle"):
+        btf("generate", url, *GEN, "--seed", "2", "--overwrite", "--quiet")
+    after = _arrays(url)
+    assert all(np.array_equal(before[k], after[k], equal_nan=True) for k in before)
+    monkeypatch.undo()
+    for key, value in s3.environment.items():
+        monkeypatch.setenv(key, value)
+    assert btf("generate", url, *GEN, "--seed", "2", "--overwrite", "--quiet").code == 0
+    assert not np.array_equal(_arrays(url)["radiance"], before["radiance"])
+    assert not [c for c in storage.children(s3.url("over")) if ".resume-" in c
+                and storage.any_below(s3.url(f"over/{c}"))]
+
+
+def test_a_swap_cut_short_is_finished_by_the_next_run(btf, s3, monkeypatch):
+    url = s3.url("swap/wood.zarr")
+    assert btf("generate", url, *GEN, "--seed", "1", "--quiet").code == 0
+    real = storage.copy_tree
+
+    def cut(source, target, **order):
+        raise KeyboardInterrupt  # killed between deleting the old output and copying the new
+
+    monkeypatch.setattr(storage, "copy_tree", cut)
+    from pipeline.cli import main
+
+    assert main(["generate", url, *GEN, "--seed", "2", "--overwrite", "--quiet"]) != 0
+    monkeypatch.setattr(storage, "copy_tree", real)
+    assert btf("inspect", url).code == 0  # any command on it finishes the swap first
+    assert btf("generate", s3.url("swap/two.zarr"), *GEN, "--seed", "2", "--quiet").code == 0
+    _same(url, s3.url("swap/two.zarr"))
+
+
+@pytest.mark.parametrize("case", ["unreachable", "bucket", "credentials", "permission"])
+def test_bad_object_storage_stops_with_the_url_and_the_cause(btf, s3, monkeypatch, case):
+    from benchmarks.s3server import READER_KEY, READER_SECRET
+
+    url = s3.url(f"bad/{case}.zarr")
+    if case == "unreachable":
+        monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:1")
+        cause = "cannot reach the object store at http://127.0.0.1:1"
+    elif case == "bucket":
+        url = "s3://no-such-bucket/x.zarr"
+        cause = "the bucket 'no-such-bucket' does not exist"
+    elif case == "credentials":
+        monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "not-the-secret")
+        cause = "the credentials were refused"
+    else:
+        monkeypatch.setenv("AWS_ACCESS_KEY_ID", READER_KEY)
+        monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", READER_SECRET)
+        cause = "permission denied"
+    result = btf("generate", url, *GEN, "--quiet")
+    assert result.code == 1 and f"{url}: {cause}" in result.err, result.err
+    assert result.err.count("\n") == 1  # one message
+    monkeypatch.undo()
+    for key, value in s3.environment.items():
+        monkeypatch.setenv(key, value)
+    if case != "bucket":
+        assert not storage.any_below(url) and not storage.any_below(s3.url("bad/.x"))
+
+
+@pytest.fixture
+def s3_cluster(tmp_path, s3, request):
+    """A dask scheduler and two single-threaded workers whose folders share nothing: each
+    worker process starts in a folder of its own and reaches the stores through S3 only."""
+    from test_distributed import _free_port, _wait_for_workers
+
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, **s3.environment}
+    log = (tmp_path / "cluster.log").open("w")
+    request.addfinalizer(log.close)
+    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port",
+                               str(port), "--dashboard-address", "127.0.0.1:0"],
+                              stdout=log, stderr=log, env=env)]
+    try:
+        for i in range(2):
+            home = tmp_path / f"worker-{i}"
+            home.mkdir()
+            procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", "1",
+                                           "--nthreads", "1"], cwd=home, stdout=log,
+                                          stderr=log, env=env))
+        _wait_for_workers(address, 2)
+        yield address
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in reversed(procs):
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+@pytest.mark.distributed
+def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s3, s3_cluster):
+    config = Path(__file__).resolve().parents[1] / "configs" / "cluster.yaml"
+    runner = tmp_path / "runner"
+    runner.mkdir()
+    done = subprocess.run([BIN / "btf", "run", config, "--scheduler", s3_cluster, "--set",
+                           "generate.size=64", "--quiet"], capture_output=True, text=True,
+                          cwd=runner, env={**os.environ, **s3.environment}, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert list(runner.iterdir()) == []  # the runner wrote nothing locally either
+    local = tmp_path / "local"
+    for args in (("generate", local / "wood.zarr", "--material", "wood", "--size", "64",
+                  "--sampling", "abtf:12,4"),
+                 ("compress", local / "wood.zarr", local / "wood_svd.zarr", "--rank", "16"),
+                 ("quilt", local / "wood.zarr", local / "tiles.zarr")):
+        assert btf(*args, "--scheduler", "synchronous", "--quiet").code == 0
+    for name in ("wood", "wood_svd", "tiles"):
+        _same(local / f"{name}.zarr", f"s3://btf/cluster/{name}.zarr")
