@@ -34,7 +34,7 @@ def test_the_compose_file_follows_the_compose_specification(tmp_path):
 
 def test_the_services_run_the_commands_the_cluster_tests_run():
     services = compose_services()
-    assert set(services) == {"scheduler", "worker", "runner"}
+    assert set(services) == {"s3", "scheduler", "worker", "runner"}
     assert compose_command("scheduler")[:2] == ["dask", "scheduler"]
     worker = compose_command("worker")
     assert worker[:3] == ["dask", "worker", "tcp://scheduler:8786"]
@@ -42,8 +42,23 @@ def test_the_services_run_the_commands_the_cluster_tests_run():
     runner = compose_command("runner")
     assert runner[:2] == ["btf", "run"] and runner[-2:] == ["--scheduler", "tcp://scheduler:8786"]
     assert (ROOT / runner[2].removeprefix("/app/")).is_file()  # the image copies configs/ to /app
-    # every container that reads or writes stores mounts the shared volume at the same path
+    # workers and the runner share no volume: only the object store, reached by AWS_* settings
     for name in ("worker", "runner"):
-        assert "data:/data" in services[name]["volumes"]
+        assert "volumes" not in services[name]
+        assert services[name]["environment"]["AWS_ENDPOINT_URL"] == "http://s3:8333"
+    config = yaml.safe_load((ROOT / "configs" / "cluster.yaml").read_text())
+    outs = [next(iter(s.values())).get("out") for s in config["stages"]]
+    assert all(o.startswith("s3://") for o in outs if o)
+    assert services["s3"]["command"].split()[:2] == ["server", "-dir=/data"]
+    assert "-master.telemetry=false" in services["s3"]["command"]
+
+
+def test_no_port_of_the_cluster_is_published_on_every_interface():
+    """Whoever reaches the scheduler's port can run code on the workers (dask's docs)."""
+    for name, service in compose_services().items():
+        for port in service.get("ports", []):
+            assert str(port).startswith("127.0.0.1:"), (name, port)
+    assert "ports" not in compose_services()["scheduler"] or all(
+        not str(p).endswith(":8786") for p in compose_services()["scheduler"]["ports"])
     dockerfile = (ROOT / "Dockerfile").read_text()
     assert "WORKDIR /data" in dockerfile and "COPY configs ./configs" in dockerfile

@@ -99,8 +99,9 @@ def _shows_progress(stderr: str) -> bool:
 @pytest.mark.distributed
 @pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
 def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
-    # docker-compose.yml's runner command (a smaller store), from an outputs folder like /data
-    runner = compose_command("runner", words={"/app/configs/demo.yaml": str(DEMO)},
+    # docker-compose.yml's runner command with the demo config (local stores, which this
+    # host's workers share; its own config, on S3, runs in tests/test_s3.py), a smaller store
+    runner = compose_command("runner", words={"/app/configs/cluster.yaml": str(DEMO)},
                              values={"--scheduler": cluster})
     assert runner[0] == "btf"
     run = _btf(*runner[1:], "--set", "generate.size=40", *(["--quiet"] if quiet else []),

@@ -1,0 +1,112 @@
+"""A cluster that lets no one in: scheduler, workers and ``btf run`` over mutual TLS.
+
+Certificates are made for the test (trustme: a CA of its own, one certificate for the
+scheduler and workers, one for the client); everything listens on 127.0.0.1 and is stopped.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_distributed import _free_port
+
+BIN = Path(sys.executable).parent
+CONFIG = "stages:\n  - generate: {out: %s, material: wood, size: 32, sampling: 'abtf:4,2'}\n"
+
+pytestmark = pytest.mark.distributed
+
+
+@pytest.fixture(scope="module")
+def tls_cluster(tmp_path_factory):
+    import trustme
+
+    folder = tmp_path_factory.mktemp("tls")
+    ca = trustme.CA()
+    ca.cert_pem.write_to_path(str(folder / "ca.pem"))
+    ca.issue_cert("127.0.0.1", "localhost").private_key_and_cert_chain_pem.write_to_path(
+        str(folder / "node.pem"))
+    ca.issue_cert("btf-client").private_key_and_cert_chain_pem.write_to_path(
+        str(folder / "client.pem"))
+    other = trustme.CA()  # a CA the cluster does not trust
+    other.issue_cert("intruder").private_key_and_cert_chain_pem.write_to_path(
+        str(folder / "intruder.pem"))
+    other.cert_pem.write_to_path(str(folder / "other-ca.pem"))
+    port = _free_port()
+    tls = ["--tls-ca-file", str(folder / "ca.pem"), "--tls-cert", str(folder / "node.pem")]
+    log = (folder / "cluster.log").open("w")
+    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--protocol", "tls", "--host",
+                               "127.0.0.1", "--port", str(port), "--dashboard-address",
+                               "127.0.0.1:0", *tls], stdout=log, stderr=log)]
+    home = folder / "worker-home"
+    home.mkdir()
+    address = f"tls://127.0.0.1:{port}"
+    try:
+        procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", "2",
+                                       "--nthreads", "1", *tls], cwd=home, stdout=log,
+                                      stderr=log))
+        from distributed import Client
+        from distributed.security import Security
+
+        security = Security(tls_ca_file=str(folder / "ca.pem"),
+                            tls_client_cert=str(folder / "client.pem"), require_encryption=True)
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with Client(address, security=security, timeout="5s") as client:
+                    client.wait_for_workers(2, timeout=60)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+        yield address, folder
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in reversed(procs):
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        log.close()
+
+
+def _btf(*args, env=None, cwd=None):
+    import os
+
+    return subprocess.run([BIN / "btf", *map(str, args)], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, cwd=cwd, timeout=300)
+
+
+def test_btf_run_over_tls_with_certificates_from_flags_or_dask_config(tls_cluster, tmp_path):
+    address, folder = tls_cluster
+    config = tmp_path / "run.yaml"
+    config.write_text(CONFIG % (tmp_path / "a.zarr"))
+    done = _btf("run", config, "--scheduler", address, "--tls-ca-file", folder / "ca.pem",
+                "--tls-cert", folder / "client.pem", "--quiet")
+    assert done.returncode == 0, done.stderr
+    config.write_text(CONFIG % (tmp_path / "b.zarr"))
+    env = {"DASK_DISTRIBUTED__COMM__TLS__CA_FILE": str(folder / "ca.pem"),
+           "DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT": str(folder / "client.pem")}
+    done = _btf("run", config, "--scheduler", address, "--quiet", env=env)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "a.zarr" / "zarr.json").is_file()
+    assert (tmp_path / "b.zarr" / "zarr.json").is_file()
+
+
+def test_a_client_without_the_cluster_s_certificates_is_refused(tls_cluster, tmp_path):
+    address, folder = tls_cluster
+    config = tmp_path / "run.yaml"
+    config.write_text(CONFIG % (tmp_path / "c.zarr"))
+    missing = _btf("run", config, "--scheduler", address, "--quiet")
+    assert missing.returncode == 1 and "needs --tls-ca-file and --tls-cert" in missing.stderr
+    intruder = _btf("run", config, "--scheduler", address, "--tls-ca-file",
+                    folder / "other-ca.pem", "--tls-cert", folder / "intruder.pem", "--quiet")
+    assert intruder.returncode == 1 and "cannot reach the dask scheduler" in intruder.stderr
+    plain = _btf("run", config, "--scheduler", address.replace("tls://", "tcp://"), "--quiet")
+    assert plain.returncode == 1
+    assert not (tmp_path / "c.zarr").exists()
