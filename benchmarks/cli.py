@@ -13,7 +13,8 @@ from pathlib import Path
 
 from benchmarks.harness import to_json
 
-SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene")
+SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene",
+          "objectstore")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
