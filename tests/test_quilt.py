@@ -701,9 +701,10 @@ def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners,
 
 @pytest.mark.slow
 @pytest.mark.parametrize("texture,corners,count", [
-    *[(t, 1, 20) for t in ("brick", "gravel", "grass", "moon", "lattice", "tiles")],
-    ("brick", 2, 10),  # tile sets cost 10-60 s a seed: fewer seeds, the bench runs 20
-    *[(t, 2, 5) for t in ("gravel", "grass", "moon", "lattice")],
+    ("brick", 1, 20),  # the bug report's texture; the bench runs 20 seeds of every one
+    *[(t, 1, 10) for t in ("gravel", "grass", "moon", "lattice", "tiles")],
+    ("brick", 2, 6),  # tile sets cost 3-60 s a seed
+    *[(t, 2, 4) for t in ("gravel", "grass", "moon", "lattice")],
 ])
 def test_many_seeds_keep_every_border_within_the_bound(texture, corners, count):
     """Seeds the test did not pick (new ones every run). The generated ``tiles`` material's

@@ -266,3 +266,22 @@ def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s
         assert btf(*args, "--scheduler", "synchronous", "--quiet").code == 0
     for name in ("wood", "wood_svd", "tiles"):
         _same(local / f"{name}.zarr", f"s3://btf/cluster/{name}.zarr")
+
+
+@pytest.mark.slow
+def test_btf_bench_objectstore_measures_both_locations_and_both_store_classes():
+    import argparse
+
+    from benchmarks import objectstore as suite
+
+    result = suite.run(argparse.Namespace(size=64, sampling="abtf:4,2", rank=4, repeat=1))
+    assert [r["layout"] for r in result["rows"]] == list(suite.LAYOUTS)
+    for row in result["rows"]:
+        assert row["s3_bytes"] == pytest.approx(row["local_bytes"], rel=0.05)
+        for key in ("local_generate", "s3_generate", "local_compress", "s3_compress"):
+            assert row[key]["seconds"] > 0 and row[key]["peak_rss"] > 0
+    shards, chunks = result["rows"][2], result["rows"][0]
+    assert shards["s3_objects"] <= chunks["s3_objects"]
+    assert {c["class"] for c in result["classes"]} == {"obstore", "fsspec"}
+    text = suite.report(result)
+    assert "| chunks 128 in 2x2 shards | compress |" in text and "| obstore |" in text
