@@ -15,7 +15,7 @@ same NAME made with other parameters are removed then. A run holds an exclusive 
 fails at once instead of writing into the first one's partial output.
 
 **Object storage** (``s3://`` outputs; :mod:`pipeline.storage`) has no rename, so the same
-guarantees take another protocol, written down in the README:
+guarantees take another protocol, written down in docs/cluster-and-storage.md:
 
 - a new output is written in place, under its final prefix, with its root ``zarr.json`` kept
   aside (:data:`pipeline.storage.ASIDE`) and a record of the run's provenance key beside it

@@ -13,7 +13,7 @@ The lease is ``BTF_LOCK_LEASE`` seconds (30 by default).
 A store without conditional writes (older MinIO and SeaweedFS releases) answers a conditional
 write like a plain one: btf then reads the lock back and goes on only if it holds its own
 owner tag, which catches two runs that do not start in the same instant, not all races; the
-README says so.
+docs/cluster-and-storage.md says so.
 """
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ def test_the_services_run_the_commands_the_cluster_tests_run():
     assert compose_command("scheduler")[:2] == ["dask", "scheduler"]
     worker = compose_command("worker")
     assert worker[:3] == ["dask", "worker", "tcp://scheduler:8786"]
-    assert "--memory-limit" in worker  # each worker's memory is bounded (README: how to set it)
+    assert "--memory-limit" in worker  # each worker's memory is bounded (docs/)
     runner = compose_command("runner")
     assert runner[:2] == ["btf", "run"] and runner[-2:] == ["--scheduler", "tcp://scheduler:8786"]
     assert (ROOT / runner[2].removeprefix("/app/")).is_file()  # the image copies configs/ to /app

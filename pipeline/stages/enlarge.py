@@ -94,7 +94,7 @@ class EnlargeParams:
     lambda_: float | None = option(
         None, key="lambda", metavar="L",
         help="weight of a constraint value against one ABRDF value in the search (default: "
-             "100 x rows / constraint values, see the README)")
+             "100 x rows / constraint values, see docs/enlargement.md)")
     iterations: int = option(5, metavar="N", help="EM iterations per level")
     no_statistics: bool = option(False, help="skip statistical synthesis: one QP of the "
                                              "Texture Optimization result")
