@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import btf_executable, git_revision, machine, measure
+from tasks.evaluation import abrdf_error, lookup_baseline, tiling_baseline
 
 SUITE = "enlarge"
 SAMPLING = "abtf:12,4"
@@ -91,24 +92,6 @@ def _factors(path: Path):
             np.asarray(g["V"][...], np.float32), float(g.attrs["transform"]["eps"]), g)
 
 
-def abrdf_error(u: np.ndarray, coefficients: np.ndarray, eps: float, truth: np.ndarray,
-                mask: np.ndarray) -> float:
-    """Eq. (11) over the masked texels: mean of each texel's RMS radiance error (linear).
-
-    ``u`` ``(rows, K)``; ``coefficients`` ``(H, W, K)`` (``S V^T`` per texel); ``truth``
-    ``(H, W, rows)`` linear radiance in the rows' order.
-    """
-    from tasks.svd import reconstruct
-
-    texels = coefficients.reshape(-1, coefficients.shape[-1])[mask.ravel()]
-    rows = truth.reshape(-1, truth.shape[-1])[mask.ravel()]
-    errors = []
-    for k in range(0, len(texels), 16384):
-        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], eps=eps).T
-        errors.append(np.sqrt(np.mean((approx - rows[k : k + 16384]) ** 2, axis=1)))
-    return float(np.mean(np.concatenate(errors)))
-
-
 def truth_rows(path: Path) -> np.ndarray:
     """``(H, W, rows)`` radiance of a store, rows in BTF-matrix order (view, light, channel)."""
     import zarr
@@ -145,16 +128,6 @@ def _mean_colour_store(source: Path, out: Path) -> Path:
     return out
 
 
-def lookup_baseline(sample_coef, sample_keys, keys) -> np.ndarray:
-    """Per-texel lookup: each texel takes the sample coefficients whose keys are nearest."""
-    from scipy.spatial import cKDTree
-
-    _, index = cKDTree(sample_keys.reshape(-1, sample_keys.shape[-1])).query(
-        keys.reshape(-1, keys.shape[-1]))
-    flat = sample_coef.reshape(-1, sample_coef.shape[-1])
-    return flat[index].reshape(*keys.shape[:2], -1)
-
-
 def _log_layers(path: Path, eps: float) -> np.ndarray:
     """All layers of a store in the log domain, ``(H, W, layers * channels)``."""
     return np.log(truth_rows(path) + eps)
@@ -162,13 +135,9 @@ def _log_layers(path: Path, eps: float) -> np.ndarray:
 
 def _baselines(names, tmp, sample_svd, size, origin, truth, mask, u, coef_s, eps) -> dict:
     out = {}
-    h = coef_s.shape[0]
     if "tiling" in names:
-        reps = -(-size // h) + 1
-        tiled = np.tile(coef_s, (reps, reps, 1))
-        shift = (h - origin[0] % h) % h, (h - origin[1] % h) % h
-        out["tiling"] = abrdf_error(u, tiled[shift[0] : shift[0] + size,
-                                             shift[1] : shift[1] + size], eps, truth, mask)
+        out["tiling"] = abrdf_error(u, tiling_baseline(coef_s, (size, size), origin), eps,
+                                    truth, mask)
     if "quilt" in names:
         step = 32 - 8
         tile = -(-size // step) * step
