@@ -41,7 +41,7 @@ import yaml
 from pipeline import storage, yaml_lines
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, from_mapping, names_path, paths
-from pipeline.provenance import up_to_date
+from pipeline.provenance import command_line, up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
 from pipeline.stages import STAGES
 from pipeline.yaml_lines import Mapping
@@ -292,6 +292,28 @@ def _restricted_count(step, plan: Plan, shapes: dict) -> str | None:
             f"{needs.of} layers)")
 
 
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss() -> int | None:
+    """Peak resident memory of the process since the last reset, in bytes (Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def execute(plan: Plan, session: Session) -> None:
     """Run the stages of a validated plan in order, skipping up-to-date stores."""
     start = time.perf_counter()
@@ -301,15 +323,22 @@ def execute(plan: Plan, session: Session) -> None:
         outputs = paths(step.params, "out")
         header = f"[{k}/{len(plan.stages)}] {step.name}" + (f" -> {outputs[0]}" if outputs
                                                           else "")
+        entry = {"stage": step.name, "out": outputs[0] if outputs else None,
+                 "command": command_line(step.name, step.params)}
         if stage.makes_store and up_to_date(outputs[0], step.name, step.params):
             session.log(f"{header}: up to date, skipped")
+            session.history.append({**entry, "skipped": True})
             skipped += 1
             continue
         session.log(header)
         params = step.params
         if "overwrite" in {f.name for f in dataclasses.fields(params)}:
             params = dataclasses.replace(params, overwrite=True)  # the run owns its outputs
+        began, peak = time.perf_counter(), reset_peak_rss()
         stage.run(params, session)
+        session.history.append({**entry, "skipped": False,
+                                "seconds": time.perf_counter() - began,
+                                "peak_rss": peak_rss() if peak else None})
     if plan.scene is not None:
         from pipeline.stages.scene import write_scene
 

@@ -139,6 +139,8 @@ class Session:
         self.options = options or RuntimeOptions()
         self.client = None
         self._pin_blas = False
+        # what `btf run` did so far, stage by stage (pipeline.config.execute; btf report)
+        self.history: list[dict] = []
 
     def __enter__(self) -> Session:
         if is_cluster(self.options.scheduler):

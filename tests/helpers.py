@@ -58,3 +58,27 @@ def compose_services() -> dict:
     import yaml
 
     return yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def small_demo(folder: Path, size: int = 128) -> Path:
+    """configs/demo.yaml scaled down to a ``size^2`` ground truth, written into ``folder``.
+
+    The sample stays the central half and the surface twice the size; the scene spec goes
+    to ``folder/configs/demo/`` where the config finds it when run from ``folder``.
+    """
+    text = (REPO / "configs" / "demo.yaml").read_text()
+    for old, new in (("size: 256", f"size: {size}"),
+                     ('"64:192,64:192"', f'"{size // 4}:{3 * size // 4},{size // 4}:'
+                                         f'{3 * size // 4}"'),
+                     ("size: [512, 512]", f"size: [{2 * size}, {2 * size}]")):
+        assert old in text, old
+        text = text.replace(old, new)
+    scenes = folder / "configs" / "demo"
+    scenes.mkdir(parents=True, exist_ok=True)
+    (scenes / "scene.yaml").write_text((REPO / "configs" / "demo" / "scene.yaml").read_text())
+    path = folder / "demo.yaml"
+    path.write_text(text)
+    return path

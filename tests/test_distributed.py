@@ -18,10 +18,15 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import compose_command, compose_services, generate_store, no_partial_outputs
+from helpers import (
+    compose_command,
+    compose_services,
+    generate_store,
+    no_partial_outputs,
+    small_demo,
+)
 
 BIN = Path(sys.executable).parent
-DEMO = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
 
 
 def _free_port() -> int:
@@ -99,23 +104,23 @@ def _shows_progress(stderr: str) -> bool:
 @pytest.mark.distributed
 @pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
 def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
-    # docker-compose.yml's runner command with the demo config (local stores, which this
-    # host's workers share; its own config, on S3, runs in tests/test_s3.py), a smaller store
-    runner = compose_command("runner", words={"/app/configs/cluster.yaml": str(DEMO)},
+    # docker-compose.yml's runner command with the demo config, scaled down (local stores,
+    # which this host's workers share; its own config, on S3, runs in tests/test_s3.py)
+    demo = small_demo(tmp_path, 64)
+    runner = compose_command("runner", words={"/app/configs/cluster.yaml": str(demo)},
                              values={"--scheduler": cluster})
     assert runner[0] == "btf"
-    run = _btf(*runner[1:], "--set", "generate.size=40", *(["--quiet"] if quiet else []),
-               cwd=tmp_path)
+    run = _btf(*runner[1:], *(["--quiet"] if quiet else []), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     if quiet:
         assert run.stderr == ""
     else:  # the stages' messages and a bar per compute, as on the local schedulers
-        assert "[1/4] generate" in run.stderr and _shows_progress(run.stderr), run.stderr
+        assert "[1/9] generate" in run.stderr and _shows_progress(run.stderr), run.stderr
     out = tmp_path / "out" / "demo"
-    assert (out / "contact_sheet.png").is_file() and len(list((out / "layers").glob("*.png")))
+    assert (out / "report.html").is_file() and len(list((out / "scene").glob("*.png"))) == 3
     # the cluster's store is the one a local synchronous run makes
-    local = generate_store(tmp_path / "local.zarr", "--material", "wood", "--size", "40",
-                           "--sampling", "abtf:12,6", "--seed", "7", "--scheduler",
+    local = generate_store(tmp_path / "local.zarr", "--material", "wood", "--size", "64",
+                           "--sampling", "abtf:12,4", "--seed", "7", "--scheduler",
                            "synchronous")
     a = zarr.open_group(out / "wood.zarr", mode="r")
     b = zarr.open_group(local, mode="r")

@@ -258,6 +258,8 @@ def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s
                           cwd=runner, env={**os.environ, **s3.environment}, timeout=600)
     assert done.returncode == 0, done.stderr
     assert list(runner.iterdir()) == []  # the runner wrote nothing locally either
+    page = storage.read(s3.url("cluster/report.html")).decode()
+    assert "Compression: s3://btf/cluster/wood_svd.zarr" in page and "Tile set: " in page
     local = tmp_path / "local"
     for args in (("generate", local / "wood.zarr", "--material", "wood", "--size", "64",
                   "--sampling", "abtf:12,4"),

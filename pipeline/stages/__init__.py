@@ -26,6 +26,7 @@ from pipeline.stages import (
     reconstruct,
     reference,
     render,
+    report,
     roller,
     scene,
 )
@@ -142,6 +143,14 @@ STAGES: dict[str, Stage] = {
               "projected back on U; --method mean-v averages V instead, a log-domain "
               "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "
               "OME-NGFF-style 'multiscales' attribute. btf inspect lists them."),
+        Stage("report", report.ReportParams, report.report,
+              "write one self-contained HTML page of a run's results",
+              "Write one HTML page (pictures embedded, no script, no network) of what a run "
+              "made and how well: each stage of the btf run it ends with (time, peak memory, "
+              "the command that reproduces it); compression rank, size ratio and error; an "
+              "enlargement against ground truth and the tiling and per-texel lookup "
+              "baselines, side by side for a few lights; a tile set's border figures; and any "
+              "PNG pictures (a rendered surface, a scene's images)."),
         Stage("scene", scene.SceneParams, scene.scene_stage,
               "compute only what a scene needs: directions, region, level, rank",
               "Write exactly what a scene spec (YAML, see configs/scenes/) asks of a store: "

@@ -1,0 +1,318 @@
+"""``btf report``: one self-contained HTML page of what a run made and how well.
+
+It shows, for whatever it is given:
+
+- **the run**: each stage of the ``btf run`` that ends with this stage, with its time, its
+  peak memory (this process's, reset before each stage: on a cluster the workers' memory is
+  not in it) and the ``btf`` command that reproduces it;
+- **compression** (``compressed``): rank, the size ratio of the BTF matrix to its factors, the
+  error the store records (log domain) and eq. (11) of paper 000 against its source store
+  (linear radiance), with a few layers of both side by side;
+- **enlargement** (``enlarged``, with ``truth``): eq. (11) over the texels outside the sample
+  for the enlargement and two baselines, the sample tiled periodically and the per-texel
+  lookup, with ground truth, enlargement and baselines side by side for a few lights;
+- **tile set** (``tiles``): its border check, seam and structure per tile;
+- **pictures**: PNG files or folders of them (a rendered surface, a scene's images).
+
+Errors are evaluated in bands of texel rows, so memory follows the band, not the store; the
+pictures show a window of at most ``--window`` texels per side.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import __version__, storage
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.params import option
+from pipeline.session import Session
+from pipeline.stores.base import open_group
+from tasks.evaluation import abrdf_errors, lookup_baseline, tiling_baseline
+from tasks.report_html import Picture, Section, Table, render
+from tasks.svd import reconstruct_layers
+from tasks.tonemap import exposure, tonemap
+
+BAND = 64  # texel rows per band of the error evaluation
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportParams:
+    """Parameters of ``btf report``."""
+
+    out: str = option(help="HTML file to write (a local path or an s3:// URL)",
+                      positional=True, path="out")
+    truth: str | None = option(None, path="in", metavar="STORE",
+                               help="ground-truth radiance store the enlargement is judged by")
+    compressed: str | None = option(None, path="in", metavar="STORE",
+                                    help="a compressed store made by btf compress")
+    enlarged: str | None = option(None, path="in", metavar="STORE",
+                                  help="a compressed store made by btf enlarge")
+    tiles: str | None = option(None, path="in", metavar="STORE",
+                               help="a tile set made by btf quilt")
+    pictures: str | None = option(None, metavar="PNG,..",
+                                  help="PNG files, or folders of them, to show (comma-separated)")
+    lights: int = option(3, help="light directions shown side by side (spread over them)")
+    window: int = option(256, help="largest side of the pictures' window, in texels")
+    title: str = option("btf report", help="title of the page")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+
+def _png(image: np.ndarray) -> bytes:
+    from matplotlib.image import imsave
+
+    buffer = io.BytesIO()
+    imsave(buffer, np.clip(image, 0, 1), format="png")
+    return buffer.getvalue()
+
+
+def _factors(path: str):
+    group = open_group(path)
+    return (group, np.asarray(group["U"][...], np.float64), np.asarray(group["S"][...],
+                                                                         np.float64),
+            float(group.attrs["transform"]["eps"]))
+
+
+def _spread(count: int, lights: int) -> list[int]:
+    return sorted({int(i) for i in np.linspace(0, lights - 1, min(count, lights))})
+
+
+def _rows(radiance, ys: slice) -> np.ndarray:
+    """``(h, W, rows)`` linear radiance of a band, rows in BTF-matrix order."""
+    block = np.asarray(radiance[:, :, ys], np.float64)  # (views, lights, h, W, channels)
+    nv, nl, h, w, nc = block.shape
+    return np.moveaxis(block, (0, 1), (2, 3)).reshape(h, w, nv * nl * nc)
+
+
+def _fmt(x: float | None, digits: int = 4) -> str:
+    return "-" if x is None else f"{x:.{digits}g}"
+
+
+def _sidecar(out: str) -> str:
+    """Where the page's run history is kept: ``OUT`` with ``.json`` for its suffix."""
+    location = storage.parse(out, what="output")
+    name = storage.name(location)
+    stem = name.rsplit(".", 1)[0] if "." in name else name
+    return storage.join(storage.parent(location), stem + ".json")
+
+
+def _write(out: str, data: bytes, overwrite: bool) -> None:
+    """A file written whole.
+
+    Locally through a sibling and a rename; in object storage as one ``PUT`` (an object
+    appears complete or not at all).
+    """
+    location = storage.parse(out, what="output")
+    if not storage.is_url(location):
+        with atomic_output(out, directory=False, overwrite=overwrite) as tmp:
+            Path(tmp).write_bytes(data)
+        return
+    if storage.exists(location) and not overwrite:
+        raise BTFError(f"{out}: already exists; pass --overwrite to replace it")
+    storage.write(location, data)
+
+
+def _history(session: Session, out: str) -> list[dict]:
+    """The run's stages; a skipped one keeps the time and memory of the run that made it.
+
+    They are kept beside the page (``OUT.json``), by command: a rerun that skips up-to-date
+    stages still reports what they cost.
+    """
+    import json
+
+    previous = {}
+    try:
+        previous = {h["command"]: h for h in json.loads(storage.read(_sidecar(out)) or b"{}"
+                                                        )["history"]}
+    except (ValueError, KeyError, TypeError):
+        pass
+    history = []
+    for h in session.history:
+        before = previous.get(h["command"])
+        if h["skipped"] and before is not None and "seconds" in before:
+            h = {**before, "skipped": True, "measured_before": True}
+        history.append(h)
+    return history
+
+
+def _stages(history: list[dict]) -> Section | None:
+    if not history:
+        return None
+    rows, commands = [], []
+    for h in history:
+        peak = h.get("peak_rss")
+        memory = "-" if peak is None else f"{peak / 2**20:.0f} MiB"
+        if "seconds" not in h:
+            rows.append((h["stage"], h["out"] or "-", "-", "-", "up to date, skipped"))
+        else:
+            note = "up to date: time of the run that made it" if h.get("measured_before") else ""
+            rows.append((h["stage"], h["out"] or "-", f"{h['seconds']:.1f} s", memory, note))
+        commands.append(h["command"])
+    total = sum(h.get("seconds", 0.0) for h in history)
+    return Section("The run", (f"{len(rows)} stages before this report, {total:.1f} s in all. "
+                               "Peak memory is this process's, reset before each stage (on a "
+                               "cluster the workers' memory is not in it).",),
+                   (Table(("stage", "output", "time", "peak memory", "note"), tuple(rows)),),
+                   commands=tuple(commands))
+
+
+def _compression(path: str, params: ReportParams) -> Section:
+    group, u, s, eps = _factors(path)
+    v = group["V"]
+    nv, nl, nc, k = u.shape
+    ny, nx = v.shape[:2]
+    matrix = nv * nl * nc * ny * nx
+    factors = u.size + s.size + ny * nx * k
+    error = dict(group.attrs.get("error", {}))
+    source = dict(group.attrs.get("provenance", {})).get("parameters", {}).get("store")
+    rows = [("rank", str(k)), ("BTF matrix", f"{nv * nl * nc} x {ny * nx}"),
+            ("size ratio, matrix / factors", f"{matrix / factors:.1f}x"),
+            ("relative error, log domain (recorded)",
+             _fmt(error.get("log_relative_frobenius")))]
+    pictures = []
+    if source and storage.any_below(storage.parse(source)):
+        radiance = open_group(source)["radiance"]
+        flat_u = u.reshape(-1, k)
+        total, count = 0.0, 0
+        for y0 in range(0, ny, BAND):
+            ys = slice(y0, min(y0 + BAND, ny))
+            coef = np.asarray(v[ys], np.float64) * s
+            e = abrdf_errors(flat_u, coef, eps, _rows(radiance, ys), np.ones(coef.shape[:2],
+                                                                             bool))
+            total, count = total + e.sum(), count + e.size
+        rows.append(("ABRDF RMSE against the source, linear (eq. 11)", _fmt(total / count)))
+        w = min(params.window, ny, nx)
+        vw = np.asarray(v[:w, :w], np.float64)
+        for li in _spread(params.lights, nl):
+            truth = np.asarray(radiance[0, li, :w, :w], np.float64)
+            scale = exposure(truth)
+            pictures += [Picture(f"source, light {li}", _png(tonemap(truth, scale=scale))),
+                         Picture(f"rank {k}, light {li}",
+                                 _png(tonemap(reconstruct_layers(u[0, li], s, vw, eps=eps),
+                                              scale=scale)))]
+    return Section(f"Compression: {path}", (
+        "Log range reduction and a randomized SVD: any layer is exp(U S V^T) - eps.",),
+        (Table(("figure", "value"), tuple(rows)),), tuple(pictures))
+
+
+def _enlargement(path: str, params: ReportParams) -> Section:
+    group, u, s, eps = _factors(path)
+    info = dict(group.attrs.get("enlargement", {}))
+    parameters = dict(group.attrs.get("provenance", {})).get("parameters", {})
+    paragraphs = [f"Synthesized from the compressed sample {parameters.get('sample')} under "
+                  f"the photos {parameters.get('constraints')} (paper 000)."]
+    if params.truth is None:
+        return Section(f"Enlargement: {path}", (*paragraphs,
+                       "No ground truth given (--truth): no error figures."))
+    v = group["V"]
+    ny, nx, k = v.shape
+    truth = open_group(params.truth)["radiance"]
+    if tuple(truth.shape[2:4]) != (ny, nx):
+        raise BTFError(f"--truth {params.truth}: {truth.shape[2]} x {truth.shape[3]} texels, "
+                       f"but {path} has {ny} x {nx}")
+    _, us, ss, _ = _factors(parameters["sample"])
+    vs = np.asarray(open_group(parameters["sample"])["V"][...], np.float64)
+    sample = vs * ss
+    sh, sw = sample.shape[:2]
+    origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
+    photos = open_group(parameters["constraints"])["radiance"]
+    keys_of = lambda ys: np.log(np.maximum(_rows(photos, ys), 0) + eps)  # noqa: E731
+    sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
+    flat_u, flat_us = u.reshape(-1, k), us.reshape(-1, us.shape[-1])
+    sums = {"enlargement": 0.0, "tiling": 0.0, "lookup": 0.0}
+    count = 0
+    for y0 in range(0, ny, BAND):
+        ys = slice(y0, min(y0 + BAND, ny))
+        rows = _rows(truth, ys)
+        yy, xx = np.arange(ys.start, ys.stop)[:, None], np.arange(nx)[None, :]
+        mask = ~((yy >= origin[0]) & (yy < origin[0] + sh) & (xx >= origin[1])
+                 & (xx < origin[1] + sw))
+        coef = np.asarray(v[ys], np.float64) * s
+        tiled = tiling_baseline(sample, (ys.stop - ys.start, nx), origin, (ys.start, 0))
+        looked = lookup_baseline(sample, sample_keys, keys_of(ys))
+        for name, (basis, c) in {"enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
+                                 "lookup": (flat_us, looked)}.items():
+            sums[name] += abrdf_errors(basis, c, eps, rows, mask).sum()
+        count += int(mask.sum())
+    errors = {n: sums[n] / max(count, 1) for n in sums}
+    table = Table(("method", "ABRDF RMSE outside the sample (eq. 11, linear)",
+                   "relative to lookup"),
+                  tuple((n, _fmt(e), f"{e / errors['lookup']:.2f}") for n, e in errors.items()))
+    correlation = info.get("placement", {}).get("correlation", 0.0)
+    paragraphs.append(f"The sample ({sh} x {sw}) sits at {origin[0]},{origin[1]} in the photos "
+                      f"(correlation {correlation:.4f}); the errors count the {count} texels "
+                      "outside it.")
+    pictures = []
+    w = min(params.window, ny, nx)
+    window = slice(0, w)
+    coef_w = np.asarray(v[window, window], np.float64) * s
+    tiled_w = tiling_baseline(sample, (w, w), origin)
+    looked_w = lookup_baseline(sample, sample_keys, keys_of(window)[:, :w])
+    for li in _spread(params.lights, u.shape[1]):
+        true = np.asarray(truth[0, li, :w, :w], np.float64)
+        scale = exposure(true)
+        pictures.append(Picture(f"ground truth, light {li}", _png(tonemap(true, scale=scale))))
+        for name, basis, c in (("enlargement", u, coef_w), ("tiling", us, tiled_w),
+                               ("lookup", us, looked_w)):
+            layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, eps=eps)
+            pictures.append(Picture(f"{name}, light {li}", _png(tonemap(layer, scale=scale))))
+    return Section(f"Enlargement: {path}", tuple(paragraphs), (table,), tuple(pictures))
+
+
+def _tiles(path: str) -> Section:
+    group = open_group(path)
+    check = dict(group.attrs.get("border_check", {}))
+    tiles = check.get("tiles", [])
+    rows = tuple((t["tile"], _fmt(t["seam"], 3), _fmt(t["structure"], 3), str(t["plans"]),
+                  t["worst"]) for t in tiles)
+    quilt = dict(group.attrs.get("quilt", {}))
+    text = (f"{len(tiles)} tile(s) of {quilt.get('tile')} texels, block {quilt.get('block')}, "
+            f"overlap {quilt.get('overlap')}, {quilt.get('corners')} corner type(s). Each "
+            f"border's seam and structure against the tile's inside (1.00 = as good as the "
+            f"inside; bound {check.get('bound')}).")
+    return Section(f"Tile set: {path}", (text,),
+                   (Table(("tile", "seam", "structure", "plans", "worst line"), rows),))
+
+
+def _pictures(items: str) -> Section:
+    pictures = []
+    for item in filter(None, (i.strip() for i in items.split(","))):
+        path = Path(item)
+        files = sorted(path.glob("*.png")) if path.is_dir() else [path]
+        if not files or not all(f.is_file() for f in files):
+            raise BTFError(f"--pictures: {item}: no such PNG file or folder of PNGs")
+        pictures += [Picture(str(f), f.read_bytes()) for f in files[:12]]
+    return Section("Pictures", (), (), tuple(pictures))
+
+
+def report(params: ReportParams, session: Session) -> Path:
+    """Write the page (see the module)."""
+    import json
+
+    start = time.perf_counter()
+    history = _history(session, params.out)
+    sections = [s for s in [_stages(history)] if s is not None]
+    if params.compressed:
+        session.log(f"report: compression of {params.compressed}")
+        sections.append(_compression(params.compressed, params))
+    if params.enlarged:
+        session.log(f"report: enlargement {params.enlarged}"
+                    + (f" against {params.truth}" if params.truth else ""))
+        sections.append(_enlargement(params.enlarged, params))
+    if params.tiles:
+        sections.append(_tiles(params.tiles))
+    if params.pictures:
+        sections.append(_pictures(params.pictures))
+    page = render(params.title, f"Made by btf {__version__} on "
+                  f"{time.strftime('%Y-%m-%d %H:%M')} in {time.perf_counter() - start:.1f} s.",
+                  sections)
+    _write(params.out, page.encode("utf-8"), params.overwrite)
+    if history:
+        _write(_sidecar(params.out), json.dumps({"history": history}, indent=1).encode(), True)
+    session.log(f"report: {len(sections)} section(s) -> {params.out}")
+    return Path(params.out)
