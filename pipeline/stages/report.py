@@ -215,6 +215,11 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     if tuple(truth.shape[2:4]) != (ny, nx):
         raise BTFError(f"--truth {params.truth}: {truth.shape[2]} x {truth.shape[3]} texels, "
                        f"but {path} has {ny} x {nx}")
+    layers = truth.shape[0] * truth.shape[1] * truth.shape[4]
+    if layers != u.shape[0] * u.shape[1] * u.shape[2]:
+        raise BTFError(f"--truth {params.truth}: {layers} textures (views x lights x "
+                       f"channels), but {path} has {u.shape[0] * u.shape[1] * u.shape[2]}: "
+                       "give the store the sample was measured from")
     _, us, ss, _ = _factors(parameters["sample"])
     vs = np.asarray(open_group(parameters["sample"])["V"][...], np.float64)
     sample = vs * ss
