@@ -30,7 +30,7 @@ import numpy as np
 from pipeline import __version__, storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.params import option
+from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stores.base import open_group
 from tasks.evaluation import abrdf_errors, lookup_baseline, tiling_baseline
@@ -61,6 +61,12 @@ class ReportParams:
     window: int = option(256, help="largest side of the pictures' window, in texels")
     title: str = option("btf report", help="title of the page")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        if self.lights < 1:
+            raise ParamError("lights", f"must be at least 1, got {self.lights}")
+        if self.window < 16:
+            raise ParamError("window", f"must be at least 16 texels, got {self.window}")
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -98,7 +104,8 @@ def _sidecar(out: str) -> str:
     location = storage.parse(out, what="output")
     name = storage.name(location)
     stem = name.rsplit(".", 1)[0] if "." in name else name
-    return storage.join(storage.parent(location), stem + ".json")
+    sidecar = stem + ".json" if stem + ".json" != name else name + ".json"
+    return storage.join(storage.parent(location), sidecar)
 
 
 def _write(out: str, data: bytes, overwrite: bool) -> None:
