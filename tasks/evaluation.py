@@ -58,3 +58,60 @@ def tiling_baseline(sample_coef: np.ndarray, shape: tuple[int, int],
     ys = (start[0] + np.arange(shape[0]) - origin[0]) % h
     xs = (start[1] + np.arange(shape[1]) - origin[1]) % w
     return sample_coef[np.ix_(ys, xs)]
+
+
+def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray
+                   ) -> np.ndarray:
+    """For every truth texel, the sample texel whose ABRDF is nearest to it (exact search).
+
+    Nearest in eq. (11)'s measure: the RMS over the rows of linear radiance, the sample's
+    ABRDFs as its compression reconstructs them (``u`` ``(rows, K)``, ``sample_coef``
+    ``(h, w, K)``) against the truth's ``(H, W, rows)``. Returns flat sample indices
+    ``(H, W)``. Exact brute force (faiss, flat L2), so the oracle is the best any copy can do.
+    """
+    import faiss
+
+    from tasks.svd import reconstruct
+
+    flat = sample_coef.reshape(-1, sample_coef.shape[-1])
+    sample = np.ascontiguousarray(reconstruct(u, np.ones(u.shape[1]), flat, eps=eps).T,
+                                  np.float32)
+    index = faiss.IndexFlatL2(sample.shape[1])
+    index.add(sample)
+    rows = truth.reshape(-1, truth.shape[-1])
+    found = np.empty(len(rows), np.int64)
+    for k in range(0, len(rows), 16384):
+        _, hit = index.search(np.ascontiguousarray(rows[k : k + 16384], np.float32), 1)
+        found[k : k + 16384] = hit[:, 0]
+    return found.reshape(truth.shape[:2])
+
+
+def oracle(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray, *,
+           rows: np.ndarray | None = None, values: np.ndarray | None = None,
+           noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The best a method composing the sample's ABRDFs can reach, given the ground truth.
+
+    Every texel copies the sample ABRDF nearest to the truth's (:func:`nearest_abrdfs`);
+    with constraint ``rows`` ``(G, K)`` and the target's constraint ``values`` ``(H, W, G)``
+    (log domain) the copy then goes through the same QP as the enlargement's result
+    (:func:`tasks.constrained_blend.blend`, left to a residual of ``noise``). Returns the
+    copy and the constrained copy (the same array without constraints), ``(H, W, K)``.
+    """
+    from tasks.constrained_blend import ConstraintProjector, blend
+
+    copy = sample_coef.reshape(-1, sample_coef.shape[-1])[
+        nearest_abrdfs(u, sample_coef, eps, truth)]
+    copy = copy.reshape(*truth.shape[:2], -1)
+    if rows is None:
+        return copy, copy
+    constrained, _ = blend(copy, copy, values, ConstraintProjector.of(rows), noise=noise)
+    return copy, constrained
+
+
+def gap_share(error: float, lookup: float, best: float) -> float:
+    """The share of the gap from the best achievable to the lookup baseline left by ``error``.
+
+    ``(error - best) / (lookup - best)``: 0 is the oracle, 1 the per-texel lookup, negative
+    below the oracle (possible: a blend is not a copy).
+    """
+    return (error - best) / (lookup - best) if lookup != best else float("nan")

@@ -9,8 +9,11 @@ It shows, for whatever it is given:
   error the store records (log domain) and eq. (11) of paper 000 against its source store
   (linear radiance), with a few layers of both side by side;
 - **enlargement** (``enlarged``, with ``truth``): eq. (11) over the texels outside the sample
-  for the enlargement and two baselines, the sample tiled periodically and the per-texel
-  lookup, with ground truth, enlargement and baselines side by side for a few lights;
+  for the enlargement, the oracle (each texel copies the sample ABRDF nearest to the truth's:
+  the best a copy can do) and two baselines, the sample tiled periodically and the per-texel
+  lookup, with the share of the gap from the oracle to the lookup each leaves and its
+  realism (:mod:`tasks.realism`), and ground truth, enlargement and baselines side by side
+  for a few lights;
 - **tile set** (``tiles``): its border check, seam and structure per tile;
 - **pictures**: PNG files or folders of them (a rendered surface, a scene's images).
 
@@ -33,7 +36,14 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stores.base import open_group
-from tasks.evaluation import abrdf_errors, lookup_baseline, tiling_baseline
+from tasks.evaluation import (
+    abrdf_errors,
+    gap_share,
+    lookup_baseline,
+    nearest_abrdfs,
+    tiling_baseline,
+)
+from tasks.realism import realism
 from tasks.report_html import Picture, Section, Table, render
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, tonemap
@@ -93,6 +103,11 @@ def _rows(radiance, ys: slice) -> np.ndarray:
     block = np.asarray(radiance[:, :, ys], np.float64)  # (views, lights, h, W, channels)
     nv, nl, h, w, nc = block.shape
     return np.moveaxis(block, (0, 1), (2, 3)).reshape(h, w, nv * nl * nc)
+
+
+def _log_luminance(layer: np.ndarray) -> np.ndarray:
+    """``(h, w, 3)`` radiance -> log luminance (what the realism figure compares)."""
+    return np.log(np.maximum(layer @ np.array([0.2126, 0.7152, 0.0722]), 0) + 1e-3)
 
 
 def _fmt(x: float | None, digits: int = 4) -> str:
@@ -236,7 +251,8 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     keys_of = lambda ys: np.log(np.maximum(_rows(photos, ys), 0) + eps)  # noqa: E731
     sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
     flat_u, flat_us = u.reshape(-1, k), us.reshape(-1, us.shape[-1])
-    sums = {"enlargement": 0.0, "tiling": 0.0, "lookup": 0.0}
+    sums = {"oracle (nearest sample ABRDF)": 0.0, "enlargement": 0.0, "tiling": 0.0,
+            "lookup": 0.0}
     count = 0
     for y0 in range(0, ny, BAND):
         ys = slice(y0, min(y0 + BAND, ny))
@@ -247,19 +263,15 @@ def _enlargement(path: str, params: ReportParams) -> Section:
         coef = np.asarray(v[ys], np.float64) * s
         tiled = tiling_baseline(sample, (ys.stop - ys.start, nx), origin, (ys.start, 0))
         looked = lookup_baseline(sample, sample_keys, keys_of(ys))
-        for name, (basis, c) in {"enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
+        best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, eps, rows)]
+        for name, (basis, c) in {"oracle (nearest sample ABRDF)": (flat_us, best),
+                                 "enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
                                  "lookup": (flat_us, looked)}.items():
             sums[name] += abrdf_errors(basis, c, eps, rows, mask).sum()
         count += int(mask.sum())
     errors = {n: sums[n] / max(count, 1) for n in sums}
-    table = Table(("method", "ABRDF RMSE outside the sample (eq. 11, linear)",
-                   "relative to lookup"),
-                  tuple((n, _fmt(e), f"{e / errors['lookup']:.2f}") for n, e in errors.items()))
-    correlation = info.get("placement", {}).get("correlation", 0.0)
-    paragraphs.append(f"The sample ({sh} x {sw}) sits at {origin[0]},{origin[1]} in the photos "
-                      f"(correlation {correlation:.4f}); the errors count the {count} texels "
-                      "outside it.")
-    pictures = []
+    oracle = errors["oracle (nearest sample ABRDF)"]
+    pictures, looks = [], {}
     w = min(params.window, ny, nx)
     window = slice(0, w)
     coef_w = np.asarray(v[window, window], np.float64) * s
@@ -273,6 +285,21 @@ def _enlargement(path: str, params: ReportParams) -> Section:
                                ("lookup", us, looked_w)):
             layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, eps=eps)
             pictures.append(Picture(f"{name}, light {li}", _png(tonemap(layer, scale=scale))))
+            looks.setdefault(name, []).append(realism(_log_luminance(layer),
+                                                      _log_luminance(true)))
+    table = Table(("method", "ABRDF RMSE outside the sample (eq. 11, linear)",
+                   "share of the gap from the oracle to the lookup left", "realism"),
+                  tuple((n, _fmt(e), f"{gap_share(e, errors['lookup'], oracle):.2f}",
+                         _fmt(float(np.mean(looks[n])), 2) if n in looks else "")
+                        for n, e in errors.items()))
+    correlation = info.get("placement", {}).get("correlation", 0.0)
+    paragraphs.append(f"The sample ({sh} x {sw}) sits at {origin[0]},{origin[1]} in the photos "
+                      f"(correlation {correlation:.4f}); the errors count the {count} texels "
+                      "outside it. The oracle is the best a copy of the sample's ABRDFs can do: "
+                      "each texel takes the sample ABRDF nearest to the truth's. Realism: "
+                      "texture statistics of the pictured window's log luminance against the "
+                      "truth's, over those of two halves of the truth (1 = as alike as the "
+                      "truth is to itself; tasks/realism.py), averaged over the lights shown.")
     return Section(f"Enlargement: {path}", tuple(paragraphs), (table,), tuple(pictures))
 
 

@@ -1,0 +1,89 @@
+"""Enlargement beyond the paper: the oracle and realism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from tasks.evaluation import abrdf_errors, gap_share, lookup_baseline, nearest_abrdfs, oracle
+from tasks.realism import realism
+
+EPS = 1e-3
+
+
+def _abrdfs(rng, shape, rows=24, rank=5):
+    """Linear radiance ``(h, w, rows)`` of a smooth low-rank log field, plus a little noise."""
+    field = ndimage.gaussian_filter(rng.standard_normal((*shape, rank)), (2, 2, 0), mode="wrap")
+    basis = rng.standard_normal((rank, rows))
+    log = field / field.std() @ basis * 0.5 + 0.01 * rng.standard_normal((*shape, rows))
+    return np.exp(log).astype(np.float32) - EPS
+
+
+def _compress(radiance, rank):
+    """Rank-``rank`` factors of log(radiance + eps): ``u`` (rows, K) and coefficients."""
+    h, w, rows = radiance.shape
+    log = np.log(radiance.reshape(-1, rows).astype(np.float64) + EPS)
+    left = np.linalg.svd(log.T, full_matrices=False)[0]
+    u = left[:, :rank]
+    return u, (log @ u).reshape(h, w, rank).astype(np.float32)
+
+
+def test_the_oracle_of_a_rearranged_sample_is_its_compression_error():
+    rng = np.random.default_rng(3)
+    sample = _abrdfs(rng, (24, 24))
+    u, coef = _compress(sample, 5)  # the field's rank: the error is the noise's
+    everywhere = np.ones((24, 24), bool)
+    compression = abrdf_errors(u, coef, EPS, sample, everywhere)
+    # the target is the sample rearranged: quadrants swapped, rolled, transposed
+    order = np.arange(24 * 24).reshape(24, 24)
+    order = np.roll(np.concatenate([order[12:], order[:12]]), (5, -7), axis=(0, 1)).T
+    truth = sample.reshape(-1, sample.shape[-1])[order]
+    found = nearest_abrdfs(u, coef, EPS, truth)
+    copy, constrained = oracle(u, coef, EPS, truth)
+    errors = abrdf_errors(u, copy, EPS, truth, everywhere)
+    # each texel can do no worse than its own source texel's reconstruction
+    assert np.all(errors <= compression[order.ravel()] * (1 + 1e-5) + 1e-7)
+    assert np.mean(errors) == pytest.approx(np.mean(compression), rel=0.02)
+    assert np.mean(found == order) > 0.9  # and mostly that is the texel it came from
+    assert constrained is copy  # no constraints: no QP
+    # through the QP with the truth's own values of two rows, left to the residual the
+    # sample has on them (as btf enlarge does): about that error still
+    from tasks.constrained_blend import ConstraintProjector
+
+    rows = u[[0, 7]]
+    values = np.log(truth[..., [0, 7]].astype(np.float64) + EPS)
+    noise = ConstraintProjector.of(rows).rms_residual(coef, np.log(sample[..., [0, 7]] + EPS))
+    _, qp = oracle(u, coef, EPS, truth, rows=rows, values=values, noise=noise)
+    assert np.mean(abrdf_errors(u, qp, EPS, truth, everywhere)) == pytest.approx(
+        np.mean(errors), rel=0.05)
+
+
+def test_the_oracle_is_never_worse_than_the_lookup_texel_by_texel():
+    rng = np.random.default_rng(4)
+    big = _abrdfs(rng, (48, 48))
+    sample = big[12:36, 12:36]
+    u, coef = _compress(sample, 4)
+    keys = np.log(big[..., :3] + EPS)
+    lookup = lookup_baseline(coef, keys[12:36, 12:36], keys)
+    copy, _ = oracle(u, coef, EPS, big)
+    everywhere = np.ones((48, 48), bool)
+    best = abrdf_errors(u, copy, EPS, big, everywhere)
+    assert np.all(best <= abrdf_errors(u, lookup, EPS, big, everywhere) * (1 + 1e-5) + 1e-7)
+    assert gap_share(0.5, 1.0, 0.0) == 0.5 and gap_share(0.0, 1.0, 0.0) == 0.0
+
+
+@pytest.mark.parametrize("photo", ["brick", "gravel", "grass"])
+def test_realism_is_small_for_two_crops_of_a_texture_and_large_for_shuffled_texels(photo):
+    from skimage import data
+
+    image = np.log(getattr(data, photo)().astype(np.float64) + 1)
+    truth, other = image[:256, :256], image[256:512, 256:512]
+    assert realism(truth, truth) == pytest.approx(1.0)
+    crop = realism(other, truth)
+    shuffled = realism(np.random.default_rng(0).permutation(other.ravel()).reshape(256, 256),
+                       truth)
+    blurred = realism(ndimage.gaussian_filter(other, 1.5), truth)
+    assert crop < 2.5
+    assert shuffled > 4 and shuffled > 1.8 * crop
+    assert blurred > 1.5 * crop
