@@ -12,19 +12,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
+AMBIGUITY = 1e-3  # correlations this close to the best are as good a match
+MAX_ALIKE = 8  # such places listed
+
 
 @dataclass(frozen=True)
 class Match:
     """The best placement of a template: its top-left texel and correlation coefficient.
 
     ``runner_up`` is the best score at least a template's half-size away from it (-1 if there
-    is no such placement): a periodic texture matches well in several places.
+    is no such placement): a periodic texture matches well in several places. ``alike``
+    lists the places (y, x, score), each at least that far from the others, that match
+    within :data:`AMBIGUITY` of the best (at most :data:`MAX_ALIKE`).
     """
 
     y: int
     x: int
     score: float
     runner_up: float
+    alike: tuple[tuple[int, int, float], ...] = ()
+
+    def ambiguous(self) -> bool:
+        """Whether other places match as well as the best."""
+        return bool(self.alike)
 
 
 def locate(template: np.ndarray, image: np.ndarray) -> Match:
@@ -42,6 +52,18 @@ def locate(template: np.ndarray, image: np.ndarray) -> Match:
     y, x = np.unravel_index(int(np.argmax(score)), score.shape)
     ry, rx = max(1, template.shape[0] // 2), max(1, template.shape[1] // 2)
     yy, xx = np.ogrid[: score.shape[0], : score.shape[1]]
-    far = (np.abs(yy - y) >= ry) | (np.abs(xx - x) >= rx)
-    runner_up = float(score[far].max()) if far.any() else -1.0
-    return Match(int(y), int(x), float(score[y, x]), runner_up)
+
+    def away(cy, cx):
+        return (np.abs(yy - cy) >= ry) | (np.abs(xx - cx) >= rx)
+
+    free = away(y, x)
+    runner_up = float(score[free].max()) if free.any() else -1.0
+    alike = []
+    while free.any() and len(alike) < MAX_ALIKE:
+        masked = np.where(free, score, -np.inf)
+        ay, ax = np.unravel_index(int(np.argmax(masked)), score.shape)
+        if score[ay, ax] < score[y, x] - AMBIGUITY:
+            break
+        alike.append((int(ay), int(ax), float(score[ay, ax])))
+        free &= away(ay, ax)
+    return Match(int(y), int(x), float(score[y, x]), runner_up, tuple(alike))

@@ -271,3 +271,56 @@ def test_a_scene_reads_an_enlarged_store_like_any_compressed_one(enlarged, tmp_p
     got = zarr.open_group(tmp_path / "s.zarr", mode="r")["radiance"][0]
     want = zarr.open_group(tmp_path / "r.zarr", mode="r")["radiance"][0, 0]
     assert np.allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def periodic(tmp_path_factory):
+    """A strictly periodic ground truth (tiles, period 32): its sample matches in many places."""
+    from pipeline.cli import main
+
+    tmp = tmp_path_factory.mktemp("periodic")
+    m = generate_store(tmp / "M.zarr", "--material", "tiles", "--scale", "32", "--size", "96",
+                       "--sampling", "abtf:4,1", "--seed", "2")
+    for args in (["crop", m, tmp / "S.zarr", "--region", "32:64,32:64"],
+                 ["compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", "6"],
+                 ["crop", m, tmp / "C.zarr", "--light", "0"]):
+        assert main([str(a) for a in args] + ["--quiet"]) == 0
+    return tmp
+
+
+def test_a_periodic_sample_is_said_to_match_in_several_places_which_changes_nothing(
+        periodic, btf):
+    out = periodic / "E.zarr"
+    result = btf("enlarge", periodic / "S_svd.zarr", periodic / "C.zarr", out, "--seed", "3")
+    assert result.code == 0, result.err
+    assert "matches the photos equally well at" in result.err
+    assert "the result does not depend on the choice" in result.err
+    placement = zarr.open_group(out, mode="r").attrs["enlargement"]["placement"]
+    ambiguous = placement["ambiguous"]
+    assert len(ambiguous["places"]) >= 4 and ambiguous["photos_differ_rms"] == 0
+    assert placement["correlation"] > 0.999
+    # another of these places, given explicitly, gives the same store bit for bit
+    place = next(p for p in ambiguous["places"] if p != placement["origin"])
+    other = periodic / "E_other.zarr"
+    given = btf("enlarge", periodic / "S_svd.zarr", periodic / "C.zarr", other, "--seed", "3",
+                "--sample-origin", ",".join(map(str, place)), "--quiet")
+    assert given.code == 0, given.err
+    for name in ("U", "S", "V"):
+        assert np.array_equal(zarr.open_array(out, path=name)[...],
+                              zarr.open_array(other, path=name)[...])
+
+
+def test_places_that_match_equally_but_differ_are_refused_with_sample_origin(periodic, btf,
+                                                                              tmp_path):
+    # the lower rows of the photo twice as bright: correlation is blind to the gain, the
+    # constraint values are not
+    photos = _bad_store(tmp_path / "C.zarr", periodic / "C.zarr",
+                        lambda r: r.__setitem__(slice(64, None), 2 * r[64:]))
+    out = tmp_path / "E.zarr"
+    result = btf("enlarge", periodic / "S_svd.zarr", photos, out, "--quiet")
+    assert result.code == 1
+    assert "matches the photos equally well at" in result.err
+    assert "the photos differ there" in result.err and "--sample-origin Y,X" in result.err
+    assert no_partial_outputs(out)
+    assert btf("enlarge", periodic / "S_svd.zarr", photos, out, "--sample-origin", "32,0",
+               "--quiet").code == 0

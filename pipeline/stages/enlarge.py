@@ -56,7 +56,7 @@ from pipeline.stores.base import (
 from pipeline.stores.compressed import check_compressed, create_compressed_store
 from pipeline.stores.radiance import check_radiance
 from tasks.enlargement import EnlargementParams, enlarge, mean_colour_rows
-from tasks.registration import Match, locate
+from tasks.registration import AMBIGUITY, Match, locate
 from tasks.sampling import nearest_layer
 from tasks.statistical_synthesis import StatisticsParams
 from tasks.svd import refactor
@@ -216,7 +216,8 @@ def _locate(guide: Guide, rendered: np.ndarray) -> tuple[Match, int]:
     """Best placement of the sample's rendering in the photos, coarse to fine.
 
     The photos are searched at the scale at which they hold at most WHOLE_TEXELS texels (and
-    the sample keeps 8 texels a side), then at full resolution near the coarse answer.
+    the sample keeps 8 texels a side), then at full resolution near the coarse answer, and
+    near every other place that matches as well (a periodic sample; at most MAX_ALIKE).
     """
     (h, w), (big_h, big_w) = rendered.shape[:2], guide.shape
     factor = 1
@@ -226,10 +227,16 @@ def _locate(guide: Guide, rendered: np.ndarray) -> tuple[Match, int]:
                     guide.region(factor, 0, -(-big_h // factor), 0, -(-big_w // factor)))
     if factor == 1:
         return coarse, factor
-    y0, x0 = max(0, (coarse.y - 2) * factor), max(0, (coarse.x - 2) * factor)
-    y1, x1 = min(big_h, (coarse.y + 2) * factor + h), min(big_w, (coarse.x + 2) * factor + w)
-    fine = locate(rendered, guide.region(1, y0, y1, x0, x1))
-    return Match(fine.y + y0, fine.x + x0, fine.score, coarse.runner_up), factor
+
+    def near(cy: int, cx: int) -> Match:
+        y0, x0 = max(0, (cy - 2) * factor), max(0, (cx - 2) * factor)
+        y1, x1 = min(big_h, (cy + 2) * factor + h), min(big_w, (cx + 2) * factor + w)
+        found = locate(rendered, guide.region(1, y0, y1, x0, x1))
+        return Match(found.y + y0, found.x + x0, found.score, found.runner_up)
+
+    fine = near(coarse.y, coarse.x)
+    alike = tuple((m.y, m.x, m.score) for m in (near(y, x) for y, x, _ in coarse.alike))
+    return Match(fine.y, fine.x, fine.score, coarse.runner_up, alike), factor
 
 
 def _place_sample(params: EnlargeParams, constraints: _Constraints,
@@ -252,9 +259,53 @@ def _place_sample(params: EnlargeParams, constraints: _Constraints,
                        f"photos convincingly anywhere (best correlation {match.score:.3f} at "
                        f"{match.y},{match.x}, below --min-match {params.min_match:g}); give "
                        "--sample-origin Y,X if you know where it is")
-    return match.y, match.x, {"origin": [match.y, match.x], "given": False,
-                              "correlation": match.score, "runner_up": match.runner_up,
-                              "search_scale": factor}
+    (y, x), ambiguous = (((match.y, match.x), None) if not match.ambiguous() else
+                         _ambiguity(params, constraints.guide, rendered, match, session))
+    placement = {"origin": [y, x], "given": False, "correlation": match.score,
+                 "runner_up": match.runner_up, "search_scale": factor}
+    if ambiguous:
+        placement["ambiguous"] = ambiguous
+    return y, x, placement
+
+
+def _ambiguity(params: EnlargeParams, guide: Guide, rendered: np.ndarray, match: Match,
+               session: Session) -> tuple[tuple[int, int], dict]:
+    """Several places match equally (a periodic sample): go on only if the choice cannot matter.
+
+    Correlation does not see a gain or an offset, so of the places the one where the photos
+    are nearest to the sample's rendering is taken (its misfit is the sample's own
+    compression error). The sample's constraint values are the photos' at its place and
+    nothing else of the place is used; so if the photos at every such place are those of the
+    chosen one to within that misfit, any of them gives the same result to that accuracy.
+    Otherwise they would give different results, and the user must say which.
+    """
+    h, w = rendered.shape[:2]
+    places = [(match.y, match.x), *((y, x) for y, x, _ in match.alike)]
+    windows = [guide.region(1, y, y + h, x, x + w) for y, x in places]
+    misfits = [float(np.sqrt(np.mean((rendered - window) ** 2))) for window in windows]
+    pick = int(np.argmin(misfits))
+    differ = [float(np.sqrt(np.mean((window - windows[pick]) ** 2))) for window in windows]
+    worst = int(np.argmax(differ))
+    (y, x), misfit = places[pick], misfits[pick]
+    where = (f"the sample matches the photos equally well at {len(places)} places, "
+             + ", ".join(f"{py},{px}" for py, px in places)
+             + f" (correlation {match.score:.4f} within {AMBIGUITY:g}: it repeats)")
+    if differ[worst] > misfit:
+        raise BTFError(f"{params.constraints}: {where}, and the photos differ there (at "
+                       f"{places[worst][0]},{places[worst][1]} by {differ[worst]:.3g} RMS in "
+                       f"the log domain from {y},{x}, where the sample fits them best, more "
+                       f"than its own misfit of {misfit:.3g}), so these places would give "
+                       "different results; give --sample-origin Y,X to say where the sample "
+                       "was measured")
+    exact = differ[worst] == 0
+    session.log(f"enlarge: note: {where}; the photos there differ by at most "
+                f"{differ[worst]:.3g} RMS (log domain), no more than the sample's own misfit "
+                f"to them ({misfit:.3g}), so every such place gives the sample the same "
+                f"constraint values {'exactly' if exact else f'to within {differ[worst]:.3g}'}"
+                f" and the result does not depend on the choice{'' if exact else ' beyond that'}"
+                f"; using {y},{x} (--sample-origin to choose)")
+    return (y, x), {"places": [list(p) for p in places], "photos_differ_rms": differ[worst],
+                    "sample_misfit_rms": misfit}
 
 
 def _whole(params, session, constraints, coefficients, sample_values, lam):
