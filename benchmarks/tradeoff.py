@@ -145,7 +145,8 @@ def _enlarge(tmp: Path) -> list[dict]:
     _btf("enlarge", tmp / "S_svd.zarr", tmp / "C.zarr", tmp / "warm-up.zarr", "--sample-origin",
          "64,64", "--levels", 1, "--iterations", 1, "--rounds", 1)  # imports, not timed
     configs = [("defaults", []), ("levels 1", ["--levels", 1]), ("levels 2", ["--levels", 2]),
-               ("iterations 2", ["--iterations", 2]), ("iterations 10", ["--iterations", 10]),
+               ("iterations 2", ["--iterations", 2]), ("iterations 5", ["--iterations", 5]),
+               ("exact search", ["--search", "exact"]),
                ("rounds 1", ["--rounds", 1]), ("rounds 5, tol 0", ["--rounds", 5, "--tol", 0]),
                ("no statistics", ["--no-statistics"])]
     rows = []

@@ -50,7 +50,8 @@ class EnlargementParams:
     tol: float = 1e-3
     alpha: float = 1.0
     beta: float = 1.0
-    statistics_channels: int | None = None
+    statistics_channels: int | None = None  # None: the components holding statistics_energy
+    statistics_energy: float = 0.999
     exact: bool = False  # enforce A x = b exactly instead of to the sample's compression error
 
     def __post_init__(self):
@@ -60,6 +61,9 @@ class EnlargementParams:
             raise InvalidParameter("tol", f"tol must be non-negative, got {self.tol}")
         if not self.alpha >= 0:
             raise InvalidParameter("alpha", f"alpha must be non-negative, got {self.alpha}")
+        if not 0 < self.statistics_energy <= 1:
+            raise InvalidParameter("statistics_energy", f"statistics_energy must be in (0, 1], "
+                                                        f"got {self.statistics_energy}")
         if not self.beta >= 0 or self.alpha + self.beta <= 0:
             raise InvalidParameter("beta", f"beta must be non-negative (and alpha + beta > 0), "
                                            f"got {self.beta}")
@@ -111,7 +115,7 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
                               params=params.texture, guide_weight=guide_weight, seed=seed)
     seconds = {"texture_optimization": time.perf_counter() - start}
     statistics = None if params.statistics is None else sample_statistics(
-        sample, shape, params=params.statistics, channels=params.statistics_channels)
+        sample, shape, params=params.statistics, channels=statistics_channels(sample, params))
     rounds = refine(to.coefficients, target_constraints, projector, noise=noise,
                     params=params, statistics=statistics)
     return EnlargementResult(
@@ -121,6 +125,26 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         residual=projector.residual(rounds.coefficients, target_constraints),
         residual_rms=projector.rms_residual(rounds.coefficients, target_constraints),
         noise=noise, damping=rounds.damping, energy=to.energy, constraint_rank=projector.rank)
+
+
+def statistics_channels(sample: np.ndarray, params: EnlargementParams) -> int:
+    """How many leading coefficient channels statistical synthesis imposes statistics on.
+
+    ``params.statistics_channels`` if given, else the fewest leading channels holding
+    ``statistics_energy`` of the sample's coefficient variance over its texels (the channels
+    are ``Sigma V^T``, in decreasing singular value): the rest carry too little to be seen,
+    and cost as much each.
+    """
+    if params.statistics_channels is not None:
+        return min(params.statistics_channels, sample.shape[-1])
+    flat = np.asarray(sample, np.float64).reshape(-1, sample.shape[-1])
+    variance = flat.var(axis=0)
+    total = float(variance.sum())
+    if total <= 0:
+        return 1
+    share = np.cumsum(variance) / total
+    return int(min(np.searchsorted(share, params.statistics_energy * (1 - 1e-12)) + 1,
+                   len(share)))
 
 
 @dataclass

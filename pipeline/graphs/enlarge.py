@@ -272,6 +272,7 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     from pipeline.resume import Progress
     from pipeline.stores.base import add_array, location
     from tasks.constrained_blend import ConstraintProjector
+    from tasks.enlargement import statistics_channels
     from tasks.statistical_synthesis import sample_statistics
     from tasks.texture_optimization import SampleLevel, leading_components
 
@@ -285,7 +286,7 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     halo = HALO * to.patch
     side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
     statistics = None if params.statistics is None else sample_statistics(
-        sample, side, params=params.statistics, channels=params.statistics_channels)
+        sample, side, params=params.statistics, channels=statistics_channels(sample, params))
     report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
     coarse, coarse_shape, here = None, None, location(path)
     progress = Progress(path)

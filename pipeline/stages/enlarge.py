@@ -95,9 +95,19 @@ class EnlargeParams:
         None, key="lambda", metavar="L",
         help="weight of a constraint value against one ABRDF value in the search (default: "
              "100 x rows / constraint values, see docs/enlargement.md)")
-    iterations: int = option(5, metavar="N", help="EM iterations per level")
+    iterations: int = option(3, metavar="N", help="EM iterations per level (5 changed neither "
+                                                  "error nor realism, see BENCHMARKS.md)")
+    search: str = option("coherent", metavar="S", choices=("coherent", "exact"),
+                         help="how E-steps find matches: 'coherent' (k-coherence: candidates "
+                              "from the neighbours' matches, seeded per level by an exact "
+                              "search for a quarter of the neighbourhoods; a cost per texel "
+                              "that does not grow with the sample) or 'exact' (the whole "
+                              "sample for every neighbourhood, every time: the paper's)")
     no_statistics: bool = option(False, help="skip statistical synthesis: one QP of the "
                                              "Texture Optimization result")
+    statistics_energy: float = option(
+        0.999, metavar="F", help="impose statistics on the leading components holding this "
+                                 "share of the sample's coefficient variance (1: all)")
     exact_constraints: bool = option(False, help="make the result reproduce the photos exactly "
                                                  "(the paper's QP) rather than to within the "
                                                  "sample's own compression error of them")
@@ -149,9 +159,10 @@ class EnlargeParams:
         """The kernels' parameters."""
         return EnlargementParams(
             texture=TextureOptimizationParams(levels=self.levels, patch=self.patch,
-                                              iterations=self.iterations),
+                                              iterations=self.iterations, search=self.search),
             statistics=None if self.no_statistics else StatisticsParams(),
-            rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints)
+            rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints,
+            statistics_energy=self.statistics_energy)
 
 
 @dataclasses.dataclass(frozen=True)
