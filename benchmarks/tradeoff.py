@@ -147,8 +147,8 @@ def _enlarge(tmp: Path) -> list[dict]:
     configs = [("defaults", []), ("levels 1", ["--levels", 1]), ("levels 2", ["--levels", 2]),
                ("iterations 2", ["--iterations", 2]), ("iterations 5", ["--iterations", 5]),
                ("exact search", ["--search", "exact"]),
-               ("rounds 1", ["--rounds", 1]), ("rounds 5, tol 0", ["--rounds", 5, "--tol", 0]),
-               ("no statistics", ["--no-statistics"])]
+               ("statistics", ["--statistics"]),
+               ("statistics, rounds 5, tol 0", ["--statistics", "--rounds", 5, "--tol", 0])]
     rows = []
     for label, options in configs:
         out = tmp / "E.zarr"

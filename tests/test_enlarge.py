@@ -57,7 +57,7 @@ def enlarged(inputs):
 
     out = inputs["tmp"] / "E.zarr"
     assert main(["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out), "--keep-phases",
-                 "--quiet"]) == 0
+                 "--statistics", "--quiet"]) == 0  # the paper's Algorithm 1, every phase
     return out
 
 
@@ -113,10 +113,10 @@ def test_the_same_inputs_give_the_same_store_on_every_scheduler(inputs, enlarged
                                                                tmp_path):
     out = tmp_path / "again.zarr"
     done = btf("enlarge", inputs["S_svd"], inputs["C"], out, "--scheduler", "synchronous",
-               "--keep-phases", "--quiet")
+               "--keep-phases", "--statistics", "--quiet")
     assert done.code == 0, done.err
     a, b = zarr.open_group(enlarged, mode="r"), zarr.open_group(out, mode="r")
-    for name in ("U", "S", "V", "phase_texture_optimization"):
+    for name in ("U", "S", "V", "phase_texture_optimization", "phase_statistics"):
         assert np.array_equal(a[name][...], b[name][...]), name
 
 
@@ -180,7 +180,7 @@ def tiled(inputs):
     from pipeline.cli import main
 
     out = {}
-    for name, extra in (("tiled", []), ("tiled-plain", ["--no-statistics"]),
+    for name, extra in (("tiled", ["--statistics"]), ("tiled-plain", []),
                         ("whole-plain", ["--no-statistics"])):
         path = inputs["tmp"] / f"{name}.zarr"
         tile = "0" if name.startswith("whole") else "32"
@@ -223,8 +223,8 @@ def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tm
     if scheduler == "cluster":
         scheduler = request.getfixturevalue("local_cluster")
     out = tmp_path / "again.zarr"
-    done = btf("enlarge", inputs["S_svd"], inputs["C"], out, "--tile", "32", "--scheduler",
-               scheduler, "--quiet")
+    done = btf("enlarge", inputs["S_svd"], inputs["C"], out, "--tile", "32", "--statistics",
+               "--scheduler", scheduler, "--quiet")
     assert done.code == 0, done.err
     a, b = zarr.open_group(tiled["tiled"], mode="r"), zarr.open_group(out, mode="r")
     for name in ("U", "S", "V"):
