@@ -107,6 +107,8 @@ class StagePlan:
     rate_source: str = ""
     option: str = ""
     note: str = ""
+    # the same stage in its other mode (compress: one pass or several), for the user to compare
+    alternatives: list[StagePlan] = dataclasses.field(default_factory=list)
 
 
 def shape_of(path: str) -> Shape | None:
@@ -155,7 +157,7 @@ def _generate(params, shapes: dict) -> tuple[StagePlan, Shape]:
                        params.dir_chunk, unit=params.shard or params.chunk, truth=True)
 
 
-def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
+def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StagePlan, Shape]:
     from pipeline.graphs.row_passes import FAN_IN, memory_estimate, plan_row_blocks
     from pipeline.graphs.tile_passes import TILE_CACHE_BYTES, plan_tile_rows, tile_memory
 
@@ -193,6 +195,13 @@ def _compress(params, shapes: dict) -> tuple[StagePlan, Shape]:
                      client_bytes=client,
                      core_seconds=reads * matrix / per_core, rate_source=source, option=option,
                      note=f"sketches on the {side} side")
+    if alternative:  # the other mode: one pass (texel side), or the default passes
+        other = dataclasses.replace(params, passes="auto" if params.one_pass else "1",
+                                    sketch="auto" if params.one_pass else "texels",
+                                    power_iters=None, oversample=None)
+        plan.alternatives = [_compress(other, shapes, alternative=False)[0]]
+        plan.alternatives[0].name = ("compress (default passes)" if params.one_pass else
+                                     "compress --passes 1")
     return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
                        unit=src.chunk)
 
@@ -388,10 +397,9 @@ def report(plans: list[StagePlan], *, cores: int, limit: int, threads: int,
         total += p.core_seconds
         serial += p.serial_seconds
         sources.add(p.rate_source)
-        passes = f"{p.passes} ({p.reads} reads)" if p.reads > p.passes else str(p.passes)
-        lines.append(f"| {p.name} | {_size(p.read)} | {_size(p.written)} | {p.tasks} | "
-                     f"{passes} | {_size(p.task_bytes)} | {_size(p.client_bytes)} | "
-                     f"{_duration(p.serial_seconds + p.core_seconds / cores)} | {p.note} |")
+        lines.append(_row(p, p.name, p.note, cores))
+        lines += [_row(a, f"*instead: {a.name}*", f"{a.note}; not in the totals", cores)
+                  for a in p.alternatives if a.core_seconds is not None]
     hour = (f"{math.ceil(total / (3600 - serial))} cores finish it in an hour if it scales "
             "linearly" if serial < 3600 else "the client's serial part alone takes over an hour")
     lines += ["", f"Estimated: {_duration(serial + total / cores)} on {cores} cores "
@@ -400,6 +408,13 @@ def report(plans: list[StagePlan], *, cores: int, limit: int, threads: int,
               f"Memory: each worker {threads} task(s) at a time, limit "
               f"{limit / GiB:.1f} GiB ({source})."]
     return "\n".join(lines)
+
+
+def _row(p: StagePlan, name: str, note: str, cores: int) -> str:
+    passes = f"{p.passes} ({p.reads} reads)" if p.reads > p.passes else str(p.passes)
+    return (f"| {name} | {_size(p.read)} | {_size(p.written)} | {p.tasks} | {passes} | "
+            f"{_size(p.task_bytes)} | {_size(p.client_bytes)} | "
+            f"{_duration(p.serial_seconds + p.core_seconds / cores)} | {note} |")
 
 
 def _duration(seconds: float) -> str:
