@@ -51,16 +51,10 @@ def _moments(x: np.ndarray) -> tuple[float, float, float]:
 
 def _autocorrelation(x: np.ndarray, lags: int = LAGS) -> np.ndarray:
     """Central ``(2 lags + 1)^2`` circular autocorrelation of ``x``, divided by its variance."""
-    x = np.asarray(x, np.float64) - np.mean(x)
-    spectrum = np.fft.rfft2(x)
-    ac = np.fft.irfft2(spectrum * np.conj(spectrum), s=x.shape)
-    ac = np.fft.fftshift(ac) / max(float(ac.flat[0]), 1e-300)
-    cy, cx = x.shape[0] // 2, x.shape[1] // 2
-    ly, lx = min(lags, cy), min(lags, cx)
-    out = np.zeros((2 * lags + 1, 2 * lags + 1))
-    out[lags - ly : lags + ly + 1, lags - lx : lags + lx + 1] = ac[cy - ly : cy + ly + 1,
-                                                                   cx - lx : cx + lx + 1]
-    return out
+    from tasks.statistical_synthesis import central_autocorrelation
+
+    ac = central_autocorrelation(x, lags)
+    return ac / max(float(ac[lags, lags]), 1e-300)
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
