@@ -398,7 +398,11 @@ def _scaling(args, tmp: Path) -> list[dict]:
 
 
 def _corner_scores(truth_store: Path, result: Path, window: int = 256) -> dict:
-    """Eq. (11) error and realism of ``result`` on the four corner windows of its truth."""
+    """Eq. (11) error and realism of ``result`` on the four corner windows of its truth.
+
+    For targets up to twice the window the windows overlap the sample (at 256^2 each is the
+    whole target).
+    """
     import zarr
 
     radiance = zarr.open_array(truth_store, path="radiance", mode="r")
@@ -407,6 +411,7 @@ def _corner_scores(truth_store: Path, result: Path, window: int = 256) -> dict:
     u = np.asarray(g["U"][...], np.float64).reshape(-1, len(s))
     v, eps = g["V"], float(g.attrs["transform"]["eps"])  # windows read one at a time
     side = radiance.shape[2]
+    window = min(window, side)
     errors, real = [], []
     for y in (0, side - window):
         for x in (0, side - window):

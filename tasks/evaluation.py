@@ -60,14 +60,10 @@ def tiling_baseline(sample_coef: np.ndarray, shape: tuple[int, int],
     return sample_coef[np.ix_(ys, xs)]
 
 
-def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray
-                   ) -> np.ndarray:
-    """For every truth texel, the sample texel whose ABRDF is nearest to it (exact search).
+def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, eps: float):
+    """The exact search index over the sample's ABRDFs in linear radiance (faiss, flat L2).
 
-    Nearest in eq. (11)'s measure: the RMS over the rows of linear radiance, the sample's
-    ABRDFs as its compression reconstructs them (``u`` ``(rows, K)``, ``sample_coef``
-    ``(h, w, K)``) against the truth's ``(H, W, rows)``. Returns flat sample indices
-    ``(H, W)``. Exact brute force (faiss, flat L2), so the oracle is the best any copy can do.
+    It holds ``texels x rows`` float32 values: build it once for many searches.
     """
     import faiss
 
@@ -78,6 +74,20 @@ def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np
                                   np.float32)
     index = faiss.IndexFlatL2(sample.shape[1])
     index.add(sample)
+    return index
+
+
+def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray,
+                   index=None) -> np.ndarray:
+    """For every truth texel, the sample texel whose ABRDF is nearest to it (exact search).
+
+    Nearest in eq. (11)'s measure: the RMS over the rows of linear radiance, the sample's
+    ABRDFs as its compression reconstructs them (``u`` ``(rows, K)``, ``sample_coef``
+    ``(h, w, K)``) against the truth's ``(H, W, rows)``. Returns flat sample indices
+    ``(H, W)``. Exact brute force (faiss, flat L2), so the oracle is the best any copy can do.
+    ``index``: :func:`abrdf_index` of the same sample, if already built.
+    """
+    index = abrdf_index(u, sample_coef, eps) if index is None else index
     rows = truth.reshape(-1, truth.shape[-1])
     found = np.empty(len(rows), np.int64)
     for k in range(0, len(rows), 16384):

@@ -30,18 +30,19 @@ Candidates come from an exact search (faiss, flat L2) on a PCA projection of the
 neighbourhoods to ``search_dims`` dimensions, or, with ``search="coherent"`` (the default),
 by k-coherence (Tong et al. 2002): the current matches of the 3 x 3 neighbouring output
 neighbourhoods, shifted so that a copy continues, and each one's ``coherence`` most similar
-sample neighbourhoods (a table built once per level), ranked in the same projection: 9 (1 + k)
-candidates, however large the sample. A level's first matches are then seeded by the exact
-search for a quarter of the output neighbourhoods (every other one a side), the others
-continuing their nearest seed's copy. ``search="exact"`` runs the exact search for every
-neighbourhood in every E-step (the paper's). Either way the ``candidates`` best are re-ranked
-by their true distance together with the previous match, so an E-step never returns a worse
-match than it had and ``E`` never increases. (Measured: the coherent search ends within
-1.1-1.3% of the exact search's energy on smooth random fields, and at the same eq. (11)
-error, +2%, and realism on a generated wood BTF. Starting a level from the coarser level's
-matches instead of seeds, as appearance-space synthesis does, was another 15% faster but
-raised that error by 17% and realism from 1.17 to 1.42: not done. See BENCHMARKS.md,
-enlargement.)
+sample neighbourhoods (a table built once per level), ranked in the same projection: 9 (1 +
+k) candidates, however large the sample (the table and the seeds still grow with it: the
+table is one exact search of the sample against itself per level). A level's first matches
+are seeded by the exact search for a quarter of the output neighbourhoods (every other one a
+side), the others continuing their nearest seed's copy. ``search="exact"`` runs the exact
+search for every neighbourhood in every E-step (the paper's). Either way the ``candidates``
+best distinct ones are re-ranked by their true distance together with the previous match, so
+an E-step never returns a worse match than it had and ``E`` never increases. (Measured: the
+coherent search ends within 1.1-1.3% of the exact search's energy on smooth random fields,
+and at the same eq. (11) error, +2%, and realism on a generated wood BTF. Starting a level
+from the coarser level's matches instead of seeds, as appearance-space synthesis does, was
+another 15% faster but raised that error by 17% and realism from 1.17 to 1.42: not done. See
+BENCHMARKS.md, enlargement.)
 """
 
 from __future__ import annotations
@@ -69,7 +70,9 @@ class TextureOptimizationParams:
     search_dims: int = 32
     candidates: int = 2
     search: str = "coherent"  # or "exact": every E-step searches the whole sample
-    coherence: int = 4  # k of k-coherence: similar sample neighbourhoods kept per one
+    coherence: int = 4  # k of k-coherence: similar sample neighbourhoods kept per one (0: the
+    # coherent search has nothing to look at besides the neighbours' matches; it then runs
+    # the exact search instead)
 
     def __post_init__(self):
         if self.levels < 1:
@@ -276,7 +279,7 @@ def coherent_candidates(source: SampleLevel, match: np.ndarray, gy: np.ndarray,
             cy = np.clip(my[np.ix_(iy, ix)] - (gy[iy] - gy)[:, None], 0, last_y)
             cx = np.clip(mx[np.ix_(iy, ix)] - (gx[ix] - gx)[None, :], 0, last_x)
             shifted.append((cy * source.width + cx).ravel())
-    base = np.stack(shifted, axis=1)
+    base = np.stack(shifted, axis=1).astype(np.int32)  # (Q, 45) candidates: keep them small
     if source.coherence is None or source.coherence.shape[1] == 0:
         return base
     similar = source.coherence[base].reshape(len(base), -1)
@@ -285,14 +288,19 @@ def coherent_candidates(source: SampleLevel, match: np.ndarray, gy: np.ndarray,
 
 def _nearest_candidates(projected: np.ndarray, source: SampleLevel, candidates: np.ndarray,
                         count: int) -> np.ndarray:
-    """The ``count`` candidates nearest to each query in the search projection."""
+    """The ``count`` distinct candidates nearest to each query in the search projection.
+
+    Neighbours continuing one copy propose the same sample neighbourhood many times; each is
+    counted once (a row with fewer distinct candidates repeats its best).
+    """
     count = min(count, candidates.shape[1])
     out = np.empty((len(candidates), count), candidates.dtype)
     step = max(1, CHUNK_BYTES // (candidates.shape[1] * projected.shape[1] * 4))
     for k in range(0, len(candidates), step):
-        c = candidates[k : k + step]
+        c = np.sort(candidates[k : k + step], axis=1)
         d = source.projected[c] - projected[k : k + step, None, :]
         dist = np.einsum("qkc,qkc->qk", d, d)
+        dist[:, 1:][c[:, 1:] == c[:, :-1]] = np.inf  # repeats of the one before
         best = np.argsort(dist, axis=1, kind="stable")[:, :count]
         out[k : k + step] = np.take_along_axis(c, best, axis=1)
     return out

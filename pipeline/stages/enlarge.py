@@ -104,9 +104,10 @@ class EnlargeParams:
     search: str = option("coherent", metavar="S", choices=("coherent", "exact"),
                          help="how E-steps find matches: 'coherent' (k-coherence: candidates "
                               "from the neighbours' matches, seeded per level by an exact "
-                              "search for a quarter of the neighbourhoods; a cost per texel "
-                              "that does not grow with the sample) or 'exact' (the whole "
-                              "sample for every neighbourhood, every time: the paper's)")
+                              "search for a quarter of the neighbourhoods; after the seeds a "
+                              "cost per texel that does not grow with the sample) or 'exact' "
+                              "(the whole sample for every neighbourhood, every time: the "
+                              "paper's)")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -258,8 +259,12 @@ def _locate(guide: Guide, rendered: np.ndarray) -> tuple[Match, int]:
         return Match(found.y + y0, found.x + x0, found.score, found.runner_up)
 
     fine = near(coarse.y, coarse.x)
-    alike = tuple((m.y, m.x, m.score) for m in (near(y, x) for y, x, _ in coarse.alike))
-    return Match(fine.y, fine.x, fine.score, coarse.runner_up, alike), factor
+    alike, seen = [], {(fine.y, fine.x)}
+    for m in (near(y, x) for y, x, _ in coarse.alike):  # kept if as good at full resolution
+        if m.score >= fine.score - AMBIGUITY and (m.y, m.x) not in seen:
+            alike.append((m.y, m.x, m.score))
+            seen.add((m.y, m.x))
+    return Match(fine.y, fine.x, fine.score, coarse.runner_up, tuple(alike)), factor
 
 
 def _place_sample(params: EnlargeParams, constraints: _Constraints,

@@ -38,6 +38,7 @@ from pipeline.session import Session
 from pipeline.stores.base import open_group
 from tasks.evaluation import (
     abrdf_errors,
+    abrdf_index,
     gap_share,
     lookup_baseline,
     nearest_abrdfs,
@@ -253,7 +254,7 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     flat_u, flat_us = u.reshape(-1, k), us.reshape(-1, us.shape[-1])
     sums = {"oracle (nearest sample ABRDF)": 0.0, "enlargement": 0.0, "tiling": 0.0,
             "lookup": 0.0}
-    count = 0
+    count, index = 0, None
     for y0 in range(0, ny, BAND):
         ys = slice(y0, min(y0 + BAND, ny))
         rows = _rows(truth, ys)
@@ -263,7 +264,10 @@ def _enlargement(path: str, params: ReportParams) -> Section:
         coef = np.asarray(v[ys], np.float64) * s
         tiled = tiling_baseline(sample, (ys.stop - ys.start, nx), origin, (ys.start, 0))
         looked = lookup_baseline(sample, sample_keys, keys_of(ys))
-        best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, eps, rows)]
+        if index is None:  # the sample's ABRDFs, searched for every band
+            index = abrdf_index(flat_us, sample, eps)
+        best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, eps, rows,
+                                                                   index)]
         for name, (basis, c) in {"oracle (nearest sample ABRDF)": (flat_us, best),
                                  "enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
                                  "lookup": (flat_us, looked)}.items():
