@@ -39,7 +39,7 @@ import numpy as np
 
 from benchmarks.harness import btf_executable, git_revision, machine, measure
 from tasks.evaluation import abrdf_error, gap_share, lookup_baseline, oracle, tiling_baseline
-from tasks.realism import realism
+from tasks.realism import log_luminance, realism
 
 SUITE = "enlarge"
 SAMPLING = "abtf:12,4"
@@ -141,28 +141,29 @@ def _picks(truth: np.ndarray, channels: int = 3) -> np.ndarray:
     return np.linspace(0, truth.shape[-1] // channels - 1, REALISM_LIGHTS).astype(int)
 
 
-def _log_luminance(radiance: np.ndarray) -> np.ndarray:
-    """``(H, W, lights * 3)`` linear radiance -> ``(lights, H, W)`` log luminance."""
-    h, w, n = radiance.shape
-    lum = radiance.reshape(h, w, n // 3, 3) @ np.array([0.2126, 0.7152, 0.0722])
-    return np.moveaxis(np.log(np.maximum(lum, 0) + 1e-3), -1, 0)
+def _light_rows(picks) -> np.ndarray:
+    """BTF-matrix rows (view 0) of the picked lights' three channels."""
+    return np.concatenate([np.arange(3 * li, 3 * li + 3) for li in picks])
 
 
 def _layers(u: np.ndarray, coef: np.ndarray, eps: float, picks) -> np.ndarray:
     """Linear radiance ``(H, W, len(picks) * 3)`` of the picked lights (view 0)."""
     from tasks.svd import reconstruct
 
-    rows = np.concatenate([np.arange(3 * li, 3 * li + 3) for li in picks])
     flat = coef.reshape(-1, coef.shape[-1])
-    return reconstruct(u[rows], np.ones(u.shape[1]), flat, eps=eps).T.reshape(
+    return reconstruct(u[_light_rows(picks)], np.ones(u.shape[1]), flat, eps=eps).T.reshape(
         *coef.shape[:2], -1)
 
 
 def _realism(approx: np.ndarray, truth: np.ndarray, picks) -> float:
-    """Mean over the picked lights of :func:`tasks.realism.realism` of the log luminance."""
-    rows = np.concatenate([np.arange(3 * li, 3 * li + 3) for li in picks])
-    ours, real = _log_luminance(approx), _log_luminance(truth[..., rows])
-    return float(np.mean([realism(a, b) for a, b in zip(ours, real, strict=True)]))
+    """Mean over the picked lights of :func:`tasks.realism.realism` of the log luminance.
+
+    ``approx``: ``(H, W, len(picks) * 3)``; ``truth``: every light's rows.
+    """
+    h, w = approx.shape[:2]
+    ours = log_luminance(approx.reshape(h, w, -1, 3))
+    real = log_luminance(truth[..., _light_rows(picks)].reshape(h, w, -1, 3))
+    return float(np.mean([realism(ours[..., k], real[..., k]) for k in range(len(picks))]))
 
 
 def _scored(u, coef, eps, truth, mask) -> dict:
@@ -212,9 +213,8 @@ def _roller_scored(path: Path, size: int, truth, mask) -> dict:
     approx = layers.reshape(size, size, -1)
     err = np.sqrt(np.mean((approx - truth) ** 2, axis=-1))
     picks = _picks(truth)
-    rows = np.concatenate([np.arange(3 * li, 3 * li + 3) for li in picks])
     return {"error": float(np.mean(err[mask])),
-            "realism": _realism(approx[..., rows], truth, picks)}
+            "realism": _realism(approx[..., _light_rows(picks)], truth, picks)}
 
 
 def _constraint_rows(info: dict, us: np.ndarray, coef_s: np.ndarray) -> tuple[np.ndarray,
@@ -375,7 +375,7 @@ def _scaling(args, tmp: Path) -> list[dict]:
     """``btf enlarge --tile 512`` of one 128^2 sample to targets of growing sides.
 
     Each result is also scored against its ground truth: eq. (11) error and realism on the
-    four corner windows of 256^2 (outside the sample, which is the centre of the first).
+    four corner windows of 256^2 (:func:`_corner_scores`).
     """
     rows = []
     for side in [int(n) for n in args.scaling.split(",") if n]:
@@ -483,11 +483,10 @@ def enlarge_tile_seams(seeds, *, tmp, material: str = "wood", size: int = 256,
     _btf("crop", m, photo, "--light", int(np.argmin(theta)))
     lights = np.linspace(0, len(theta) - 1, 3).astype(int)
 
-    def log_luminance(radiance: np.ndarray) -> np.ndarray:  # (lights, h, w, 3) -> (h, w, 3)
-        lum = radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        return np.moveaxis(np.log(np.maximum(lum, 0) + 1e-3), 0, -1)
+    def lights_last(radiance: np.ndarray) -> np.ndarray:  # (lights, h, w, 3) -> (h, w, 3)
+        return np.moveaxis(log_luminance(radiance), 0, -1)
 
-    exemplar = PatchExemplar(log_luminance(zarr.open_array(sample, path="radiance",
+    exemplar = PatchExemplar(lights_last(zarr.open_array(sample, path="radiance",
                                                            mode="r")[0, lights]))
     borders = Borders(tuple(range(tile, size, tile)), tuple(range(tile, size, tile)))
     rows = []
@@ -497,8 +496,8 @@ def enlarge_tile_seams(seeds, *, tmp, material: str = "wood", size: int = 256,
         _btf("enlarge", svd, photo, out, "--tile", tile, "--seed", seed, "--overwrite")
         seconds = time.perf_counter() - start
         u, s, v, eps, _ = _factors(out)
-        image = log_luminance(np.stack([reconstruct_layers(u[0, li], s, v, eps=eps)
-                                        for li in lights]))
+        image = lights_last(np.stack([reconstruct_layers(u[0, li], s, v, eps=eps)
+                                      for li in lights]))
         f = border_figures(exemplar, image, borders, reach=HALO * 4)
         rows.append({"seed": seed, "failed": None, "seam": f.worst_seam,
                      "structure": f.worst_structure, "worst": f.worst_line(),

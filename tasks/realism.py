@@ -33,6 +33,16 @@ LAGS = 3
 FLOOR = 1e-3  # least noise floor of a group (two halves with equal statistics)
 
 
+def log_luminance(rgb: np.ndarray) -> np.ndarray:
+    """The grey image realism is measured on: ``log(max(Y, 0) + 1e-3)`` of linear RGB.
+
+    ``rgb`` is ``(..., 3)``; ``Y`` its Rec. 709 luminance (:func:`tasks.reference.luminance`).
+    """
+    from tasks.reference import luminance
+
+    return np.log(np.maximum(luminance(rgb), 0) + 1e-3)
+
+
 def _pyramid(image: np.ndarray, height: int):
     import pyrtools as pt
 

@@ -44,7 +44,7 @@ from tasks.evaluation import (
     nearest_abrdfs,
     tiling_baseline,
 )
-from tasks.realism import realism
+from tasks.realism import log_luminance, realism
 from tasks.report_html import Picture, Section, Table, render
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, tonemap
@@ -104,11 +104,6 @@ def _rows(radiance, ys: slice) -> np.ndarray:
     block = np.asarray(radiance[:, :, ys], np.float64)  # (views, lights, h, W, channels)
     nv, nl, h, w, nc = block.shape
     return np.moveaxis(block, (0, 1), (2, 3)).reshape(h, w, nv * nl * nc)
-
-
-def _log_luminance(layer: np.ndarray) -> np.ndarray:
-    """``(h, w, 3)`` radiance -> log luminance (what the realism figure compares)."""
-    return np.log(np.maximum(layer @ np.array([0.2126, 0.7152, 0.0722]), 0) + 1e-3)
 
 
 def _fmt(x: float | None, digits: int = 4) -> str:
@@ -289,8 +284,8 @@ def _enlargement(path: str, params: ReportParams) -> Section:
                                ("lookup", us, looked_w)):
             layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, eps=eps)
             pictures.append(Picture(f"{name}, light {li}", _png(tonemap(layer, scale=scale))))
-            looks.setdefault(name, []).append(realism(_log_luminance(layer),
-                                                      _log_luminance(true)))
+            looks.setdefault(name, []).append(realism(log_luminance(layer),
+                                                      log_luminance(true)))
     table = Table(("method", "ABRDF RMSE outside the sample (eq. 11, linear)",
                    "share of the gap from the oracle to the lookup left", "realism"),
                   tuple((n, _fmt(e), f"{gap_share(e, errors['lookup'], oracle):.2f}",
