@@ -113,6 +113,37 @@ def limit_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
+MMAP_THRESHOLD = 16 << 20  # blocks from this size are mapped, and unmapped when freed
+
+
+def steady_memory() -> None:
+    """Give blocks of :data:`MMAP_THRESHOLD` and more back to the system when freed (glibc).
+
+    glibc raises its mmap threshold to the largest block freed so far (up to 32 MiB), after
+    which such blocks come from the threads' malloc arenas, which fragment: with three worker
+    threads allocating and freeing blocks of tens of MiB, a one-pass compression over 1024
+    texel tiles ended 34% above one over 16 tiles (0.42 against 0.31 GiB), the row side 15%.
+    A fixed threshold keeps them out of the arenas: 1.14x and 1.12x then. (1 MiB was flat too
+    but up to 2x slower, every smaller temporary being mapped afresh; one arena was no
+    better.) Elsewhere (macOS, musl) this does nothing.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD (fixing it ends the dynamic threshold)
+
+
+def _worker_process_setup() -> None:
+    """What a local ``processes`` worker runs first: one BLAS thread, steady memory."""
+    limit_blas()
+    steady_memory()
+
+
 def _blas_plugin():
     """A dask worker plugin that pins BLAS to one thread on every worker."""
     from distributed.diagnostics.plugin import WorkerPlugin
@@ -120,6 +151,7 @@ def _blas_plugin():
     class SingleThreadedBlas(WorkerPlugin):
         def setup(self, worker):
             limit_blas()
+            steady_memory()
 
     return SingleThreadedBlas()
 
@@ -246,7 +278,7 @@ class Session:
 
             return ProcessPoolExecutor(workers, mp_context=get_context(),
                                        initializer=partial(initialize_worker_process,
-                                                           user_initializer=limit_blas))
+                                                           user_initializer=_worker_process_setup))
         return None
 
     @contextlib.contextmanager
@@ -264,6 +296,7 @@ class Session:
         """
         if self.client is not None:
             self.client.register_plugin(_blas_plugin(), name="btf-single-threaded-blas")
+        steady_memory()
         self._pin_blas = True
         try:
             yield
