@@ -26,10 +26,13 @@ from typing import Any
 from pipeline.errors import BTFError
 
 GiB = 1 << 30
+ONE_PASS_COLUMNS = 385 + 771 + 10  # the sketch columns at which the one-pass rate is measured
 BASE_PROCESS = 300 << 20  # interpreter, numpy, dask, zarr: a worker's memory before any task
 BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM, 2026-11-23 (BENCHMARKS.md)
     "generate_texel_directions_per_core_second": 6.2e6,
     "compress_bytes_per_core_second": 0.37e9,
+    # --passes 1 at K = 64 (k = 385, s = 771, t = 10: ONE_PASS_COLUMNS products per value)
+    "compress_one_pass_bytes_per_core_second": 0.37e9,
     "quilt_plan_seconds_per_texel_pair": 5.45e-11,  # per (tile texel x sample texel)
     "quilt_values_per_core_second": 3.1e6,
 }
@@ -159,7 +162,13 @@ def _generate(params, shapes: dict) -> tuple[StagePlan, Shape]:
 
 def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StagePlan, Shape]:
     from pipeline.graphs.row_passes import FAN_IN, memory_estimate, plan_row_blocks
-    from pipeline.graphs.tile_passes import TILE_CACHE_BYTES, plan_tile_rows, tile_memory
+    from pipeline.graphs.tile_passes import (
+        TILE_CACHE_BYTES,
+        plan_tile_rows,
+        sketch_memory,
+        tile_memory,
+    )
+    from tasks.svd import Sketch
 
     src = shapes[params.store]
     nv, nl, ny, nx, nc = src.radiance
@@ -169,32 +178,50 @@ def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StageP
     side = params.side(m, n)
     iterations = params.iterations(side)
     matrix = m * n * 4
-    if side == "rows":
-        tile = (min(src.chunk, ny), min(src.chunk, nx))
-        texels = tile[0] * tile[1]
-        rows = plan_tile_rows(src.radiance, src.dir_chunk, tile)
+    tile = (min(src.chunk, ny), min(src.chunk, nx))
+    texels = tile[0] * tile[1]
+    tile_rows = plan_tile_rows(src.radiance, src.dir_chunk, tile)
+    tiles = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
+    note = f"sketches on the {side} side"
+    if params.one_pass:
+        sketch = Sketch.for_rank(params.rank, extra, m)
+        passes = reads = 1 + params.verify
+        tasks = tiles
+        memory = sketch_memory(m, texels, sketch, tile_rows, workers=1)
+        task, client = memory["task"], memory["client"]
+        note = (f"one view (k = {sketch.k}, s = {sketch.s}) by texel tiles; scratch "
+                f"{_size(n * sketch.s * 4)} written once, read once")
+        option = "--oversample (a smaller sketch: less memory per task, more error)"
+    elif side == "rows":
+        rows = tile_rows
         twice = m * texels * 4 > TILE_CACHE_BYTES  # a tile's column read twice per pass
         passes = iterations + 2 + params.verify
         reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
-        tasks = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
+        tasks = tiles
         task = tile_memory(m, texels, width, rows)
         client = 8 * 6 * m * width + FAN_IN * 8 * m * width
         option = ("--rank, or the source's --chunk (smaller texel tiles: each task holds a "
                   "tile's rows)")
     else:
         blocks = plan_row_blocks(src.radiance, src.dir_chunk)
-        passes = reads = (1 if params.one_pass else iterations + 1) + params.verify
+        passes = reads = iterations + 1 + params.verify
         tasks = len(blocks)
         memory = memory_estimate(src.radiance, blocks, rank=params.rank, extra=extra,
-                                 one_pass=params.one_pass, workers=1)
+                                 workers=1)
         task, client = memory["task"], memory["client"]
         option = "--sketch rows (client memory then grows with the rows only)"
     per_core, source = rate("compress_bytes_per_core_second")
+    seconds = reads * matrix / per_core
+    if params.one_pass:  # one read, or its sketch's products (k + s + t per value): the slower
+        one, source = rate("compress_one_pass_bytes_per_core_second")
+        columns = (0 if sketch.exact_range else sketch.k) + \
+            (0 if sketch.exact_co_range else sketch.s) + sketch.t
+        seconds = max(matrix / per_core, matrix / one * columns / ONE_PASS_COLUMNS) \
+            + params.verify * matrix / per_core
     plan = StagePlan("compress", "", read=reads * matrix, written=(m + n + 1) * params.rank * 4,
                      tasks=tasks * passes, passes=passes, reads=reads, task_bytes=task,
-                     client_bytes=client,
-                     core_seconds=reads * matrix / per_core, rate_source=source, option=option,
-                     note=f"sketches on the {side} side")
+                     client_bytes=client, core_seconds=seconds, rate_source=source,
+                     option=option, note=note)
     if alternative:  # the other mode: one pass (texel side), or the default passes
         other = dataclasses.replace(params, passes="auto" if params.one_pass else "1",
                                     sketch="auto" if params.one_pass else "texels",

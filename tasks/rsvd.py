@@ -8,8 +8,14 @@ matrix's row blocks, for one of three kinds:
 
 - ``"power"``: ``sums["w"] = A^T (A x)`` for the texels x columns sketch ``x``;
 - ``"project"``: ``rows["z"] = A x`` and ``frobenius2 = ||A||_F^2``;
-- ``"sketch"``: the one-view sketch of ``omega``, ``phi`` and ``psi`` (whose columns follow the
-  matrix rows): ``rows["y"] = A omega``, ``rows["z"] = A phi``, ``sums["w"] = psi A``.
+- ``"sketch"``: the one-view sketch of the sizes ``sketch`` (:class:`tasks.svd.Sketch`), its
+  test matrices made from ``seed`` where they are used (:func:`tasks.svd.tile_test_matrix`
+  by texel tiles, :func:`tasks.svd.co_range_test` by rows): ``sums["y"] = A Omega`` (absent
+  for an exact range), ``sums["z"] = A Phi``, and of the co-range sketch ``W = Psi A``, kept
+  tile by tile where the pass runs, ``sums["g"] = W W^T`` and ``sums["wphi"] = W Phi``;
+- ``"sketch-vectors"``: ``V = W^T m`` for the small map ``m``, tile by tile from the kept
+  ``W`` (not a pass over the matrix; the pipeline writes ``V``, a test returns
+  ``sums["v"]``).
 
 For a wide matrix (fewer rows than texels) :func:`randomized_svd_rows` keeps its sketches on
 the row side instead, so that nothing on the client grows with the texels; its passes are
@@ -25,7 +31,6 @@ The pipeline streams a store in its ``run_pass``; a test can pass one over a num
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,11 +44,12 @@ from tasks.svd import (
     Sketch,
     error_from_identity,
     estimated_error,
+    factors_from_co_range,
     factors_from_gram,
     factors_from_projection,
-    factors_from_sketch,
     gaussian,
     orthonormalize,
+    psi_times,
     stacked_rows,
 )
 
@@ -96,23 +102,21 @@ def _multi_pass(run_pass: RunPass, *, rows, texels, rank, extra, iterations, see
 
 def _one_pass(run_pass: RunPass, *, rows, texels, rank, extra, iterations, seed
               ) -> Factorization:
-    sketch = Sketch.for_rank(rank, extra)
-    # The test matrices are rounded to float32 once; the same values serve the tasks and the
-    # client's algebra (float64 copies of float32 numbers).
-    omega = gaussian(texels, sketch.k, seed=seed, stream=1).astype(np.float32)
-    phi = gaussian(texels, sketch.t, seed=seed, stream=2).astype(np.float32)
-    psi = gaussian(sketch.s, rows, seed=seed, stream=3).astype(np.float32)
-    part = run_pass("sketch", omega=omega, phi=phi, psi=psi)
-    u, s, v = factors_from_sketch(stacked_rows(part.rows["y"]), part.sums["w"],
-                                  psi.astype(np.float64), rank)
-    estimate = estimated_error(stacked_rows(part.rows["z"]), phi.astype(np.float64), u, s, v,
+    sketch = Sketch.for_rank(rank, extra, rows)
+    part = run_pass("sketch", sketch=sketch, seed=seed)
+    y = None if sketch.exact_range else part.sums["y"]
+    u, s, to_v = factors_from_co_range(
+        y, part.sums["g"], (lambda q: q) if sketch.exact_co_range
+        else (lambda q: psi_times(q, seed, sketch.s)), rank)
+    estimate = estimated_error(part.sums["z"], to_v.T @ part.sums["wphi"], sketch.t, u, s,
                                part.frobenius2)
+    v = run_pass("sketch-vectors", m=to_v).sums.get("v")
     error = {"log_relative_frobenius": estimate,
              "method": f"estimate from a Gaussian error sketch of {sketch.t} columns (Tropp "
                        "et al. 2017): E ||(A - U S V^T) Phi||_F^2 / t = ||A - U S V^T||_F^2",
              "frobenius_norm": math.sqrt(part.frobenius2)}
-    return Factorization(u, s, v, error,
-                         {f"sketch_{k}": v for k, v in dataclasses.asdict(sketch).items()})
+    widths = {"sketch_k": sketch.k, "sketch_s": sketch.s, "sketch_t": sketch.t}
+    return Factorization(u, s, v, error, widths)
 
 
 def randomized_svd_rows(run_pass: RunPass, *, rows: int, texels: int, rank: int, extra: int,

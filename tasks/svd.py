@@ -24,10 +24,14 @@ products (relative ~1e-7), so the difference resolves relative errors down to ab
 and ``--verify`` measures the error directly.
 
 Single pass (Tropp, Yurtsever, Udell and Cevher 2017, one-view sketch): one read gives the
-range sketch ``Y = A Omega``, the co-range sketch ``W = Psi A`` and an error sketch
-``A Phi``; ``A ~ Q (Psi Q)^+ W`` with ``Q = orth(Y)``. Its error is estimated from the error
-sketch: ``E ||(A - A_hat) Phi||_F^2 / t = ||A - A_hat||_F^2`` for Gaussian ``Phi`` with ``t``
-columns.
+range sketch ``Y = A Omega`` (rows x k), the co-range sketch ``W = Psi A`` (s x texels) and an
+error sketch ``A Phi``; ``A ~ Q (Psi Q)^+ W`` with ``Q = orth(Y)``. The texel-side test
+matrices ``Omega`` and ``Phi`` are made tile by tile from seeds and ``W`` is kept tile by tile
+(the pipeline writes it to a scratch array), so only ``Y``, ``A Phi``, ``W W^T`` and
+``W Phi`` are summed: the factors come from the Gram matrix of the small core
+(:func:`factors_from_co_range`) and ``V`` is formed tile by tile from the stored ``W``. The
+error is estimated from the error sketch: ``E ||(A - A_hat) Phi||_F^2 / t = ||A - A_hat||_F^2``
+for Gaussian ``Phi`` with ``t`` columns.
 
 Block products run in float32 (the data's precision); sums over column tiles and over row blocks
 are accumulated in float64, and every orthonormalisation and small factorisation is float64.
@@ -253,53 +257,183 @@ def error_from_identity(frobenius2: float, s: np.ndarray) -> float:
     return float(np.sqrt(residual / frobenius2))
 
 
+PSI_GROUP = 1024  # rows of Psi generated per seed stream (so a task makes only its rows')
+
+
 @dataclass(frozen=True)
 class Sketch:
-    """One-view sketch sizes: ``k`` range columns, ``s`` co-range rows, ``t`` error columns."""
+    """One-view sketch sizes: ``k`` range columns, ``s`` co-range rows, ``t`` error columns.
+
+    A side that would reach the matrix's ``rows`` is exact instead of random: ``k = rows``
+    takes ``Q = I`` (no range sketch), ``s = rows`` takes ``Psi = I`` (the co-range sketch is
+    the matrix itself, ``W = A``).
+    """
 
     k: int
     s: int
+    rows: int
     t: int = 10
 
     @staticmethod
-    def for_rank(rank: int, oversample: int) -> Sketch:
-        """Tropp et al.'s recommendation: ``s = 2k + 1``."""
-        k = rank + oversample
-        return Sketch(k, 2 * k + 1)
+    def for_rank(rank: int, oversample: int, rows: int) -> Sketch:
+        """``k = rank + oversample`` and Tropp et al.'s ``s = 2k + 1``, at most ``rows`` each."""
+        k = min(rank + oversample, rows)
+        return Sketch(k, min(2 * k + 1, rows), rows)
+
+    @property
+    def exact_range(self) -> bool:
+        """Whether ``Q = I``: the range sketch would span every row."""
+        return self.k >= self.rows
+
+    @property
+    def exact_co_range(self) -> bool:
+        """Whether ``Psi = I``: the co-range sketch is the matrix itself."""
+        return self.s >= self.rows
 
 
-def sketch_rows(a: np.ndarray, omega: np.ndarray, phi: np.ndarray, psi: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A row block's share of a one-view sketch.
+def tile_test_matrix(seed: int, stream: int, key: tuple[int, ...], texels: int, cols: int
+                     ) -> np.ndarray:
+    """A tile's rows of a texel-side Gaussian test matrix (float32), from its own seed.
 
-    Returns ``a omega`` and ``a phi`` (the block's rows of the range and error sketches) and
-    ``psi a`` (float32, summed over row blocks in float64); ``psi`` holds the block's columns
-    of ``Psi``.
+    ``key`` names the tile (its first texel), so every task makes its rows alone and the same
+    rows on every scheduler; the matrix as a whole depends on the tiling.
+    """
+    rng = np.random.default_rng([seed, stream, *key])
+    return rng.standard_normal((texels, cols), dtype=np.float32)
+
+
+def co_range_test(seed: int, s: int, r0: int, r1: int) -> np.ndarray:
+    """Columns ``r0:r1`` of the ``s x rows`` co-range test matrix ``Psi`` (float32).
+
+    Made in groups of :data:`PSI_GROUP` rows, each from its own seed stream, so any range of
+    rows is the same whichever task (or the client) makes it.
+    """
+    g0, g1 = r0 // PSI_GROUP, (r1 - 1) // PSI_GROUP + 1
+    groups = [np.random.default_rng([seed, 3, g]).standard_normal((s, PSI_GROUP),
+                                                                  dtype=np.float32)
+              for g in range(g0, g1)]
+    return np.hstack(groups)[:, r0 - g0 * PSI_GROUP : r1 - g0 * PSI_GROUP]
+
+
+def psi_times(q: np.ndarray, seed: int, s: int) -> np.ndarray:
+    """``Psi q`` (float64) for the co-range test matrix of :func:`co_range_test`, by groups."""
+    out = np.zeros((s, q.shape[1]))
+    for r0 in range(0, q.shape[0], PSI_GROUP):
+        r1 = min(r0 + PSI_GROUP, q.shape[0])
+        out += co_range_test(seed, s, r0, r1).astype(np.float64) @ q[r0:r1]
+    return out
+
+
+def sketch_rows(a: np.ndarray, omega: np.ndarray | None, phi: np.ndarray,
+                psi: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """A block's share of a one-view sketch (the block: some rows, some texel columns).
+
+    Returns ``a omega`` and ``a phi`` (the block's rows of the range and error sketches,
+    float64; None for an exact range) and ``psi a`` (float32; ``a`` itself for an exact
+    co-range); ``omega`` and ``phi`` hold the block's texels' rows, ``psi`` its rows' columns.
     """
     a = blas_ready(a)
-    return project(a, omega), project(a, phi), blas_ready(psi) @ a
+    y = None if omega is None else project(a, omega)
+    return y, project(a, phi), a if psi is None else blas_ready(psi) @ a
 
 
-def factors_from_sketch(y: np.ndarray, w: np.ndarray, psi: np.ndarray, rank: int
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``U, S, V`` of rank ``rank`` from a one-view sketch (Tropp et al. 2017, Alg. 7).
+class TileSketch:
+    """One texel tile's share of a one-view sketch, accumulated row block by row block.
 
-    ``y = A Omega`` (m x k), ``w = Psi A`` (s x n), ``psi`` (s x m).
+    ``add(row0, a)`` takes the tile's range-reduced rows ``row0 : row0 + len(a)`` (float32);
+    ``sums()`` gives the tile's ``y = A_t Omega_t`` (unless the range is exact),
+    ``z = A_t Phi_t``, and ``g = W_t W_t^T`` and ``wphi = W_t Phi_t`` of its co-range sketch
+    ``w = W_t = Psi A_t`` (float32, ``s x texels``), which the caller keeps (stores) as it is.
+    ``Omega_t`` and ``Phi_t`` come from ``seed`` and the tile's ``key``
+    (:func:`tile_test_matrix`), ``Psi``'s columns from ``seed`` and the rows
+    (:func:`co_range_test`).
     """
-    q = orthonormalize(y)
-    qc, rc = np.linalg.qr(psi @ q)
-    core = np.linalg.solve(rc, qc.T @ w)  # k x n: A ~ q core
-    q2, r2 = np.linalg.qr(core.T)  # n x k, k x k
-    p, s, ht = np.linalg.svd(r2.T)
-    return q @ p[:, :rank], s[:rank], q2 @ ht[:rank].T
+
+    def __init__(self, sketch: Sketch, seed: int, key: tuple[int, ...], texels: int):
+        self.sketch, self.seed = sketch, seed
+        self.omega = None if sketch.exact_range else tile_test_matrix(seed, 1, key, texels,
+                                                                      sketch.k)
+        self.phi = tile_test_matrix(seed, 2, key, texels, sketch.t)
+        self.y = None if self.omega is None else np.zeros((sketch.rows, sketch.k))
+        self.z = np.zeros((sketch.rows, sketch.t))
+        self.w = np.zeros((sketch.s, texels), np.float32)
+
+    def add(self, row0: int, a: np.ndarray) -> None:
+        """Add the rows ``row0 : row0 + len(a)`` of the tile."""
+        rows = slice(row0, row0 + a.shape[0])
+        psi = None if self.sketch.exact_co_range else co_range_test(
+            self.seed, self.sketch.s, rows.start, rows.stop)
+        y, self.z[rows], w = sketch_rows(a, self.omega, self.phi, psi)
+        if y is not None:
+            self.y[rows] = y
+        if psi is None:
+            self.w[rows] = w
+        else:
+            self.w += w
+
+    def sums(self) -> dict[str, np.ndarray]:
+        """The tile's sums of the pass (see the class)."""
+        gram, w_phi = co_range_sums(self.w, self.phi)
+        return {"z": self.z, "g": gram, "wphi": w_phi} | ({} if self.y is None
+                                                         else {"y": self.y})
 
 
-def estimated_error(z_phi: np.ndarray, phi: np.ndarray, u, s, v, frobenius2: float) -> float:
-    """Relative Frobenius error estimated from an error sketch ``z_phi = A phi`` (t columns)."""
+def co_range_sums(w: np.ndarray, phi: np.ndarray, *, tile: int = TILE
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``w w^T`` and ``w phi`` (float64) of a tile's stored co-range sketch ``w`` (float32).
+
+    ``w`` is ``s x texels``, ``phi`` the tile's rows of the error test matrix. The products are
+    float64 (over runs of ``tile`` texels, to bound the copies), so the Gram matrix is that of
+    the stored values to float64 precision, and the eigentextures made from the same values
+    come out orthonormal.
+    """
+    from scipy.linalg.blas import dsyrk
+
+    gram = np.zeros((w.shape[0],) * 2)
+    w_phi = np.zeros((w.shape[0], phi.shape[1]))
+    for t in range(0, w.shape[1], tile):
+        part = np.asarray(w[:, t : t + tile], np.float64)
+        gram = dsyrk(1.0, part, beta=1.0, c=gram, overwrite_c=True)
+        w_phi += part @ np.asarray(phi[t : t + tile], np.float64)
+    return np.triu(gram) + np.triu(gram, 1).T, w_phi
+
+
+def factors_from_co_range(y: np.ndarray | None, gram: np.ndarray, psi_q, rank: int
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``U``, ``S`` and the map ``N`` to ``V = W^T N`` of a one-view sketch (Tropp et al. 2017).
+
+    ``y = A Omega`` (``m x k``; None: ``Q = I``), ``gram = W W^T`` of the co-range sketch
+    ``W = Psi A`` (``s x n``), ``psi_q(q)`` gives ``Psi Q``. With ``Psi Q = Q_c R_c``, the core
+    ``X = M W`` with ``M = R_c^-1 Q_c^T`` gives ``A ~ Q X``; the eigenvectors ``P`` of
+    ``X X^T = M gram M^T`` give ``U = Q P``, ``S = sqrt(lambda)`` and ``V = X^T P / S`` (Alg. 7's
+    SVD of ``X``, from its Gram matrix: ``W`` never leaves the tiles). Directions below
+    :data:`GRAM_FLOOR` of the largest are left out as in :func:`factors_from_gram`.
+    """
+    q = np.eye(gram.shape[0]) if y is None else orthonormalize(y)
+    qc, rc = np.linalg.qr(psi_q(q))
+    m = np.linalg.solve(rc, qc.T)
+    g = m @ np.asarray(gram, np.float64) @ m.T
+    evals, p = np.linalg.eigh((g + g.T) / 2)
+    order = np.argsort(evals)[::-1][:rank]
+    evals, p = evals[order], p[:, order]
+    kept = evals > (evals[0] * GRAM_FLOOR if evals.size and evals[0] > 0 else np.inf)
+    s = np.where(kept, np.sqrt(np.maximum(evals, 0.0)), 0.0)
+    to_v = np.zeros((m.shape[1], rank))
+    to_v[:, kept] = m.T @ p[:, kept] / s[kept]
+    return q @ p, s, to_v
+
+
+def estimated_error(z_phi: np.ndarray, vt_phi: np.ndarray, t: int, u, s,
+                    frobenius2: float) -> float:
+    """Relative Frobenius error estimated from an error sketch ``z_phi = A phi`` (t columns).
+
+    ``vt_phi = V^T phi``: ``E ||(A - U S V^T) Phi||_F^2 / t = ||A - U S V^T||_F^2`` for a
+    Gaussian ``Phi`` (Tropp et al. 2017, section 6).
+    """
     if frobenius2 <= 0:
         return 0.0
-    residual = z_phi - u @ (s[:, None] * (v.T @ phi))
-    return float(np.sqrt(np.sum(residual**2) / phi.shape[1] / frobenius2))
+    residual = z_phi - u @ (s[:, None] * vt_phi)
+    return float(np.sqrt(np.sum(residual**2) / t / frobenius2))
 
 
 _LOG_MAX = 88.0  # exp of more overflows float32

@@ -246,16 +246,28 @@ def test_bad_sketch_options_are_refused(tmp_path, btf, args, message):
     assert not (tmp_path / "c.zarr").exists()
 
 
-def test_one_pass_reports_an_honest_error_estimate(tmp_path, btf):
+@pytest.mark.parametrize(("options", "k", "s"), [((), 61, 123), (("--oversample", "4"), 14, 29),
+                                               (("--oversample", "200"), 144, 144)])
+def test_one_pass_is_near_optimal_reports_an_honest_error_and_leaves_no_scratch(
+        tmp_path, btf, options, k, s):
     m, n = 144, 768
-    s = 30 * np.exp(-np.arange(min(m, n)) / 8.0)
-    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, s), SHAPE)
+    spectrum = 30 / (1 + np.arange(min(m, n)) / 3.0)  # slow: the sketch size matters
+    store = store_from_log_matrix(tmp_path / "s.zarr", spectrum_matrix(m, n, spectrum), SHAPE)
     a = store_matrix(store)
     optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[10:] ** 2))
-    u, sv, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "10", "--passes", "1")
-    assert attrs["svd"]["passes"] == 1 and attrs["svd"]["method"] == "one-view sketch"
+    out = tmp_path / "c.zarr"
+    u, sv, v, attrs = _compress(btf, store, out, "--rank", "10", "--passes", "1", *options)
+    svd = attrs["svd"]
+    assert svd["passes"] == 1 and svd["method"] == "one-view sketch"
+    assert (svd["sketch_k"], svd["sketch_s"]) == (k, s)  # default: k = 6K + 1, s = 2k + 1
+    assert svd["scratch_bytes"] == n * s * 4
+    assert not (out / "sketch-scratch").exists()
     err = np.linalg.norm(a - (u.reshape(m, 10) * sv) @ v.reshape(n, 10).T)
-    assert err < 3 * optimal  # one view costs accuracy, but not arbitrarily much
+    # the default sketch is within 1.2x of the optimum; sketches as large as the rows are the
+    # exact SVD; a small one is markedly worse
+    assert err / optimal < {61: 1.2, 14: 2.0, 144: 1.0001}[k]
+    if k == 14:
+        assert err / optimal > 1.3
     estimate = attrs["error"]["log_relative_frobenius"] * np.linalg.norm(a)
     assert estimate == pytest.approx(err, rel=0.35)
     assert _orthonormal(u) and _orthonormal(v)

@@ -145,10 +145,11 @@ def _same_as_synchronous(tmp_path, workers, address, stage, src, options, names)
         assert np.array_equal(a[name][:], b[name][:]), name
 
 
-def test_compress_survives_a_lost_worker(tmp_path, two_workers):
+@pytest.mark.parametrize("mode", [(), ("--passes", "1", "--oversample", "17")])
+def test_compress_survives_a_lost_worker(tmp_path, two_workers, mode):
     address, workers = two_workers
     src = generate_store(tmp_path / "src.zarr", *GENERATE)
-    _same_as_synchronous(tmp_path, workers, address, "compress", src, ["--rank", "16"],
+    _same_as_synchronous(tmp_path, workers, address, "compress", src, ["--rank", "16", *mode],
                          ("U", "S", "V"))
 
 

@@ -32,14 +32,14 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     assert compress.passes == 4 and compress.reads == 7
     assert compress.read == 7 * rows * texels * 4
     assert compress.client_bytes < 1 << 30 and compress.task_bytes < 1 << 30
-    # the other mode is shown beside it: one read of the matrix, but today its sketches grow
-    # with the texels (issue 27: float64 sketches of 4.2 M texels on the client, and blocks
-    # of rows over every texel per task)
+    # the other mode is shown beside it: one read of the matrix by texel tiles, the client
+    # holding rows x k (k = 6 x 64 + 1 = 385), each task a tile's co-range sketch (s = 771)
     (one,) = compress.alternatives
     assert one.name == "compress --passes 1" and one.passes == one.reads == 1
     assert one.read == rows * texels * 4
-    assert one.client_bytes > 14e9
-    assert one.task_bytes > compress.task_bytes
+    assert rows * 385 * 8 * 4 < one.client_bytes < 2e9
+    assert 771 * 128 * 128 * 4 * 2 < one.task_bytes < 1 << 30
+    assert f"scratch {planning._size(texels * 771 * 4)} written once" in one.note
     assert "16 tile(s)" in quilt.note and quilt.serial_seconds > 0
     result = btf("run", TERABYTE, "--plan", "--memory-limit", "4GiB")
     assert result.code == 0, result.err

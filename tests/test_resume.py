@@ -89,14 +89,16 @@ def test_generate_resumes_after_kill_9(tmp_path):
                      seed=1)
 
 
-@pytest.mark.parametrize("sketch", ["texels", "rows"])
+@pytest.mark.parametrize("sketch", ["texels", "rows", "one pass"])
 def test_compress_resumes_after_kill_9(tmp_path, sketch):
     src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "768",
                          "--sampling", "abtf:12,4", "--chunk", "64", "--seed", "3")
+    # one pass: the sketch (its scratch kept in the partial output), V from it, verification
+    mode = (["--passes", "1", "--oversample", "17"] if sketch == "one pass"
+            else ["--power-iters", "4", "--sketch", sketch])
 
     def args(out):
-        return ["compress", src, out, "--rank", "16", "--power-iters", "4", "--sketch", sketch,
-                "--verify"]
+        return ["compress", src, out, "--rank", "16", *mode, "--verify"]
 
     _kill_and_resume(tmp_path, args, ("U", "S", "V"), mark="pass 1/",
                      resumed_says="kept from the interrupted run", seed=2)

@@ -9,34 +9,49 @@ from tasks.rsvd import randomized_svd, randomized_svd_rows
 from tasks.svd import (
     BlockCheck,
     PassPart,
+    TileSketch,
     co_project,
+    co_range_test,
     combine_parts,
+    frobenius2,
     power_step,
     project,
     row_product,
-    sketch_rows,
 )
 
 
-def in_memory(a: np.ndarray, block_rows: int):
-    """A ``run_pass`` over the rows of ``a`` in blocks, counting its passes."""
+def in_memory(a: np.ndarray, block_rows: int, tile_cols: int = 64):
+    """A ``run_pass`` over the rows of ``a`` in blocks, counting its passes.
+
+    The one-view sketch runs as the pipeline runs it: by tiles of ``tile_cols`` columns, each
+    by row blocks, keeping each tile's co-range sketch for the ``sketch-vectors`` step.
+    """
     a32 = a.astype(np.float32)
     blocks = [(r, a32[r : r + block_rows]) for r in range(0, a.shape[0], block_rows)]
-    calls = []
+    calls, kept = [], {}
 
     def run_pass(kind: str, **arrays) -> PassPart:
         calls.append(kind)
         parts, ok = [], BlockCheck()
+        if kind == "sketch":
+            for c0 in range(0, a.shape[1], tile_cols):
+                tile = TileSketch(arrays["sketch"], arrays["seed"], (0, c0),
+                                  a32[:, c0 : c0 + tile_cols].shape[1])
+                for r, rows in blocks:
+                    tile.add(r, rows[:, c0 : c0 + tile_cols])
+                kept[c0] = tile.w
+                f2 = frobenius2(a32[:, c0 : c0 + tile_cols])
+                parts.append(PassPart(tile.sums(), {}, ok, f2))
+            return combine_parts(*parts)
+        if kind == "sketch-vectors":
+            v = np.vstack([kept[c0].T.astype(np.float64) @ arrays["m"] for c0 in sorted(kept)])
+            return PassPart({"v": v}, {}, ok, 0.0)
         for r, rows in blocks:
             f2 = float(np.sum(rows.astype(np.float64) ** 2))
             if kind == "power":
                 parts.append(PassPart({"w": power_step(rows, arrays["x"])}, {}, ok, 0.0))
-            elif kind == "project":
-                parts.append(PassPart({}, {"z": [(r, project(rows, arrays["x"]))]}, ok, f2))
             else:
-                psi = arrays["psi"][:, r : r + rows.shape[0]]
-                y, z, w = sketch_rows(rows, arrays["omega"], arrays["phi"], psi)
-                parts.append(PassPart({"w": w}, {"y": [(r, y)], "z": [(r, z)]}, ok, f2))
+                parts.append(PassPart({}, {"z": [(r, project(rows, arrays["x"]))]}, ok, f2))
         return combine_parts(*parts)
 
     return run_pass, calls
@@ -82,16 +97,57 @@ def test_power_iterations_are_needed_on_a_slow_spectrum():
     assert errors[1] < 1.02 < errors[0]  # the tolerance above would catch a driver without them
 
 
-def test_one_pass_reads_once_and_estimates_its_error():
-    a = _matrix(100, 350, lambda i: 30 * np.exp(-i / 8.0))
-    run_pass, calls = in_memory(a, 23)
-    f = randomized_svd(run_pass, rows=100, texels=350, rank=10, extra=11, iterations=0,
-                       seed=2, one_pass=True)
-    assert calls == ["sketch"]
-    err = np.linalg.norm(a - (f.u * f.s) @ f.v.T)
-    optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[10:] ** 2))
-    assert err < 3 * optimal
-    assert f.error["log_relative_frobenius"] * np.linalg.norm(a) == pytest.approx(err, rel=0.35)
+def _one_pass(a, rank, extra, *, block_rows=23, tile_cols=64, seed=2):
+    run_pass, calls = in_memory(a, block_rows, tile_cols)
+    f = randomized_svd(run_pass, rows=a.shape[0], texels=a.shape[1], rank=rank, extra=extra,
+                       iterations=0, seed=seed, one_pass=True)
+    return f, calls
+
+
+def test_one_pass_reads_once_is_near_optimal_and_estimates_its_error():
+    # a slowly decaying spectrum, where the sketch size matters
+    a = _matrix(300, 900, lambda i: 1 / (1 + i / 4.0))
+    rank = 10
+    optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[rank:] ** 2))
+    ratios = {}
+    for extra in (rank + 1, 5 * rank + 1):  # k = 2K + 1 (the former default), 6K + 1
+        f, calls = _one_pass(a, rank, extra)
+        assert calls == ["sketch", "sketch-vectors"]  # one pass; V from the kept sketches
+        err = np.linalg.norm(a - (f.u * f.s) @ f.v.T)
+        ratios[extra] = err / optimal
+        assert f.error["log_relative_frobenius"] * np.linalg.norm(a) == pytest.approx(
+            err, rel=0.35)
+        assert np.allclose(f.u.T @ f.u, np.eye(rank), atol=1e-6)
+        assert np.allclose(f.v.T @ f.v, np.eye(rank), atol=1e-6)
+        assert f.widths == {"sketch_k": rank + extra, "sketch_s": 2 * (rank + extra) + 1,
+                            "sketch_t": 10}
+    assert ratios[5 * rank + 1] < 1.2 < 1.4 < ratios[rank + 1], ratios
+
+
+def test_one_pass_with_sketches_as_large_as_the_rows_is_the_exact_svd():
+    # k and s reach the 40 rows: Q = I and Psi = I, so the factors are the truncated SVD's
+    a = _matrix(40, 700, lambda i: 5 * np.exp(-i / 5.0)) + 1.0
+    f, _ = _one_pass(a, 8, 100)
+    assert f.widths["sketch_k"] == f.widths["sketch_s"] == 40
+    u, s, vt = np.linalg.svd(a.astype(np.float32).astype(np.float64), full_matrices=False)
+    assert np.allclose(f.s, s[:8], rtol=1e-5)
+    assert np.allclose(np.abs(np.sum(f.u * u[:, :8], axis=0)), 1, atol=1e-5)
+    assert np.allclose(np.abs(np.sum(f.v * vt[:8].T, axis=0)), 1, atol=1e-5)
+
+
+def test_one_pass_factors_do_not_depend_on_the_row_blocks():
+    a = _matrix(300, 400, lambda i: 1 / (1 + i / 4.0))
+    one, _ = _one_pass(a, 6, 31, block_rows=300)
+    other, _ = _one_pass(a, 6, 31, block_rows=37)
+    assert np.allclose(one.s, other.s, rtol=1e-5)
+    assert np.allclose(np.abs(np.sum(one.v * other.v, axis=0)), 1, atol=1e-4)
+
+
+def test_the_co_range_test_matrix_is_the_same_whoever_makes_which_rows():
+    whole = co_range_test(5, 7, 0, 3000)
+    assert np.array_equal(whole[:, 1000:1500], co_range_test(5, 7, 1000, 1500))
+    assert np.array_equal(whole[:, 1023:1025], co_range_test(5, 7, 1023, 1025))
+    assert not np.array_equal(whole, co_range_test(6, 7, 0, 3000))
 
 
 def test_the_same_seed_gives_the_same_factors_whatever_the_blocks():

@@ -29,7 +29,6 @@ from tasks.svd import (
     matrix_rows,
     power_step,
     project,
-    sketch_rows,
 )
 
 ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
@@ -68,23 +67,18 @@ def plan_row_blocks(shape: tuple[int, ...], dir_chunk: int, *, budget: int | Non
 
 
 def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int, extra: int,
-                    one_pass: bool, workers: int) -> dict[str, int]:
-    """Bytes a compression will hold at its peak, roughly: sketches on the client, blocks in tasks.
+                    workers: int) -> dict[str, int]:
+    """Bytes a texel-side compression holds at its peak, roughly: client sketches, tasks' blocks.
 
     The sketches grow with the texels (texels x (rank + oversampling), float64, a few copies
     between passes); the tasks hold a row block, its range reduction in place, and a share of
-    the sketch each; a reduction task holds :data:`FAN_IN` shares.
+    the sketch each; a reduction task holds :data:`FAN_IN` shares. (The one-view sketch runs by
+    texel tiles: :func:`pipeline.graphs.tile_passes.sketch_memory`.)
     """
-    nv, nl, ny, nx, nc = shape
-    m, n, width = nv * nl * nc, ny * nx, rank + extra
+    n, width = shape[2] * shape[3], rank + extra
     rows = max(b.rows for b in blocks)
-    if one_pass:
-        s = 2 * width + 1
-        client = 8 * (2 * s * n + m * width + n * width)
-        share = 4 * s * n
-    else:
-        client = 8 * 6 * n * width  # x, the previous iterate, their Krylov basis, QR copies
-        share = 4 * n * width
+    client = 8 * 6 * n * width  # x, the previous iterate, their Krylov basis, QR copies
+    share = 4 * n * width
     task = 4 * rows * n + share
     return {"client": client, "task": task, "total": client + workers * task
             + FAN_IN * 2 * share}
@@ -151,18 +145,6 @@ def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, cla
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def _sketch_task(store: str, block: RowBlock, omega, phi, psi_rows, *, eps: float,
-                 clamp: bool, first: bool) -> PassPart:
-    a, check, f2 = transformed_rows(store, block, eps=eps, clamp=clamp, first=first, norm=True)
-    if a is None:
-        y = np.zeros((block.rows, omega.shape[1]))
-        z = np.zeros((block.rows, phi.shape[1]))
-        w = np.zeros((psi_rows.shape[0], omega.shape[0]), np.float32)
-    else:
-        y, z, w = sketch_rows(a, omega, phi, psi_rows)
-    return PassPart({"w": w}, {"y": [(block.row0, y)], "z": [(block.row0, z)]}, check, f2)
-
-
 def tree_sum(parts: list) -> Any:
     """Delayed sum of pass parts by a fixed tree of :data:`FAN_IN` (reproducible order)."""
     import dask
@@ -174,25 +156,21 @@ def tree_sum(parts: list) -> Any:
     return level[0]
 
 
-# the texel-side pass kinds of tasks.rsvd: (task, arguments read whole, sliced by rows)
-_TASKS = {"power": (_power_task, ("x",), ()), "project": (_project_task, ("x",), ()),
-          "sketch": (_sketch_task, ("omega", "phi"), ("psi",))}
+# the texel-side pass kinds of tasks.rsvd: (task, arguments read whole)
+_TASKS = {"power": (_power_task, ("x",)), "project": (_project_task, ("x",))}
 
 
 def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[str, Any],
-               by_rows: dict[str, np.ndarray], eps: float, clamp: bool, first: bool):
+               eps: float, clamp: bool, first: bool):
     """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the row blocks.
 
-    ``shared`` are handles of arrays every task reads whole (sketches, factors); ``by_rows``
-    arrays whose columns follow the matrix rows, each task taking its block's columns.
+    ``shared`` are handles of arrays every task reads whole (sketches, factors).
     """
     import dask
 
-    task, whole, sliced = _TASKS[kind]
-    parts = [dask.delayed(task, pure=True)(
-                 store, b, *(shared[name] for name in whole),
-                 *(by_rows[name][:, b.row0 : b.row0 + b.rows] for name in sliced),
-                 eps=eps, clamp=clamp, first=first)
+    task, whole = _TASKS[kind]
+    parts = [dask.delayed(task, pure=True)(store, b, *(shared[name] for name in whole),
+                                           eps=eps, clamp=clamp, first=first)
              for b in blocks]
     return tree_sum(parts)
 

@@ -8,6 +8,12 @@ the row-block passes. A tile's texel-side products (``A_t^T Q``, tile texels x l
 its task, so nothing the size of the texels is ever gathered: memory is a few row blocks of a
 tile, a tile's products and the row-side sketch (rows x l), whatever the number of texels.
 
+The one-view sketch (``--passes 1``) reads each tile's column once: its range and error
+sketches (rows x k) are summed like any pass, its co-range sketch ``W_t = Psi A_t`` (s x tile
+texels) is written to a scratch array (one chunk per tile, :func:`create_scratch`) and only its
+Gram matrix and ``W_t Phi_t`` are summed; ``V`` is then formed tile by tile from the scratch,
+without reading the store again.
+
 The row-side passes read each tile's rows twice (``Z = A_t^T Q``, then ``A_t Z``) unless the
 tile's whole column fits in :data:`TILE_CACHE_BYTES`, in which case it is kept between the two.
 """
@@ -30,6 +36,8 @@ from pipeline.graphs.row_passes import (
 from tasks.svd import (
     BlockCheck,
     PassPart,
+    Sketch,
+    TileSketch,
     co_project,
     log_transform,
     row_product,
@@ -119,6 +127,72 @@ def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np
     return PassPart({}, {}, BlockCheck(), 0.0)
 
 
+def create_scratch(location: str, ny: int, nx: int, s: int, chunk: tuple[int, int]) -> None:
+    """The scratch array of a one-view sketch's ``W^T``: ``(y, x, s)`` float32, a chunk a tile.
+
+    Uncompressed (Gaussian combinations of the data do not compress); overwritten if present.
+    """
+    import zarr
+
+    zarr.create_array(storage.store(location), shape=(ny, nx, s), chunks=(*chunk, s),
+                      dtype="float32", compressors=None, fill_value=0.0, overwrite=True)
+
+
+def _sketch_task(store: str, tile: TexelTile, blocks: list[RowBlock], sketch: Sketch,
+                 seed: int, scratch: str, *, eps: float, clamp: bool, first: bool) -> PassPart:
+    """A tile's share of the one-view sketch (:class:`tasks.svd.TileSketch`).
+
+    Writes its co-range sketch ``W_t^T`` to ``scratch``; returns its sums.
+    """
+    import zarr
+
+    part = TileSketch(sketch, seed, (tile.y0, tile.x0), tile.texels)
+    check, f2 = BlockCheck(), 0.0
+    for b in blocks:
+        a, found, f = transformed_rows(store, b, eps=eps, clamp=clamp, first=first, norm=True,
+                                       region=tile.region)
+        check = check.merge(found)
+        if a is None:  # data to refuse: the caller raises after this pass (zeros meanwhile)
+            return PassPart(part.sums(), {}, check, 0.0)
+        f2 += f
+        part.add(b.row0, a)
+        del a
+    target = zarr.open_array(storage.store(scratch), mode="r+")
+    target[tile.region] = part.w.T.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, sketch.s)
+    return PassPart(part.sums(), {}, check, f2)
+
+
+def _sketch_vectors_task(scratch: str, tile: TexelTile, to_v: np.ndarray, out: str
+                         ) -> PassPart:
+    """Write the tile's eigentextures ``V_t = W_t^T M`` (float64 products) from the scratch."""
+    import zarr
+
+    w = zarr.open_array(storage.store(scratch), mode="r")[tile.region]
+    v = (w.reshape(tile.texels, -1).astype(np.float64) @ to_v).astype(np.float32)
+    target = zarr.open_array(storage.store(out), path="V", mode="r+")
+    target[tile.region] = v.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, -1)
+    return PassPart({}, {}, BlockCheck(), 0.0)
+
+
+def sketch_pass_graph(store: str, tiles: list[TexelTile], blocks: list[RowBlock], *,
+                      sketch: Sketch, seed: int, scratch: str, eps: float, clamp: bool,
+                      first: bool):
+    """A delayed :class:`tasks.svd.PassPart` of the one-view sketch over the texel tiles."""
+    import dask
+
+    return tree_sum([dask.delayed(_sketch_task, pure=True)(
+        store, tile, blocks, sketch, seed, scratch, eps=eps, clamp=clamp, first=first)
+        for tile in tiles])
+
+
+def sketch_vectors_graph(scratch: str, tiles: list[TexelTile], to_v, out: str):
+    """A delayed (empty) :class:`tasks.svd.PassPart` writing ``V`` from the scratch sketch."""
+    import dask
+
+    return tree_sum([dask.delayed(_sketch_vectors_task, pure=True)(scratch, tile, to_v, out)
+                     for tile in tiles])
+
+
 def _verify_task(store: str, tile: TexelTile, blocks: list[RowBlock], u: np.ndarray,
                  s: np.ndarray, out: str, *, eps: float, clamp: bool, first: bool) -> PassPart:
     """The tile's sum of per-texel ABRDF RMSEs (eq. 11) and squared log residual.
@@ -171,6 +245,29 @@ def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[
                  *((out,) if writes else ()), eps=eps, clamp=clamp, first=first, **extra)
              for tile in tiles]
     return tree_sum(parts)
+
+
+def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowBlock], *,
+                  workers: int) -> dict[str, int]:
+    """Bytes a one-view sketch holds at its peak: client, one task, and all of them.
+
+    A task holds a row block being read and range-reduced (two copies), its tile's test
+    matrices, its co-range sketch and the copy written to the scratch array, a float64 run
+    of it, and its sums (``y`` and ``z``: rows x (k + t)); a reduction task holds
+    :data:`FAN_IN` such sums. The client holds ``Y`` and its QR (a few rows x k copies).
+    Nothing grows with the texels.
+    """
+    from pipeline.graphs.row_passes import FAN_IN
+    from tasks.svd import PSI_GROUP, TILE
+
+    block = max(b.rows for b in blocks) * tile_texels * 4
+    w = 4 * sketch.s * tile_texels
+    sums = 8 * (rows * (sketch.k + sketch.t) + sketch.s * (sketch.s + sketch.t))
+    task = (2 * block + 2 * w + 4 * tile_texels * (sketch.k + sketch.t) + 8 * sketch.s * TILE
+            + sums)
+    client = 8 * (4 * rows * sketch.k + rows * sketch.t) + 4 * sketch.s * PSI_GROUP + 2 * sums
+    return {"client": client, "task": task,
+            "total": client + workers * task + FAN_IN * sums}
 
 
 def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock]) -> int:

@@ -79,9 +79,11 @@ STAGES: dict[str, Stage] = {
               "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
               "channel textures, columns: texels) as U S V^T with a randomized SVD that streams "
               "the store in row blocks: power iterations + 1 passes (each A^T A fused into one "
-              "pass), or one pass with --passes 1. The relative error comes from an exact "
-              "identity (or, for one pass, an error sketch); --verify adds a pass for the "
-              "average ABRDF RMSE in linear radiance. Memory: a few row blocks and sketches.",
+              "pass), or one read with --passes 1 (a one-view sketch by texel tiles, its co-range "
+              "sketch kept in a scratch array that is removed at the end). The relative error "
+              "comes from an exact identity (or, for one pass, an error sketch); --verify adds "
+              "a pass for the average ABRDF RMSE in linear radiance. Memory: a few blocks and "
+              "sketches; with --sketch rows or --passes 1 nothing grows with the texels.",
               makes_store=True),
         Stage("reconstruct", reconstruct.ReconstructParams, reconstruct.reconstruct,
               "rebuild chosen layers, region and rank from a compressed store",

@@ -5,15 +5,19 @@ between passes only a sketch lives on the client, where it is re-orthonormalised
 kept on one side of the BTF matrix (``--sketch``):
 
 - texels (:func:`tasks.rsvd.randomized_svd`): texels x (rank + oversampling), streamed in row
-  blocks (:mod:`pipeline.graphs.row_passes`); ``power_iters + 1`` passes, or 1 with
-  ``--passes 1`` (a one-view sketch). Client memory grows with the texels.
+  blocks (:mod:`pipeline.graphs.row_passes`); ``power_iters + 1`` passes. Client memory grows
+  with the texels.
+- one view (``--passes 1``, :func:`tasks.rsvd.randomized_svd` with ``one_pass``): one read of
+  the store by texel tiles (:mod:`pipeline.graphs.tile_passes`), the texel-side co-range sketch
+  written to a scratch array in the partial output and ``V`` formed from it tile by tile. The
+  client holds rows x k; nothing grows with the texels.
 - rows (:func:`tasks.rsvd.randomized_svd_rows`): rows x (rank + oversampling), streamed in
   texel tiles (:mod:`pipeline.graphs.tile_passes`), ``V`` written tile by tile;
   ``power_iters + 2`` passes. Client memory grows with the rows only.
 
-``auto`` keeps the texel side (one pass fewer) while its sketches stay under
-:data:`TEXEL_SIDE_BYTES`, and takes the row side beyond that when there are fewer rows than
-texels. ``--verify`` adds one pass, by texel tiles, against the stored factors.
+``auto`` (for the multi-pass modes) keeps the texel side (one pass fewer) while its sketches
+stay under :data:`TEXEL_SIDE_BYTES`, and takes the row side beyond that when there are fewer
+rows than texels. ``--verify`` adds one pass, by texel tiles, against the stored factors.
 
 Every pass's result is checkpointed in the partial output (:mod:`pipeline.resume`): a run
 killed between passes is resumed by the same command from the pass it was in.
@@ -28,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.row_passes import (
@@ -40,8 +45,12 @@ from pipeline.graphs.row_passes import (
 )
 from pipeline.graphs.tile_passes import (
     TexelTile,
+    create_scratch,
     plan_tile_rows,
     plan_tiles,
+    sketch_memory,
+    sketch_pass_graph,
+    sketch_vectors_graph,
     tile_memory,
     tile_pass_graph,
 )
@@ -53,9 +62,11 @@ from pipeline.stores.base import RADIANCE, location, open_group, read_channels, 
 from pipeline.stores.compressed import create_compressed_store
 from pipeline.stores.radiance import check_radiance
 from tasks.rsvd import SIDES, randomized_svd, randomized_svd_rows
-from tasks.svd import PassPart
+from tasks.svd import PassPart, Sketch
 
 TEXEL_SIDE_BYTES = 256 << 20  # auto: the texel side while its client sketches stay below this
+ONE_PASS_RANGE = 6  # --passes 1: range sketch columns per component (BENCHMARKS.md, "One pass")
+SCRATCH = "sketch-scratch"  # the one-view co-range sketch, inside the partial output
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,15 +79,17 @@ class CompressParams:
                       path="out")
     rank: int = option(help="components to keep (K)", metavar="K")
     oversample: int | None = option(
-        None, metavar="P", help="extra sketch columns (default: 10; with --passes 1: K + 1, "
-                                "so that the one-view sketch holds 2K + 1 columns)")
+        None, metavar="P", help="extra sketch columns (default: 10; with --passes 1: 5K + 1, "
+                                "a range sketch of k = 6K + 1 columns and a co-range sketch of "
+                                "2k + 1 rows, each at most the BTF matrix's rows)")
     power_iters: int | None = option(
         None, metavar="Q", help="power iterations, each one fused pass over the data "
                                 "(default: 2, i.e. 3 passes)")
     passes: str = option("auto", metavar="auto|N", numbers_as_text=True,
                          help="passes over the data: auto (power iterations + 1, or + 2 with the "
-                              "row-side sketch), 1 (a one-view sketch, for stores too large to "
-                              "read twice; texel side only) or N >= 2")
+                              "row-side sketch), 1 (a one-view sketch for stores too large to "
+                              "read twice: one read by texel tiles, a scratch sketch of s x "
+                              "texels float32 written and read once) or N >= 2")
     sketch: str = option("auto", metavar="auto|texels|rows",
                          help="which side of the BTF matrix the sketches live on: texels "
                               "(client memory grows with the texels), rows (it grows with the "
@@ -143,14 +156,15 @@ class CompressParams:
         """Oversampling actually used."""
         if self.oversample is not None:
             return self.oversample
-        return self.rank + 1 if self.one_pass else 10
+        return (ONE_PASS_RANGE - 1) * self.rank + 1 if self.one_pass else 10
 
 
 class _Passes:
     """The ``run_pass`` of :mod:`tasks.rsvd`: one pass over the store each call.
 
-    Counts the passes, logs them, and stops after the first if the data must be refused.
-    Texel-side kinds run over row blocks, row-side kinds and the verification over texel tiles.
+    Counts the passes over the store, logs them, and stops after the first if the data must be
+    refused. Texel-side kinds run over row blocks; row-side kinds, the one-view sketch and the
+    verification over texel tiles; ``sketch-vectors`` reads the scratch sketch, not the store.
     """
 
     def __init__(self, store: str, blocks: list[RowBlock], tiles: list[TexelTile],
@@ -158,16 +172,20 @@ class _Passes:
                  session: Session):
         self.store, self.blocks, self.params, self.session = store, blocks, params, session
         self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
+        self.scratch = storage.join(out, SCRATCH)
         self.progress = Progress(out)
         self.count = 0
 
-    def __call__(self, kind: str, **arrays: np.ndarray) -> PassPart:
+    def __call__(self, kind: str, **arrays) -> PassPart:
+        if kind == "sketch-vectors":  # from the scratch array: not a pass over the store
+            result, stored = self.progress.memo(kind, lambda: self._vectors(arrays["m"]))
+            return result
         self.count += 1
         what = {"power": f"power iteration {self.count}", "project": "projection",
                 "sketch": "one-view sketch", "verify": "verification",
                 "row-power": f"power iteration {self.count}", "row-gram": "projection",
                 "row-vectors": "eigentextures"}[kind]
-        by_tiles = kind.startswith("row-") or kind == "verify"
+        by_tiles = kind.startswith("row-") or kind in ("verify", "sketch")
         result, stored = self.progress.memo(f"pass-{self.count}-{kind}",
                                             lambda: self._run(kind, what, by_tiles, arrays))
         if stored:
@@ -177,20 +195,34 @@ class _Passes:
             raise_on_bad_data(result.check, self.params.store, self.params.clamp)
         return result
 
-
     def _run(self, kind: str, what: str, by_tiles: bool, arrays: dict) -> PassPart:
         self.session.log(f"compress: pass {self.count}/{self.planned} ({what}, "
                          + (f"{len(self.tiles)} texel tiles)" if by_tiles
                             else f"{len(self.blocks)} row blocks)"))
-        by_rows = {k: v for k, v in arrays.items() if k == "psi"}
-        shared = {k: self.session.share(v) for k, v in arrays.items() if k not in by_rows}
         common = {"eps": self.params.eps, "clamp": self.params.clamp, "first": self.count == 1}
-        if by_tiles:
+        if kind == "sketch":
+            sketch = arrays["sketch"]
+            last = self.tiles[-1]
+            first = self.tiles[0]
+            create_scratch(self.scratch, last.y1, last.x1, sketch.s,
+                           (first.y1 - first.y0, first.x1 - first.x0))
+            graph = sketch_pass_graph(self.store, self.tiles, self.tile_rows, sketch=sketch,
+                                      seed=arrays["seed"], scratch=self.scratch, **common)
+        elif by_tiles:
+            shared = {k: self.session.share(v) for k, v in arrays.items()}
             graph = tile_pass_graph(kind, self.store, self.tiles, self.tile_rows, shared=shared,
                                     out=self.out, **common)
         else:
-            graph = pass_graph(kind, self.store, self.blocks, shared=shared, by_rows=by_rows,
-                               **common)
+            shared = {k: self.session.share(v) for k, v in arrays.items()}
+            graph = pass_graph(kind, self.store, self.blocks, shared=shared, **common)
+        (result,) = self.session.compute(graph, reads=True)
+        return result
+
+    def _vectors(self, to_v: np.ndarray) -> PassPart:
+        self.session.log(f"compress: eigentextures from the scratch sketch ({len(self.tiles)} "
+                         "texel tiles; no read of the store)")
+        graph = sketch_vectors_graph(self.scratch, self.tiles, self.session.share(to_v),
+                                     self.out)
         (result,) = self.session.compute(graph, reads=True)
         return result
 
@@ -228,14 +260,19 @@ def compress(params: CompressParams, session: Session) -> Path:
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
                 f"rank {params.rank}, sketches on the {side} side -> {params.out}")
     workers = (os.cpu_count() or 1) + 1
-    if side == "rows":
+    sketch = Sketch.for_rank(params.rank, extra, m)
+    if params.one_pass:
+        memory = sketch_memory(m, tiles[0].texels, sketch, tile_rows, workers=workers)
+        session.log(f"compress: one-view sketch k = {sketch.k}, s = {sketch.s}, t = "
+                    f"{sketch.t}; scratch {n * sketch.s * 4 / 2**30:.2f} GiB written once and "
+                    "read once (not the store)")
+    elif side == "rows":
         width = params.rank + extra
         client = 8 * 6 * m * width + FAN_IN * 8 * m * width  # sketches; shares being summed
         task = tile_memory(m, tiles[0].texels, width, tile_rows)
         memory = {"client": client, "task": task, "total": client + workers * task}
     else:
-        memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra,
-                                 one_pass=params.one_pass, workers=workers)
+        memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra, workers=workers)
     session.log(f"compress: expected peak memory ~{memory['total'] / 2**30:.2f} GiB "
                 f"(sketches {memory['client'] / 2**30:.2f} GiB, each task "
                 f"{memory['task'] / 2**30:.2f} GiB)")
@@ -255,13 +292,17 @@ def compress(params: CompressParams, session: Session) -> Path:
             f = randomized_svd(passes, rows=m, texels=n, rank=params.rank, extra=extra,
                                iterations=iterations, seed=params.seed,
                                one_pass=params.one_pass)
-            out["V"][...] = f.v.reshape(ny, nx, params.rank).astype(np.float32)
+            if params.one_pass:  # its V was written tile by tile from the scratch sketch
+                storage.remove(passes.scratch)
+            else:
+                out["V"][...] = f.v.reshape(ny, nx, params.rank).astype(np.float32)
         u, s, error = f.u.astype(np.float32), f.s.astype(np.float32), f.error
         out["U"][...] = u.reshape(nv, nl, nc, params.rank)
         out["S"][...] = s
         svd = {"rank": params.rank, "oversample": extra, **f.widths, "sketch_side": side,
                "power_iterations": 0 if params.one_pass else iterations,
                "passes": passes.count, "seed": params.seed,
+               **({"scratch_bytes": n * sketch.s * 4} if params.one_pass else {}),
                "method": "one-view sketch" if params.one_pass else
                          "randomized SVD with fused power iterations, projected on "
                          "the block Krylov space of the last two iterates" if side == "texels"
