@@ -200,6 +200,12 @@ def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StageP
         tasks = tiles
         task = tile_memory(m, texels, width, rows)
         client = 8 * 6 * m * width + FAN_IN * 8 * m * width
+        fits = 1 << max(int(math.log2(math.sqrt(TILE_CACHE_BYTES / (4 * m)))), 0)
+        if twice and fits >= 4:  # a layout whose tile columns fit: each pass reads once
+            note += (f"; {reads} reads: a tile's {m} rows x {texels} texels exceed the "
+                     f"{_size(TILE_CACHE_BYTES)} cache. A source chunked {fits} x {fits} "
+                     f"(in shards: --chunk {fits} --shard {max(src.chunk, fits)}) would be "
+                     f"read {iterations + 2 + params.verify} times")
         option = ("--rank, or the source's --chunk (smaller texel tiles: each task holds a "
                   "tile's rows)")
     else:

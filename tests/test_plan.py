@@ -26,7 +26,13 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     generate, compress, quilt = plans
     rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
     assert generate.written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
-    assert compress.note == "sketches on the rows side"  # the texel side would need 15 GB
+    # the texel side would need 15 GB; the note says which layout would read less
+    assert compress.note.startswith("sketches on the rows side; 7 reads")
+    assert "chunked 16 x 16 (in shards: --chunk 16 --shard 128) would be read 4 times" in \
+        compress.note
+    sharded = planning.plan_stages(load(TERABYTE, ("generate.chunk=16",
+                                                   "generate.shard=128")).stages)[1]
+    assert sharded.reads == sharded.passes == 4 and sharded.read == 4 * rows * texels * 4
     # rows side: 2 power passes and the projection read each tile's column twice (68403 rows
     # x 128^2 texels do not fit the cache), then the V pass: 7 reads of the 1.1 TB matrix
     assert compress.passes == 4 and compress.reads == 7

@@ -144,10 +144,14 @@ def test_one_pass_factors_do_not_depend_on_the_row_blocks():
 
 
 def test_the_co_range_test_matrix_is_the_same_whoever_makes_which_rows():
-    whole = co_range_test(5, 7, 0, 3000)
-    assert np.array_equal(whole[:, 1000:1500], co_range_test(5, 7, 1000, 1500))
-    assert np.array_equal(whole[:, 1023:1025], co_range_test(5, 7, 1023, 1025))
-    assert not np.array_equal(whole, co_range_test(6, 7, 0, 3000))
+    whole = co_range_test(5, 30, 0, 3000).toarray()
+    assert np.array_equal(whole[:, 1000:1500], co_range_test(5, 30, 1000, 1500).toarray())
+    assert np.array_equal(whole[:, 1023:1025], co_range_test(5, 30, 1023, 1025).toarray())
+    assert not np.array_equal(whole, co_range_test(6, 30, 0, 3000).toarray())
+    # a sparse sign map: 8 entries +-1 in distinct rows of every column
+    assert np.array_equal(np.count_nonzero(whole, axis=0), np.full(3000, 8))
+    assert set(np.unique(whole)) == {-1.0, 0.0, 1.0}
+    assert np.count_nonzero(co_range_test(5, 3, 0, 10).toarray(), axis=0).tolist() == [3] * 10
 
 
 def test_the_same_seed_gives_the_same_factors_whatever_the_blocks():
