@@ -163,7 +163,6 @@ def _generate(params, shapes: dict) -> tuple[StagePlan, Shape]:
 def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StagePlan, Shape]:
     from pipeline.graphs.row_passes import FAN_IN, memory_estimate, plan_row_blocks
     from pipeline.graphs.tile_passes import (
-        TILE_CACHE_BYTES,
         plan_tile_rows,
         sketch_memory,
         tile_memory,
@@ -194,20 +193,20 @@ def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StageP
         option = "--oversample (a smaller sketch: less memory per task, more error)"
     elif side == "rows":
         rows = tile_rows
-        twice = m * texels * 4 > TILE_CACHE_BYTES  # a tile's column read twice per pass
+        cache = params.tile_cache_bytes
+        twice = m * texels * 4 > cache  # a tile's column read twice per pass
         passes = iterations + 2 + params.verify
         reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
         tasks = tiles
-        task = tile_memory(m, texels, width, rows)
+        task = tile_memory(m, texels, width, rows, cache=cache)
         client = 8 * 6 * m * width + FAN_IN * 8 * m * width
-        fits = 1 << max(int(math.log2(math.sqrt(TILE_CACHE_BYTES / (4 * m)))), 0)
-        if twice and fits >= 4:  # a layout whose tile columns fit: each pass reads once
-            note += (f"; {reads} reads: a tile's {m} rows x {texels} texels exceed the "
-                     f"{_size(TILE_CACHE_BYTES)} cache. A source chunked {fits} x {fits} "
-                     f"(in shards: --chunk {fits} --shard {max(src.chunk, fits)}) would be "
-                     f"read {iterations + 2 + params.verify} times")
-        option = ("--rank, or the source's --chunk (smaller texel tiles: each task holds a "
-                  "tile's rows)")
+        if twice:  # each pass would read once if a tile's column were kept
+            note += (f"; {reads} reads: a tile's column ({_size(m * texels * 4)}) exceeds "
+                     f"--tile-cache ({_size(cache)}); --tile-cache "
+                     f"{math.ceil(m * texels * 4 / 2**30)}GiB would keep it: "
+                     f"{iterations + 2 + params.verify} reads")
+        option = ("--rank, --tile-cache, or the source's --chunk (smaller texel tiles: each "
+                  "task holds a tile's rows)")
     else:
         blocks = plan_row_blocks(src.radiance, src.dir_chunk)
         passes = reads = iterations + 1 + params.verify

@@ -210,13 +210,17 @@ def test_the_row_side_reads_a_tile_twice_when_its_column_does_not_fit(tmp_path, 
         reads.append(1)
         return original(*a, **k)
 
-    monkeypatch.setattr(tile_passes, "TILE_CACHE_BYTES", 0)  # the terabyte case: no cache
     monkeypatch.setattr(tile_passes, "transformed_rows", counting)
-    again = _compress(btf, store, tmp_path / "again.zarr", *args)
+    again = _compress(btf, store, tmp_path / "again.zarr", *args, "--tile-cache", "0")
     for x, y in zip(cached[:3], again[:3], strict=True):
         assert np.array_equal(x, y)  # the same products of the same rows
     blocks, tiles = len(tile_passes.plan_tile_rows(SHAPE, 4, (8, 8))), 12
     assert len(reads) == tiles * blocks * (3 * 2 + 1)  # 3 power-type passes twice, V once
+    # a cache as large as a tile's column: each pass reads it once
+    reads.clear()
+    column = f"{144 * 64 * 4}B"
+    _compress(btf, store, tmp_path / "kept.zarr", *args, "--tile-cache", column)
+    assert len(reads) == tiles * blocks * (3 + 1)
 
 
 def test_auto_keeps_the_sketch_on_the_side_that_fits(tmp_path, btf, monkeypatch):
@@ -236,6 +240,7 @@ def test_auto_keeps_the_sketch_on_the_side_that_fits(tmp_path, btf, monkeypatch)
 
 @pytest.mark.parametrize(("args", "message"), [
     (("--sketch", "rows", "--passes", "1"), "--sketch: the one-view sketch"),
+    (("--tile-cache", "lots"), "--tile-cache: expected a size such as 6GiB"),
     (("--sketch", "rows", "--passes", "3", "--power-iters", "2"), "take 4 passes"),
     (("--sketch", "columns"), "must be auto, texels or rows"),
 ])

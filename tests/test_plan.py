@@ -26,13 +26,13 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     generate, compress, quilt = plans
     rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
     assert generate.written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
-    # the texel side would need 15 GB; the note says which layout would read less
-    assert compress.note.startswith("sketches on the rows side; 7 reads")
-    assert "chunked 16 x 16 (in shards: --chunk 16 --shard 128) would be read 4 times" in \
-        compress.note
-    sharded = planning.plan_stages(load(TERABYTE, ("generate.chunk=16",
-                                                   "generate.shard=128")).stages)[1]
-    assert sharded.reads == sharded.passes == 4 and sharded.read == 4 * rows * texels * 4
+    # the texel side would need 15 GB; the note says how to read less
+    assert compress.note == ("sketches on the rows side; 7 reads: a tile's column (4.5 GB) "
+                             "exceeds --tile-cache (268.4 MB); --tile-cache 5GiB would keep "
+                             "it: 4 reads")
+    kept = planning.plan_stages(load(TERABYTE, ("compress.tile_cache=5GiB",)).stages)[1]
+    assert kept.reads == kept.passes == 4 and kept.read == 4 * rows * texels * 4
+    assert rows * 128 * 128 * 4 < kept.task_bytes < 5 << 30
     # rows side: 2 power passes and the projection read each tile's column twice (68403 rows
     # x 128^2 texels do not fit the cache), then the V pass: 7 reads of the 1.1 TB matrix
     assert compress.passes == 4 and compress.reads == 7

@@ -15,7 +15,8 @@ Gram matrix and ``W_t Phi_t`` are summed; ``V`` is then formed tile by tile from
 without reading the store again.
 
 The row-side passes read each tile's rows twice (``Z = A_t^T Q``, then ``A_t Z``) unless the
-tile's whole column fits in :data:`TILE_CACHE_BYTES`, in which case it is kept between the two.
+tile's whole column fits the cache (``btf compress --tile-cache``, default
+:data:`TILE_CACHE_BYTES`), in which case it is kept between the two.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from tasks.svd import (
     verification,
 )
 
-TILE_CACHE_BYTES = 256 << 20  # a tile's whole column of the matrix is kept if it fits
+TILE_CACHE_BYTES = 256 << 20  # default: a tile's whole column of the matrix is kept if it fits
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,10 +83,13 @@ def plan_tile_rows(shape: tuple[int, ...], dir_chunk: int, tile: tuple[int, int]
 
 
 def _row_power_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np.ndarray, *,
-                    exact: bool, eps: float, clamp: bool, first: bool) -> PassPart:
-    """A tile's share ``A_t (A_t^T q)`` of a row-side pass (with ``exact``: and ``Z^T Z``)."""
+                    exact: bool, cache: int, eps: float, clamp: bool, first: bool) -> PassPart:
+    """A tile's share ``A_t (A_t^T q)`` of a row-side pass (with ``exact``: and ``Z^T Z``).
+
+    The tile's column is read once if it fits ``cache`` bytes, else twice.
+    """
     rows = sum(b.rows for b in blocks)
-    keep = rows * tile.texels * 4 <= TILE_CACHE_BYTES
+    keep = rows * tile.texels * 4 <= cache
     z = np.zeros((tile.texels, q.shape[1]))
     cached, check, f2 = [], BlockCheck(), 0.0
     for b in blocks:
@@ -228,18 +232,20 @@ _TASKS = {"row-power": (_row_power_task, ("q",), False),
 
 
 def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[RowBlock], *,
-                    shared: dict, out: str | None, eps: float, clamp: bool, first: bool):
+                    shared: dict, out: str | None, eps: float, clamp: bool, first: bool,
+                    cache: int = TILE_CACHE_BYTES):
     """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the texel tiles.
 
     ``blocks`` are the row blocks of a full tile (:func:`plan_tile_rows`); ``shared`` are
     handles of the arrays every task reads whole; ``out`` the compressed store being written
-    (its ``V`` for ``row-vectors`` and ``verify``).
+    (its ``V`` for ``row-vectors`` and ``verify``); ``cache`` the bytes of a tile's column
+    a row-side power pass keeps between its two products.
     """
     import dask
 
     task, whole, writes = _TASKS[kind]
-    extra = {"exact": kind == "row-gram"} if kind.startswith("row-") and kind != "row-vectors" \
-        else {}
+    extra = {"exact": kind == "row-gram", "cache": cache} \
+        if kind.startswith("row-") and kind != "row-vectors" else {}
     parts = [dask.delayed(task, pure=True)(
                  store, tile, blocks, *(shared[name] for name in whole),
                  *((out,) if writes else ()), eps=eps, clamp=clamp, first=first, **extra)
@@ -270,7 +276,8 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
             "total": client + workers * task + FAN_IN * sums}
 
 
-def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock]) -> int:
+def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock], *,
+                cache: int = TILE_CACHE_BYTES) -> int:
     """Bytes one row-side task holds at most.
 
     The cached column (or a row block), a block being read, the float64 copy of a block in the
@@ -278,5 +285,5 @@ def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock])
     """
     column = rows * tile_texels * 4
     block = max(b.rows for b in blocks) * tile_texels * 4
-    held = column if column <= TILE_CACHE_BYTES else block
+    held = column if column <= cache else block
     return held + 3 * block + 8 * (2 * tile_texels * width + rows * width)

@@ -96,6 +96,12 @@ class CompressParams:
                               "textures only; one pass more) or auto (texels while that stays "
                               "under 256 MiB, else the smaller side; an explicit --passes "
                               "keeps the texel side)")
+    tile_cache: str = option(
+        "256MiB", metavar="SIZE", record=False,
+        help="row side: keep a texel tile's whole column of the matrix in memory between the "
+             "two products of a pass if it fits SIZE (e.g. 6GiB), so that the pass reads the "
+             "store once instead of twice; each worker thread may then hold that much more "
+             "(btf run --plan checks it against the workers' memory)")
     eps: float = option(1e-3, help="range reduction log(radiance + eps)")
     seed: int = option(0, metavar="S", help="seed of the random test matrices")
     clamp: bool = option(False, help="clamp negative radiance to 0 instead of refusing it")
@@ -113,6 +119,7 @@ class CompressParams:
         if not self.eps > 0:
             raise ParamError("eps", f"must be positive (it keeps log finite), got {self.eps}")
         check_seed(self.seed)
+        self.tile_cache_bytes  # noqa: B018 (validates the size)
         if self.sketch not in ("auto", *SIDES):
             raise ParamError("sketch", f"must be auto, texels or rows, got {self.sketch!r}")
         if self.sketch == "rows" and self.passes == "1":
@@ -130,6 +137,20 @@ class CompressParams:
                 raise ParamError("power_iters", f"{self.power_iters} power iterations take "
                                                 f"{self.power_iters + more} passes, not "
                                                 f"{self.passes}")
+
+    @property
+    def tile_cache_bytes(self) -> int:
+        """``--tile-cache`` in bytes."""
+        from dask.utils import parse_bytes
+
+        try:
+            value = parse_bytes(self.tile_cache)
+        except (ValueError, TypeError):
+            raise ParamError("tile_cache", f"expected a size such as 6GiB or 500MB, got "
+                                           f"{self.tile_cache!r}") from None
+        if value < 0:
+            raise ParamError("tile_cache", f"must not be negative, got {self.tile_cache!r}")
+        return value
 
     @property
     def one_pass(self) -> bool:
@@ -211,7 +232,7 @@ class _Passes:
         elif by_tiles:
             shared = {k: self.session.share(v) for k, v in arrays.items()}
             graph = tile_pass_graph(kind, self.store, self.tiles, self.tile_rows, shared=shared,
-                                    out=self.out, **common)
+                                    out=self.out, cache=self.params.tile_cache_bytes, **common)
         else:
             shared = {k: self.session.share(v) for k, v in arrays.items()}
             graph = pass_graph(kind, self.store, self.blocks, shared=shared, **common)
@@ -269,7 +290,8 @@ def compress(params: CompressParams, session: Session) -> Path:
     elif side == "rows":
         width = params.rank + extra
         client = 8 * 6 * m * width + FAN_IN * 8 * m * width  # sketches; shares being summed
-        task = tile_memory(m, tiles[0].texels, width, tile_rows)
+        task = tile_memory(m, tiles[0].texels, width, tile_rows,
+                           cache=params.tile_cache_bytes)
         memory = {"client": client, "task": task, "total": client + workers * task}
     else:
         memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra, workers=workers)
