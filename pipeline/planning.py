@@ -26,13 +26,12 @@ from typing import Any
 from pipeline.errors import BTFError
 
 GiB = 1 << 30
-ONE_PASS_COLUMNS = 385 + 771 + 10  # the sketch columns at which the one-pass rate is measured
 BASE_PROCESS = 300 << 20  # interpreter, numpy, dask, zarr: a worker's memory before any task
 BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM, 2026-11-23 (BENCHMARKS.md)
     "generate_texel_directions_per_core_second": 6.2e6,
     "compress_bytes_per_core_second": 0.37e9,
-    # --passes 1 at K = 64 (k = 385, s = 771, t = 10: ONE_PASS_COLUMNS products per value)
-    "compress_one_pass_bytes_per_core_second": 0.37e9,
+    # --passes 1 (K = 64: k = 385, s = 771, sparse sign maps; 30603 x 65536, 8 GB)
+    "compress_one_pass_bytes_per_core_second": 0.16e9,
     "quilt_plan_seconds_per_texel_pair": 5.45e-11,  # per (tile texel x sample texel)
     "quilt_values_per_core_second": 3.1e6,
 }
@@ -217,12 +216,9 @@ def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StageP
         option = "--sketch rows (client memory then grows with the rows only)"
     per_core, source = rate("compress_bytes_per_core_second")
     seconds = reads * matrix / per_core
-    if params.one_pass:  # one read, or its sketch's products (k + s + t per value): the slower
-        one, source = rate("compress_one_pass_bytes_per_core_second")
-        columns = (0 if sketch.exact_range else sketch.k) + \
-            (0 if sketch.exact_co_range else sketch.s) + sketch.t
-        seconds = max(matrix / per_core, matrix / one * columns / ONE_PASS_COLUMNS) \
-            + params.verify * matrix / per_core
+    if params.one_pass:  # its own rate (sparse sketches: about the same work per value at any
+        one, source = rate("compress_one_pass_bytes_per_core_second")  # k, s), or one read
+        seconds = max(matrix / per_core, matrix / one) + params.verify * matrix / per_core
     plan = StagePlan("compress", "", read=reads * matrix, written=(m + n + 1) * params.rank * 4,
                      tasks=tasks * passes, passes=passes, reads=reads, task_bytes=task,
                      client_bytes=client, core_seconds=seconds, rate_source=source,
