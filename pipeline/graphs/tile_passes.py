@@ -35,6 +35,7 @@ from pipeline.graphs.row_passes import (
     tree_sum,
 )
 from tasks.svd import (
+    SPARSITY,
     BlockCheck,
     PassPart,
     Sketch,
@@ -257,23 +258,25 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
                   workers: int) -> dict[str, int]:
     """Bytes a one-view sketch holds at its peak: client, one task, and all of them.
 
-    A task holds a row block being read and range-reduced (two copies), its tile's test
-    matrices, its co-range sketch and the copy written to the scratch array, a float64 run
-    of it, and its sums (``y`` and ``z``: rows x (k + t)); a reduction task holds
-    :data:`FAN_IN` such sums. The client holds ``Y`` and its QR (a few rows x k copies).
-    Nothing grows with the texels.
+    A task holds a row block being read and range-reduced, its tile's test matrices, its
+    co-range sketch and the copy written to the scratch array, a float64 run of it, and its
+    sums (``y``, float32, and ``z``: rows x (k + t)); a reduction task holds :data:`FAN_IN`
+    such sums and their float64 total. The client holds ``Y``, its QR and ``U`` (rows x k,
+    float64). Nothing grows with the texels.
     """
     from pipeline.graphs.row_passes import FAN_IN
     from tasks.svd import PSI_GROUP, TILE
 
     block = max(b.rows for b in blocks) * tile_texels * 4
     w = 4 * sketch.s * tile_texels
-    sums = 8 * (rows * (sketch.k + sketch.t) + sketch.s * (sketch.s + sketch.t))
-    task = (2 * block + 2 * w + 4 * tile_texels * (sketch.k + sketch.t) + 8 * sketch.s * TILE
+    small = 8 * (rows * sketch.t + sketch.s * (sketch.s + sketch.t))
+    sums = 4 * rows * sketch.k + small
+    total = 8 * rows * sketch.k + small  # the float64 sum of the shares
+    task = (block + 2 * w + 4 * tile_texels * (2 * SPARSITY + sketch.t) + 8 * sketch.s * TILE
             + sums)
-    client = 8 * (4 * rows * sketch.k + rows * sketch.t) + 4 * sketch.s * PSI_GROUP + 2 * sums
+    client = 8 * 3 * rows * sketch.k + total + 4 * sketch.s * PSI_GROUP
     return {"client": client, "task": task,
-            "total": client + workers * task + FAN_IN * sums}
+            "total": client + workers * task + FAN_IN * sums + total}
 
 
 def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock], *,

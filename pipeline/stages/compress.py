@@ -279,7 +279,9 @@ def compress(params: CompressParams, session: Session) -> Path:
         if key in source_attrs:
             attrs[f"source_{key}"] = source_attrs[key]
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
-                f"rank {params.rank}, sketches on the {side} side -> {params.out}")
+                f"rank {params.rank}, "
+                + ("one pass by texel tiles" if params.one_pass
+                   else f"sketches on the {side} side") + f" -> {params.out}")
     workers = (os.cpu_count() or 1) + 1
     sketch = Sketch.for_rank(params.rank, extra, m)
     if params.one_pass:
