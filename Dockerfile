@@ -7,6 +7,9 @@ COPY tasks ./tasks
 COPY benchmarks ./benchmarks
 COPY configs ./configs
 RUN pip install --no-cache-dir .
+# glibc: blocks of 16 MiB and more are mapped and unmapped on their own, so that the worker
+# threads' arenas do not fragment (pipeline.session.steady_memory; BENCHMARKS.md, issue 27).
+ENV MALLOC_MMAP_THRESHOLD_=16777216
 # Outputs go to the shared volume; every container sees it at the same path, because tasks
 # carry absolute paths to the stores they read and write.
 WORKDIR /data

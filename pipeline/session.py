@@ -126,22 +126,19 @@ def steady_memory() -> None:
     A fixed threshold keeps them out of the arenas: 1.14x and 1.12x then. (1 MiB was flat too
     but up to 2x slower, every smaller temporary being mapped afresh; one arena was no
     better.) Elsewhere (macOS, musl) this does nothing.
+
+    This process gets it from ``mallopt``; processes it starts later (the ``processes``
+    scheduler's workers) from glibc's ``MALLOC_MMAP_THRESHOLD_``, set here, at their start.
+    Cluster workers are not changed from here: the image sets that variable (Dockerfile).
     """
+    os.environ.setdefault("MALLOC_MMAP_THRESHOLD_", str(MMAP_THRESHOLD))
     import ctypes
-    import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt  # the C library this process already runs on
     except (OSError, AttributeError):
         return
     mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD (fixing it ends the dynamic threshold)
-
-
-def _worker_process_setup() -> None:
-    """What a local ``processes`` worker runs first: one BLAS thread, steady memory."""
-    limit_blas()
-    steady_memory()
 
 
 def _blas_plugin():
@@ -151,7 +148,6 @@ def _blas_plugin():
     class SingleThreadedBlas(WorkerPlugin):
         def setup(self, worker):
             limit_blas()
-            steady_memory()
 
     return SingleThreadedBlas()
 
@@ -278,7 +274,7 @@ class Session:
 
             return ProcessPoolExecutor(workers, mp_context=get_context(),
                                        initializer=partial(initialize_worker_process,
-                                                           user_initializer=_worker_process_setup))
+                                                           user_initializer=limit_blas))
         return None
 
     @contextlib.contextmanager

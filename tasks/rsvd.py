@@ -4,13 +4,14 @@ The driver never sees the data. It asks a ``run_pass`` callable for one pass ove
 matrix at a time and does the small algebra between passes on the client (orthonormalising
 sketches, the final small SVD, the error bookkeeping; see :mod:`tasks.svd` for the maths).
 ``run_pass(kind, **arrays)`` returns the pass's :class:`tasks.svd.PassPart`, summed over the
-matrix's row blocks, for one of three kinds:
+matrix's row blocks (or texel tiles), for one of these kinds:
 
 - ``"power"``: ``sums["w"] = A^T (A x)`` for the texels x columns sketch ``x``;
 - ``"project"``: ``rows["z"] = A x`` and ``frobenius2 = ||A||_F^2``;
 - ``"sketch"``: the one-view sketch of the sizes ``sketch`` (:class:`tasks.svd.Sketch`), its
-  test matrices made from ``seed`` where they are used (:func:`tasks.svd.tile_test_matrix`
-  by texel tiles, :func:`tasks.svd.co_range_test` by rows): ``sums["y"] = A Omega`` (absent
+  test matrices made from ``seed`` where they are used (:func:`tasks.svd.sparse_sign` and
+  :func:`tasks.svd.tile_test_matrix` by texel tiles, :func:`tasks.svd.co_range_test` by
+  rows): ``sums["y"] = A Omega`` (absent
   for an exact range), ``sums["z"] = A Phi``, and of the co-range sketch ``W = Psi A``, kept
   tile by tile where the pass runs, ``sums["g"] = W W^T`` and ``sums["wphi"] = W Phi``;
 - ``"sketch-vectors"``: ``V = W^T m`` for the small map ``m``, tile by tile from the kept
@@ -59,7 +60,10 @@ SIDES = ("texels", "rows")
 
 @dataclass(frozen=True)
 class Factorization:
-    """``A ~ U diag(S) V^T`` (float64), how good it is, and how it was made."""
+    """``A ~ U diag(S) V^T`` (float64), how good it is, and how it was made.
+
+    ``v`` is None where the pipeline wrote ``V`` tile by tile instead.
+    """
 
     u: np.ndarray
     s: np.ndarray

@@ -35,7 +35,8 @@ error is estimated from the error sketch: ``E ||(A - A_hat) Phi||_F^2 / t = ||A 
 for Gaussian ``Phi`` with ``t`` columns.
 
 Block products run in float32 (the data's precision); sums over column tiles and over row blocks
-are accumulated in float64, and every orthonormalisation and small factorisation is float64.
+are accumulated in float64 (except the one-view co-range sketch, float32 as it is stored), and
+every orthonormalisation and small factorisation is float64.
 """
 
 from __future__ import annotations
@@ -311,13 +312,15 @@ def sparse_sign(seed: int, stream: int, key: tuple[int, ...], n: int, width: int
 
     rng = np.random.default_rng([seed, stream, *key])
     z = min(SPARSITY, width)
-    cols = rng.integers(0, width, (n, z))
-    while True:  # redraw rows with a repeated column (rare unless width is small)
-        cols.sort(axis=1)
-        repeated = np.any(cols[:, 1:] == cols[:, :-1], axis=1)
-        if not repeated.any():
-            break
-        cols[repeated] = rng.integers(0, width, (int(repeated.sum()), z))
+    if width <= 4 * z:  # few columns: a random choice of z per row, by permutation
+        cols = np.sort(rng.permuted(np.tile(np.arange(width), (n, 1)), axis=1)[:, :z], axis=1)
+    else:  # draw, then redraw the rows with a repeated column (rare) until none is left
+        cols = np.sort(rng.integers(0, width, (n, z)), axis=1)
+        repeated = np.flatnonzero(np.any(cols[:, 1:] == cols[:, :-1], axis=1))
+        while repeated.size:
+            redrawn = np.sort(rng.integers(0, width, (repeated.size, z)), axis=1)
+            cols[repeated] = redrawn
+            repeated = repeated[np.any(redrawn[:, 1:] == redrawn[:, :-1], axis=1)]
     signs = rng.integers(0, 2, (n, z)).astype(np.float32) * 2 - 1
     return scipy.sparse.csr_matrix((signs.ravel(), cols.ravel(), np.arange(0, n * z + 1, z)),
                                    shape=(n, width))
@@ -369,7 +372,11 @@ def sketch_rows(a: np.ndarray, omega, phi: np.ndarray, psi
     rows' columns. Sparse products are fixed-order loops: the same bits on every scheduler.
     """
     a = blas_ready(a)
-    y = None if omega is None else np.asarray(a @ omega, np.float32)
+    y = None
+    if omega is not None:  # by runs of texels: scipy copies the (transposed) dense operand
+        y = np.zeros((a.shape[0], omega.shape[1]), np.float32)
+        for t in range(0, a.shape[1], TILE):
+            y += np.asarray(a[:, t : t + TILE] @ omega[t : t + TILE], np.float32)
     return y, project(a, phi), a if psi is None else np.asarray(psi @ a, np.float32)
 
 
@@ -429,7 +436,7 @@ def co_range_sums(w: np.ndarray, phi: np.ndarray, *, tile: int = TILE
     gram = np.zeros((w.shape[0],) * 2)
     w_phi = np.zeros((w.shape[0], phi.shape[1]))
     for t in range(0, w.shape[1], tile):
-        part = np.asarray(w[:, t : t + tile], np.float64)
+        part = np.asfortranarray(w[:, t : t + tile], np.float64)  # what dsyrk takes
         gram = dsyrk(1.0, part, beta=1.0, c=gram, overwrite_c=True)
         w_phi += part @ np.asarray(phi[t : t + tile], np.float64)
     return np.triu(gram) + np.triu(gram, 1).T, w_phi
@@ -446,7 +453,12 @@ def factors_from_co_range(y: np.ndarray | None, gram: np.ndarray, psi_q, rank: i
     SVD of ``X``, from its Gram matrix: ``W`` never leaves the tiles). Directions below
     :data:`GRAM_FLOOR` of the largest are left out as in :func:`factors_from_gram`.
     """
-    q = np.eye(gram.shape[0]) if y is None else orthonormalize(y)
+    if y is None:  # an exact range: Q = I, and then the co-range is exact too (Sketch)
+        q = np.eye(gram.shape[0])
+    else:
+        q = orthonormalize(y)
+    if q.shape[1] < rank:
+        raise ValueError(f"a range sketch of {q.shape[1]} columns cannot give rank {rank}")
     qc, rc = np.linalg.qr(psi_q(q))
     m = np.linalg.solve(rc, qc.T)
     g = m @ np.asarray(gram, np.float64) @ m.T

@@ -153,8 +153,12 @@ def test_rank_larger_than_the_matrix_is_refused(tmp_path, btf):
     assert "min(144, 768) = 144" in result.err and not (tmp_path / "c.zarr").exists()
 
 
-@pytest.mark.parametrize("sketch", ["texels", "rows"])
-def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_path, btf):
+@pytest.mark.parametrize("sketch", ["texels", "rows", "one pass"])
+def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_path, btf,
+                                                                     monkeypatch):
+    # row blocks of one stored light chunk: the two bad values lie in two blocks of one tile
+    monkeypatch.setattr("pipeline.graphs.tile_passes.ROW_BLOCK_BYTES", 1)
+    mode = ("--passes", "1") if sketch == "one pass" else ("--sketch", sketch)
     a = spectrum_matrix(144, 768, np.exp(-np.arange(10.0)))
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
     rad = zarr.open_array(store, path=RADIANCE, mode="r+")
@@ -162,18 +166,19 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_
     block[1, 5, 6, 2] = np.nan
     block[3, 0, 0, 0] = np.inf
     rad[1, 4:8] = block
+    rad[2, 0, 1, 1, 0] = np.inf  # another light chunk (another row block), the same tile
     result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet",
-                 "--sketch", sketch)
-    assert result.code == 1 and "2 NaN or Inf value(s)" in result.err
+                 *mode)
+    assert result.code == 1 and "3 NaN or Inf value(s)" in result.err
     assert "the first at view=1, light=5, y=5, x=6, channel=2" in result.err
     block[1, 5, 6, 2], block[3, 0, 0, 0] = -0.5, -0.25
     rad[1, 4:8] = block
-    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet",
-                 "--sketch", sketch)
+    rad[2, 0, 1, 1, 0] = 1.0
+    result = btf("compress", store, tmp_path / "c.zarr", "--rank", "4", "--quiet", *mode)
     assert result.code == 1 and "2 negative value(s)" in result.err and "--clamp" in result.err
     assert not (tmp_path / "c.zarr").exists()
     _, s, _, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "4", "--clamp",
-                               "--sketch", sketch)
+                               *mode)
     assert np.isfinite(s).all() and attrs["transform"]["clamp"] is True
 
 
@@ -276,6 +281,17 @@ def test_one_pass_is_near_optimal_reports_an_honest_error_and_leaves_no_scratch(
     estimate = attrs["error"]["log_relative_frobenius"] * np.linalg.norm(a)
     assert estimate == pytest.approx(err, rel=0.35)
     assert _orthonormal(u) and _orthonormal(v)
+
+
+def test_one_pass_of_a_constant_store_gives_finite_factors(tmp_path, btf):
+    # rank 1: every other direction is left out (S = 0, V = 0), nothing is NaN
+    store = store_from_log_matrix(tmp_path / "s.zarr", np.full((144, 768), -2.0), SHAPE)
+    u, sv, v, attrs = _compress(btf, store, tmp_path / "c.zarr", "--rank", "4", "--passes", "1",
+                                "--oversample", "6")
+    assert np.isfinite(u).all() and np.isfinite(sv).all() and np.isfinite(v).all()
+    assert sv[0] == pytest.approx(2.0 * np.sqrt(144 * 768), rel=1e-5)
+    assert np.all(sv[1:] == 0) and np.all(v[..., 1:] == 0)
+    assert attrs["error"]["log_relative_frobenius"] < 1e-5
 
 
 @pytest.mark.parametrize("sketch", ["texels", "rows"])

@@ -17,6 +17,7 @@ from tasks.svd import (
     power_step,
     project,
     row_product,
+    tile_test_matrix,
 )
 
 
@@ -133,6 +134,22 @@ def test_one_pass_with_sketches_as_large_as_the_rows_is_the_exact_svd():
     assert np.allclose(f.s, s[:8], rtol=1e-5)
     assert np.allclose(np.abs(np.sum(f.u * u[:, :8], axis=0)), 1, atol=1e-5)
     assert np.allclose(np.abs(np.sum(f.v * vt[:8].T, axis=0)), 1, atol=1e-5)
+
+
+def test_one_pass_with_an_exact_co_range_alone_and_its_error_sketch():
+    a = _matrix(40, 700, lambda i: 1 / (1 + i / 3.0))
+    f, _ = _one_pass(a, 6, 19)  # k = 25 < 40 rows; s = min(51, 40) = 40 rows: Psi = I
+    assert (f.widths["sketch_k"], f.widths["sketch_s"]) == (25, 40)
+    optimal = np.sqrt(np.sum(np.linalg.svd(a, compute_uv=False)[6:] ** 2))
+    a64 = a.astype(np.float32).astype(np.float64)
+    assert np.linalg.norm(a64 - (f.u * f.s) @ f.v.T) < 1.2 * optimal
+    assert np.allclose(f.v.T @ f.v, np.eye(6), atol=1e-6)
+    # the estimate's V^T Phi (from W Phi) is that of the V written, with the tiles' own Phi
+    phi = np.vstack([tile_test_matrix(2, 2, (0, c0), min(64, 700 - c0), 10)
+                     for c0 in range(0, 700, 64)]).astype(np.float64)
+    direct = np.linalg.norm(a64 @ phi - (f.u * f.s) @ (f.v.T @ phi)) / np.sqrt(10)
+    assert f.error["log_relative_frobenius"] * np.linalg.norm(a64) == pytest.approx(direct,
+                                                                                   rel=1e-6)
 
 
 def test_one_pass_factors_do_not_depend_on_the_row_blocks():

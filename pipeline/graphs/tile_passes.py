@@ -92,17 +92,20 @@ def _row_power_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np.n
     rows = sum(b.rows for b in blocks)
     keep = rows * tile.texels * 4 <= cache
     z = np.zeros((tile.texels, q.shape[1]))
-    cached, check, f2 = [], BlockCheck(), 0.0
+    cached, check, f2, refused = [], BlockCheck(), 0.0, False
     for b in blocks:
         a, found, f = transformed_rows(store, b, eps=eps, clamp=clamp, first=first,
                                        norm=exact, region=tile.region)
         check = check.merge(found)
-        if a is None:  # data to refuse: the caller raises after this pass
-            return PassPart({"y": np.zeros((rows, q.shape[1]))} | (
-                {"g": np.zeros((q.shape[1],) * 2)} if exact else {}), {}, check, 0.0)
+        refused = refused or a is None
+        if refused:  # data to refuse: the rest is only checked (the caller raises)
+            continue
         f2 += f
         z += co_project(a, q[b.row0 : b.row0 + b.rows], exact=exact)
         cached.append(a if keep else None)
+    if refused:
+        return PassPart({"y": np.zeros((rows, q.shape[1]))} | (
+            {"g": np.zeros((q.shape[1],) * 2)} if exact else {}), {}, check, 0.0)
     y = np.empty((rows, q.shape[1]))
     for b, a in zip(blocks, cached, strict=True):
         if a is None:
@@ -135,7 +138,7 @@ def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np
 def create_scratch(location: str, ny: int, nx: int, s: int, chunk: tuple[int, int]) -> None:
     """The scratch array of a one-view sketch's ``W^T``: ``(y, x, s)`` float32, a chunk a tile.
 
-    Uncompressed (Gaussian combinations of the data do not compress); overwritten if present.
+    Uncompressed (signed sums of the data compress little); overwritten if present.
     """
     import zarr
 
@@ -152,16 +155,18 @@ def _sketch_task(store: str, tile: TexelTile, blocks: list[RowBlock], sketch: Sk
     import zarr
 
     part = TileSketch(sketch, seed, (tile.y0, tile.x0), tile.texels)
-    check, f2 = BlockCheck(), 0.0
+    check, f2, refused = BlockCheck(), 0.0, False
     for b in blocks:
         a, found, f = transformed_rows(store, b, eps=eps, clamp=clamp, first=first, norm=True,
                                        region=tile.region)
         check = check.merge(found)
-        if a is None:  # data to refuse: the caller raises after this pass (zeros meanwhile)
-            return PassPart(part.sums(), {}, check, 0.0)
-        f2 += f
-        part.add(b.row0, a)
+        refused = refused or a is None
+        if not refused:  # data to refuse: the rest is only checked (the caller raises)
+            f2 += f
+            part.add(b.row0, a)
         del a
+    if refused:
+        return PassPart(part.sums(), {}, check, 0.0)
     target = zarr.open_array(storage.store(scratch), mode="r+")
     target[tile.region] = part.w.T.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, sketch.s)
     return PassPart(part.sums(), {}, check, f2)

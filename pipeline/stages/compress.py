@@ -26,6 +26,7 @@ killed between passes is resumed by the same command from the pass it was in.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
 from pathlib import Path
@@ -91,11 +92,13 @@ class CompressParams:
                               "read twice: one read by texel tiles, a scratch sketch of s x "
                               "texels float32 written and read once) or N >= 2")
     sketch: str = option("auto", metavar="auto|texels|rows",
-                         help="which side of the BTF matrix the sketches live on: texels "
-                              "(client memory grows with the texels), rows (it grows with the "
-                              "textures only; one pass more) or auto (texels while that stays "
-                              "under 256 MiB, else the smaller side; an explicit --passes "
-                              "keeps the texel side)")
+                         help="which side of the BTF matrix the multi-pass sketches live on: "
+                              "texels (client memory grows with the texels), rows (it grows "
+                              "with the textures only; one pass more) or auto (texels while "
+                              "that stays under 256 MiB, else the smaller side; an explicit "
+                              "--passes keeps the texel side). --passes 1 has its own layout: "
+                              "rows x k on the client, tiles of the co-range sketch in a "
+                              "scratch array")
     tile_cache: str = option(
         "256MiB", metavar="SIZE", record=False,
         help="row side: keep a texel tile's whole column of the matrix in memory between the "
@@ -123,8 +126,9 @@ class CompressParams:
         if self.sketch not in ("auto", *SIDES):
             raise ParamError("sketch", f"must be auto, texels or rows, got {self.sketch!r}")
         if self.sketch == "rows" and self.passes == "1":
-            raise ParamError("sketch", "the one-view sketch (--passes 1) keeps its sketches on "
-                                       "the texel side; use --sketch texels or auto")
+            raise ParamError("sketch", "the one-view sketch (--passes 1) has its own layout (by "
+                                       "texel tiles, nothing grows with the texels); use "
+                                       "--sketch auto")
         if self.passes != "auto":
             if not self.passes.isdigit() or int(self.passes) < 1:
                 raise ParamError("passes", f"must be auto or a positive integer, got "
@@ -199,7 +203,10 @@ class _Passes:
 
     def __call__(self, kind: str, **arrays) -> PassPart:
         if kind == "sketch-vectors":  # from the scratch array: not a pass over the store
-            result, stored = self.progress.memo(kind, lambda: self._vectors(arrays["m"]))
+            # named after the map, so that V written from other factors is never kept
+            digest = hashlib.sha256(np.ascontiguousarray(arrays["m"]).tobytes()).hexdigest()
+            result, _ = self.progress.memo(f"{kind}-{digest[:16]}",
+                                           lambda: self._vectors(arrays["m"]))
             return result
         self.count += 1
         what = {"power": f"power iteration {self.count}", "project": "projection",
@@ -323,7 +330,8 @@ def compress(params: CompressParams, session: Session) -> Path:
         u, s, error = f.u.astype(np.float32), f.s.astype(np.float32), f.error
         out["U"][...] = u.reshape(nv, nl, nc, params.rank)
         out["S"][...] = s
-        svd = {"rank": params.rank, "oversample": extra, **f.widths, "sketch_side": side,
+        svd = {"rank": params.rank, "oversample": extra, **f.widths,
+               "sketch_side": "one view by texel tiles" if params.one_pass else side,
                "power_iterations": 0 if params.one_pass else iterations,
                "passes": passes.count, "seed": params.seed,
                **({"scratch_bytes": n * sketch.s * 4} if params.one_pass else {}),
