@@ -66,7 +66,7 @@ from tasks.rsvd import SIDES, randomized_svd, randomized_svd_rows
 from tasks.svd import PassPart, Sketch
 
 TEXEL_SIDE_BYTES = 256 << 20  # auto: the texel side while its client sketches stay below this
-ONE_PASS_RANGE = 6  # --passes 1: range sketch columns per component (BENCHMARKS.md, "One pass")
+ONE_PASS_RANGE = 6  # --passes 1: range sketch columns per component (BENCHMARKS.md, issue 27)
 SCRATCH = "sketch-scratch"  # the one-view co-range sketch, inside the partial output
 
 
