@@ -214,14 +214,23 @@ def factors_from_gram(y: np.ndarray, gram: np.ndarray, rank: int
     resolution) would come out with orthogonality errors above ~1e-6, so such directions are
     left out: their singular values are 0 and their columns of ``V`` are 0.
     """
-    evals, w = np.linalg.eigh(np.asarray(gram, np.float64))
-    order = np.argsort(evals)[::-1]
-    evals, w = evals[order], w[:, order]
+    evals, w, kept = gram_eigen(gram)
     scale = np.zeros_like(w)
-    kept = evals > (evals[0] * GRAM_FLOOR if evals.size and evals[0] > 0 else np.inf)
     scale[:, kept] = w[:, kept] / np.sqrt(evals[kept])
     p, s, rt = np.linalg.svd(np.asarray(y, np.float64) @ scale, full_matrices=False)
     return p[:, :rank], s[:rank], scale @ rt[:rank].T
+
+
+def gram_eigen(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigenvalues (decreasing) and eigenvectors of a Gram matrix, and which are kept.
+
+    Kept: eigenvalues above :data:`GRAM_FLOOR` of the largest (none if it is not positive).
+    """
+    evals, w = np.linalg.eigh(np.asarray(gram, np.float64))
+    order = np.argsort(evals)[::-1]
+    evals, w = evals[order], w[:, order]
+    kept = evals > (evals[0] * GRAM_FLOOR if evals.size and evals[0] > 0 else np.inf)
+    return evals, w, kept
 
 
 def orthonormalize(w: np.ndarray) -> np.ndarray:
@@ -462,10 +471,7 @@ def factors_from_co_range(y: np.ndarray | None, gram: np.ndarray, psi_q, rank: i
     qc, rc = np.linalg.qr(psi_q(q))
     m = np.linalg.solve(rc, qc.T)
     g = m @ np.asarray(gram, np.float64) @ m.T
-    evals, p = np.linalg.eigh((g + g.T) / 2)
-    order = np.argsort(evals)[::-1][:rank]
-    evals, p = evals[order], p[:, order]
-    kept = evals > (evals[0] * GRAM_FLOOR if evals.size and evals[0] > 0 else np.inf)
+    evals, p, kept = (x[..., :rank] for x in gram_eigen((g + g.T) / 2))
     s = np.where(kept, np.sqrt(np.maximum(evals, 0.0)), 0.0)
     to_v = np.zeros((m.shape[1], rank))
     to_v[:, kept] = m.T @ p[:, kept] / s[kept]

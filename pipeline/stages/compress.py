@@ -230,19 +230,17 @@ class _Passes:
         common = {"eps": self.params.eps, "clamp": self.params.clamp, "first": self.count == 1}
         if kind == "sketch":
             sketch = arrays["sketch"]
-            last = self.tiles[-1]
-            first = self.tiles[0]
+            first, last = self.tiles[0], self.tiles[-1]
             create_scratch(self.scratch, last.y1, last.x1, sketch.s,
                            (first.y1 - first.y0, first.x1 - first.x0))
             graph = sketch_pass_graph(self.store, self.tiles, self.tile_rows, sketch=sketch,
                                       seed=arrays["seed"], scratch=self.scratch, **common)
-        elif by_tiles:
-            shared = {k: self.session.share(v) for k, v in arrays.items()}
-            graph = tile_pass_graph(kind, self.store, self.tiles, self.tile_rows, shared=shared,
-                                    out=self.out, cache=self.params.tile_cache_bytes, **common)
         else:
             shared = {k: self.session.share(v) for k, v in arrays.items()}
-            graph = pass_graph(kind, self.store, self.blocks, shared=shared, **common)
+            graph = tile_pass_graph(kind, self.store, self.tiles, self.tile_rows, shared=shared,
+                                    out=self.out, cache=self.params.tile_cache_bytes, **common
+                                    ) if by_tiles else \
+                pass_graph(kind, self.store, self.blocks, shared=shared, **common)
         (result,) = self.session.compute(graph, reads=True)
         return result
 
