@@ -8,9 +8,17 @@ measured from the image's +x axis (columns) towards its +y axis (rows). A BTF ho
     151 directions on 8 rings, theta = 0 to 75 degrees in equal steps, ring populations
     proportional to the ring's circumference (1, 6, 12, 18, 23, 27, 31, 33), alternate rings
     rotated by half a step: the near-uniform layout of the Bonn dome.
-``ubo81``
-    The 81 directions of the UBO/UTIA BTF databases: rings at 0, 15, ..., 75 degrees with
-    1, 6, 12, 18, 20, 24 directions, the first at azimuth 0 on every ring.
+``ubo2014``
+    Bonn's "Dome 1" of the UBO2014 database: 151 directions as lights and views (151 x 151),
+    rings at theta 0, 11, 23.5, 30, 37.5, 45, 52.5, 60, 67.5, 75 degrees with 1, 6, 12, 12,
+    12, 18, 18, 24, 24, 24 directions, phi evenly spaced from the ring's offset 0, 15, 0, 15,
+    0, 0, 7.5, 0, 7.5, 0 degrees. Bonn's files give phi wrapped to (-180, 180]; here, as in
+    every store, phi is in [0, 360), and ingest maps phi into that range
+    (:func:`canonical_direction`).
+``ubo2003`` (alias ``ubo81``)
+    The 81 directions of the UBO2003, ATRIUM and UTIA BTF databases as lights and views
+    (81 x 81): rings at 0, 15, ..., 75 degrees with 1, 6, 12, 18, 20, 24 directions, the first
+    at azimuth 0 on every ring.
 ``abtf:R,E``
     One top view; R light rotations x E light elevations, elevations at the centres of E equal
     bins of 0-90 degrees (the quarter light arc and turntable of paper 003). Lights are ordered
@@ -52,12 +60,19 @@ class Sampling:
         return btf_kind(self.theta_view)
 
 
-def _rings(thetas, counts, *, stagger: bool) -> tuple[np.ndarray, np.ndarray]:
+def _rings(thetas, counts, *, stagger: bool = False, offsets=None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Rings of evenly spaced directions, the first ring's first direction first.
+
+    ``stagger`` turns alternate rings by half a step; ``offsets`` (degrees, one per ring)
+    turns each ring by its own angle.
+    """
+    offsets = [0.0] * len(thetas) if offsets is None else offsets
     theta, phi = [], []
-    for k, (t, n) in enumerate(zip(thetas, counts, strict=True)):
+    for k, (t, n, deg) in enumerate(zip(thetas, counts, offsets, strict=True)):
         offset = 0.5 if stagger and k % 2 == 0 else 0.0
         theta += [float(t)] * n
-        phi += [(360.0 * (j + offset) / n) % 360.0 for j in range(n)]
+        phi += [(float(deg) + 360.0 * (j + offset) / n) % 360.0 for j in range(n)]
     return np.array(theta), np.array(phi)
 
 
@@ -70,8 +85,17 @@ def _dome151() -> tuple[np.ndarray, np.ndarray]:
     return _rings(thetas, [1, *counts.tolist()], stagger=True)
 
 
-def _ubo81() -> tuple[np.ndarray, np.ndarray]:
-    return _rings([0, 15, 30, 45, 60, 75], [1, 6, 12, 18, 20, 24], stagger=False)
+def _ubo2003() -> tuple[np.ndarray, np.ndarray]:
+    return _rings([0, 15, 30, 45, 60, 75], [1, 6, 12, 18, 20, 24])
+
+
+def _ubo2014() -> tuple[np.ndarray, np.ndarray]:
+    return _rings([0, 11, 23.5, 30, 37.5, 45, 52.5, 60, 67.5, 75],
+                  [1, 6, 12, 12, 12, 18, 18, 24, 24, 24],
+                  offsets=[0, 15, 0, 15, 0, 0, 7.5, 0, 7.5, 0])
+
+
+_FULL = {"dome151": _dome151, "ubo2014": _ubo2014, "ubo2003": _ubo2003, "ubo81": _ubo2003}
 
 
 def _hemi(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +118,9 @@ def _ints(spec: str, text: str, count: int) -> list[int]:
     return values
 
 
-SAMPLING_HELP = "dome151, ubo81, abtf:R,E (R rotations x E elevations, one top view) or hemi:N"
+SAMPLING_HELP = ("dome151, ubo2014 (Bonn's Dome 1: 151 directions), ubo2003 (the UBO2003/UTIA "
+                 "hemisphere: 81 directions; alias ubo81), abtf:R,E (R rotations x E "
+                 "elevations, one top view) or hemi:N")
 
 
 def parse_sampling(spec: str) -> Sampling:
@@ -106,11 +132,8 @@ def parse_sampling(spec: str) -> Sampling:
         If the name is unknown or its numbers are malformed.
     """
     name, _, args = spec.partition(":")
-    if name == "dome151" and not args:
-        theta, phi = _dome151()
-        return Sampling(spec, theta, phi, theta, phi)
-    if name == "ubo81" and not args:
-        theta, phi = _ubo81()
+    if name in _FULL and not args:
+        theta, phi = _FULL[name]()
         return Sampling(spec, theta, phi, theta, phi)
     if name == "hemi":
         (n,) = _ints(spec, args, 1)
@@ -180,3 +203,25 @@ def nearest_layer(view: tuple[float, float], light: tuple[float, float],
     dl = angle_between(light[0], light[1], *lights)
     j, i = int(np.argmin(dv)), int(np.argmin(dl))
     return j, i, float(max(dv[j], dl[i]))
+
+
+def known_sampling(theta_view, phi_view, theta_light, phi_light, *, tol: float = 0.01
+                   ) -> str | None:
+    """The name of a measured database's sampling these directions are (in any order).
+
+    ``ubo2014`` or ``ubo2003`` when views and lights are each that sampling's directions to
+    within ``tol`` degrees, else None: what a store ingested from a measured file is named.
+    """
+    def same(theta, phi, ref_theta, ref_phi) -> bool:
+        if len(theta) != len(ref_theta):
+            return False
+        a, b = direction_vectors(theta, phi), direction_vectors(ref_theta, ref_phi)
+        gap = np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0))).min(axis=1)
+        return bool(gap.max() <= tol)
+
+    for name in ("ubo2014", "ubo2003"):
+        theta, phi = _FULL[name]()
+        if (same(theta_view, phi_view, theta, phi)
+                and same(theta_light, phi_light, theta, phi)):
+            return name
+    return None
