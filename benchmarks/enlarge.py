@@ -40,6 +40,7 @@ import numpy as np
 from benchmarks.harness import btf_executable, git_revision, machine, measure
 from tasks.evaluation import abrdf_error, gap_share, lookup_baseline, oracle, tiling_baseline
 from tasks.realism import log_luminance, realism
+from tasks.transform import Transform
 
 SUITE = "enlarge"
 SAMPLING = "abtf:12,4"
@@ -90,7 +91,7 @@ def _factors(path: Path):
 
     g = zarr.open_group(path, mode="r")
     return (np.asarray(g["U"][...], np.float64), np.asarray(g["S"][...], np.float64),
-            np.asarray(g["V"][...], np.float32), float(g.attrs["transform"]["eps"]), g)
+            np.asarray(g["V"][...], np.float32), Transform.from_attrs(g.attrs["transform"]), g)
 
 
 def truth_rows(path: Path) -> np.ndarray:
@@ -129,9 +130,9 @@ def _mean_colour_store(source: Path, out: Path) -> Path:
     return out
 
 
-def _log_layers(path: Path, eps: float) -> np.ndarray:
+def _log_layers(path: Path, transform: Transform) -> np.ndarray:
     """All layers of a store in the log domain, ``(H, W, layers * channels)``."""
-    return np.log(truth_rows(path) + eps)
+    return transform.encode(truth_rows(path))  # generated stores: the log transform, per value
 
 
 REALISM_LIGHTS = 8  # lights (evenly spaced) whose layers the realism figure averages
@@ -146,13 +147,13 @@ def _light_rows(picks) -> np.ndarray:
     return np.concatenate([np.arange(3 * li, 3 * li + 3) for li in picks])
 
 
-def _layers(u: np.ndarray, coef: np.ndarray, eps: float, picks) -> np.ndarray:
+def _layers(u: np.ndarray, coef: np.ndarray, transform: Transform, picks) -> np.ndarray:
     """Linear radiance ``(H, W, len(picks) * 3)`` of the picked lights (view 0)."""
     from tasks.svd import reconstruct
 
     flat = coef.reshape(-1, coef.shape[-1])
-    return reconstruct(u[_light_rows(picks)], np.ones(u.shape[1]), flat, eps=eps).T.reshape(
-        *coef.shape[:2], -1)
+    return reconstruct(u[_light_rows(picks)], np.ones(u.shape[1]), flat,
+                       transform=transform).T.reshape(*coef.shape[:2], -1)
 
 
 def _realism(approx: np.ndarray, truth: np.ndarray, picks) -> float:
@@ -166,17 +167,17 @@ def _realism(approx: np.ndarray, truth: np.ndarray, picks) -> float:
     return float(np.mean([realism(ours[..., k], real[..., k]) for k in range(len(picks))]))
 
 
-def _scored(u, coef, eps, truth, mask) -> dict:
+def _scored(u, coef, transform, truth, mask) -> dict:
     """Eq. (11) error outside the sample and realism of one result."""
     picks = _picks(truth)
-    return {"error": abrdf_error(u, coef, eps, truth, mask),
-            "realism": _realism(_layers(u, coef, eps, picks), truth, picks)}
+    return {"error": abrdf_error(u, coef, transform, truth, mask),
+            "realism": _realism(_layers(u, coef, transform, picks), truth, picks)}
 
 
-def _baselines(names, tmp, sample_svd, size, origin, truth, mask, u, coef_s, eps) -> dict:
+def _baselines(names, tmp, sample_svd, size, origin, truth, mask, u, coef_s, transform) -> dict:
     out = {}
     if "tiling" in names:
-        out["tiling"] = _scored(u, tiling_baseline(coef_s, (size, size), origin), eps, truth,
+        out["tiling"] = _scored(u, tiling_baseline(coef_s, (size, size), origin), transform, truth,
                                 mask)
     if "quilt" in names:
         from pipeline.cli import main
@@ -189,7 +190,7 @@ def _baselines(names, tmp, sample_svd, size, origin, truth, mask, u, coef_s, eps
                      "--seed", str(seed), "--quiet", "--overwrite"]) == 0:
                 uq, sq, _, _, g = _factors(tmp / "q.zarr")
                 coef = np.asarray(g["V"][0], np.float32)[:size, :size] * sq.astype(np.float32)
-                out["quilt"] = _scored(uq.reshape(-1, len(sq)), coef, eps, truth, mask)
+                out["quilt"] = _scored(uq.reshape(-1, len(sq)), coef, transform, truth, mask)
                 break
     if "roller" in names:
         from pipeline.cli import main
@@ -251,19 +252,19 @@ def _material(name: str, args, tmp: Path) -> dict:
     truth = truth_rows(m)
     mask = np.ones((size, size), bool)
     mask[origin[0] : origin[0] + half, origin[1] : origin[1] + half] = False
-    us, ss, vs, eps, sample_group = _factors(tmp / "S_svd.zarr")
+    us, ss, vs, transform, sample_group = _factors(tmp / "S_svd.zarr")
     um, sm, vm, _, _ = _factors(tmp / "M_svd.zarr")
     rows, rank = us.shape[0] * us.shape[1] * us.shape[2], len(ss)
     u = us.reshape(rows, rank)
     coef_s = vs * ss.astype(np.float32)
     result = {"material": name, "eref": abrdf_error(um.reshape(rows, rank),
-                                                    vm * sm.astype(np.float32), eps, truth,
+                                                    vm * sm.astype(np.float32), transform, truth,
                                                     mask)}
-    copy, _ = oracle(u, coef_s, eps, truth)
-    result["oracle_copy"] = _scored(u, copy, eps, truth, mask)
+    copy, _ = oracle(u, coef_s, transform, truth)
+    result["oracle_copy"] = _scored(u, copy, transform, truth, mask)
     baselines = [b for b in args.baselines.split(",") if b]
     result["baselines"] = _baselines(baselines, tmp, tmp / "S_svd.zarr", size, origin, truth,
-                                     mask, u, coef_s, eps)
+                                     mask, u, coef_s, transform)
     import zarr
 
     theta = zarr.open_group(m, mode="r")["theta_light"][...]
@@ -288,35 +289,35 @@ def _material(name: str, args, tmp: Path) -> dict:
         ue, se, ve, _, g = _factors(out)
         ue = ue.reshape(rows, rank)
         info = dict(g.attrs["enlargement"])
-        row = {"to": _scored(ue, np.asarray(g["phase_texture_optimization"][...]), eps, truth,
+        row = {"to": _scored(ue, np.asarray(g["phase_texture_optimization"][...]), transform, truth,
                              mask),
-               "stats": _scored(ue, np.asarray(g["phase_statistics"][...]), eps, truth, mask)
+               "stats": _scored(ue, np.asarray(g["phase_statistics"][...]), transform, truth, mask)
                if "phase_statistics" in g.array_keys() else None,
-               "final": _scored(ue, ve * se.astype(np.float32), eps, truth, mask),
+               "final": _scored(ue, ve * se.astype(np.float32), transform, truth, mask),
                "seconds": info["seconds"], "wall": wall, "rounds": info["rounds"],
                "residual": info["constraint_residual_rms"],
                "sample_residual": info["sample_constraint_residual_rms"],
                "lambda": info["lambda"],
                "placement": info["placement"]}
-        keys = _log_layers(c, eps)
+        keys = _log_layers(c, transform)
         sample_keys = keys[origin[0] : origin[0] + half, origin[1] : origin[1] + half]
         if "lookup" in baselines:
-            row["lookup"] = _scored(u, lookup_baseline(coef_s, sample_keys, keys), eps, truth,
+            row["lookup"] = _scored(u, lookup_baseline(coef_s, sample_keys, keys), transform, truth,
                                     mask)
         qp_rows, offsets = _constraint_rows(info, us, coef_s)
-        _, constrained = oracle(u, coef_s, eps, truth, rows=qp_rows, values=keys - offsets,
+        _, constrained = oracle(u, coef_s, transform, truth, rows=qp_rows, values=keys - offsets,
                                 noise=info["sample_constraint_residual_rms"])
-        row["oracle"] = _scored(u, constrained, eps, truth, mask)
+        row["oracle"] = _scored(u, constrained, transform, truth, mask)
         result["sets"][which] = row
         if args.sheet and not getattr(args, "_sheet_done", False) and which == "top":
             _sheet(args.sheet, name, truth, u, ue, ve * se.astype(np.float32), coef_s, origin,
-                   size, eps, (sample_keys, keys) if "lookup" in baselines else None)
+                   size, transform, (sample_keys, keys) if "lookup" in baselines else None)
             args._sheet_done = True
     del sample_group
     return result
 
 
-def _sheet(path, name, truth, u, ue, coef, coef_s, origin, size, eps, lookup) -> None:
+def _sheet(path, name, truth, u, ue, coef, coef_s, origin, size, transform, lookup) -> None:
     """Ground truth, result, lookup and tiling, for three lights, side by side."""
     from matplotlib.figure import Figure
 
@@ -343,7 +344,7 @@ def _sheet(path, name, truth, u, ue, coef, coef_s, origin, size, eps, lookup) ->
             else:
                 image = reconstruct(basis[rows], np.ones(basis.shape[1]),
                                     coefficients.reshape(-1, coefficients.shape[-1]),
-                                    eps=eps).T.reshape(size, size, channels)
+                                    transform=transform).T.reshape(size, size, channels)
             ax = fig.add_subplot(len(picks), len(columns), r * len(columns) + c + 1)
             ax.imshow(tonemap(image, scale=scale), interpolation="nearest")
             ax.set_axis_off()
@@ -409,7 +410,7 @@ def _corner_scores(truth_store: Path, result: Path, window: int = 256) -> dict:
     g = zarr.open_group(result, mode="r")
     s = np.asarray(g["S"][...], np.float64)
     u = np.asarray(g["U"][...], np.float64).reshape(-1, len(s))
-    v, eps = g["V"], float(g.attrs["transform"]["eps"])  # windows read one at a time
+    v, transform = g["V"], Transform.from_attrs(g.attrs["transform"])  # windows read one at a time
     side = radiance.shape[2]
     window = min(window, side)
     errors, real = [], []
@@ -418,7 +419,7 @@ def _corner_scores(truth_store: Path, result: Path, window: int = 256) -> dict:
             t = np.moveaxis(radiance[:, :, y : y + window, x : x + window], (0, 1), (2, 3))
             t = t.reshape(window, window, -1)
             c = np.asarray(v[y : y + window, x : x + window]) * s.astype(np.float32)
-            scored = _scored(u, c, eps, t, np.ones((window, window), bool))
+            scored = _scored(u, c, transform, t, np.ones((window, window), bool))
             errors.append(scored["error"])
             real.append(scored["realism"])
     return {"error": float(np.mean(errors)), "realism": float(np.mean(real))}
@@ -495,8 +496,8 @@ def enlarge_tile_seams(seeds, *, tmp, material: str = "wood", size: int = 256,
         start = time.perf_counter()
         _btf("enlarge", svd, photo, out, "--tile", tile, "--seed", seed, "--overwrite")
         seconds = time.perf_counter() - start
-        u, s, v, eps, _ = _factors(out)
-        image = lights_last(np.stack([reconstruct_layers(u[0, li], s, v, eps=eps)
+        u, s, v, transform, _ = _factors(out)
+        image = lights_last(np.stack([reconstruct_layers(u[0, li], s, v, transform=transform)
                                       for li in lights]))
         f = border_figures(exemplar, image, borders, reach=HALO * 4)
         rows.append({"seed": seed, "failed": None, "seam": f.worst_seam,

@@ -53,8 +53,8 @@ def _timed(*args) -> float:
 
 def _error(store: Path, truth: np.ndarray, mask: np.ndarray) -> float:
     """Eq. (11) of a compressed store against the truth over the masked texels."""
-    u, s, v, eps, _ = _factors(store)
-    return abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), eps, truth, mask)
+    u, s, v, transform, _ = _factors(store)
+    return abrdf_error(u.reshape(-1, len(s)), v * s.astype(np.float32), transform, truth, mask)
 
 
 def _compress(tmp: Path) -> list[dict]:

@@ -8,18 +8,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.transform import Transform
 
-def abrdf_error(u: np.ndarray, coefficients: np.ndarray, eps: float, truth: np.ndarray,
+
+def abrdf_error(u: np.ndarray, coefficients: np.ndarray, transform: Transform, truth: np.ndarray,
                 mask: np.ndarray) -> float:
     """Eq. (11) over the masked texels: mean of each texel's RMS radiance error (linear).
 
     ``u`` ``(rows, K)``; ``coefficients`` ``(H, W, K)``; ``truth`` ``(H, W, rows)`` linear
     radiance in the rows' order; ``mask`` ``(H, W)``: the texels that count.
     """
-    return float(np.mean(abrdf_errors(u, coefficients, eps, truth, mask)))
+    return float(np.mean(abrdf_errors(u, coefficients, transform, truth, mask)))
 
 
-def abrdf_errors(u: np.ndarray, coefficients: np.ndarray, eps: float, truth: np.ndarray,
+def abrdf_errors(u: np.ndarray, coefficients: np.ndarray, transform: Transform, truth: np.ndarray,
                  mask: np.ndarray) -> np.ndarray:
     """Each masked texel's RMS radiance error (see :func:`abrdf_error`), 16384 at a time."""
     from tasks.svd import reconstruct
@@ -28,7 +30,7 @@ def abrdf_errors(u: np.ndarray, coefficients: np.ndarray, eps: float, truth: np.
     rows = truth.reshape(-1, truth.shape[-1])[mask.ravel()]
     errors = [np.zeros(0)]
     for k in range(0, len(texels), 16384):
-        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], eps=eps).T
+        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], transform=transform).T
         errors.append(np.sqrt(np.mean((approx - rows[k : k + 16384]) ** 2, axis=1)))
     return np.concatenate(errors)
 
@@ -60,7 +62,7 @@ def tiling_baseline(sample_coef: np.ndarray, shape: tuple[int, int],
     return sample_coef[np.ix_(ys, xs)]
 
 
-def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, eps: float):
+def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, transform: Transform):
     """The exact search index over the sample's ABRDFs in linear radiance (faiss, flat L2).
 
     It holds ``texels x rows`` float32 values: build it once for many searches.
@@ -70,14 +72,14 @@ def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, eps: float):
     from tasks.svd import reconstruct
 
     flat = sample_coef.reshape(-1, sample_coef.shape[-1])
-    sample = np.ascontiguousarray(reconstruct(u, np.ones(u.shape[1]), flat, eps=eps).T,
+    sample = np.ascontiguousarray(reconstruct(u, np.ones(u.shape[1]), flat, transform=transform).T,
                                   np.float32)
     index = faiss.IndexFlatL2(sample.shape[1])
     index.add(sample)
     return index
 
 
-def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray,
+def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, transform: Transform, truth: np.ndarray,
                    index=None) -> np.ndarray:
     """For every truth texel, the sample texel whose ABRDF is nearest to it (exact search).
 
@@ -87,7 +89,7 @@ def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np
     ``(H, W)``. Exact brute force (faiss, flat L2), so the oracle is the best any copy can do.
     ``index``: :func:`abrdf_index` of the same sample, if already built.
     """
-    index = abrdf_index(u, sample_coef, eps) if index is None else index
+    index = abrdf_index(u, sample_coef, transform) if index is None else index
     rows = truth.reshape(-1, truth.shape[-1])
     found = np.empty(len(rows), np.int64)
     for k in range(0, len(rows), 16384):
@@ -96,7 +98,7 @@ def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np
     return found.reshape(truth.shape[:2])
 
 
-def oracle(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray, *,
+def oracle(u: np.ndarray, sample_coef: np.ndarray, transform: Transform, truth: np.ndarray, *,
            rows: np.ndarray | None = None, values: np.ndarray | None = None,
            noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The best a method composing the sample's ABRDFs can reach, given the ground truth.
@@ -110,7 +112,7 @@ def oracle(u: np.ndarray, sample_coef: np.ndarray, eps: float, truth: np.ndarray
     from tasks.constrained_blend import ConstraintProjector, blend
 
     copy = sample_coef.reshape(-1, sample_coef.shape[-1])[
-        nearest_abrdfs(u, sample_coef, eps, truth)]
+        nearest_abrdfs(u, sample_coef, transform, truth)]
     copy = copy.reshape(*truth.shape[:2], -1)
     if rows is None:
         return copy, copy

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from tasks.svd import reconstruct
+from tasks.transform import Transform
 
 BUDGET = 64 << 20  # bytes of level-0 radiance one kernel holds at a time
 
@@ -34,14 +35,14 @@ def mix(layers: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return (w @ flat).reshape(len(w), *layers.shape[1:])
 
 
-def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, eps: float,
+def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, transform: Transform,
                      weights: np.ndarray, factor: int = 1) -> np.ndarray:
     """Requested directions of an eigentexture block, ``(direction, y, x, channel)``.
 
     ``v`` is ``(y, x, k)`` at level 0 (sides multiples of ``factor``), ``u`` the eigen-ABRDF
     rows ``(layer, channel, k)`` of the layers ``weights`` ``(direction, layer)`` combine.
-    Radiance ``exp(U S V^T) - eps`` is rebuilt as many layers at a time as fit :data:`BUDGET`,
-    averaged over ``factor x factor`` blocks, and mixed.
+    Radiance (``transform`` of ``U S V^T``) is rebuilt as many layers at a time as fit
+    :data:`BUDGET`, averaged over ``factor x factor`` blocks, and mixed.
     """
     ty, tx, k = v.shape
     nl, nc = u.shape[:2]
@@ -51,7 +52,7 @@ def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, eps: float,
     for l0 in range(0, nl, step):
         rows = np.asarray(u[l0 : l0 + step], np.float32)
         n = len(rows)
-        radiance = reconstruct(rows.reshape(n * nc, k), s, texels, eps=eps)
+        radiance = reconstruct(rows.reshape(n * nc, k), s, texels, transform=transform)
         layers = np.moveaxis(radiance.reshape(n, nc, ty, tx), 1, -1)
         out += mix(block_mean(layers, factor), weights[:, l0 : l0 + n])
     return out
@@ -59,13 +60,14 @@ def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, eps: float,
 
 def surface_block(values: np.ndarray, *, weights: np.ndarray, factor: int = 1,
                   u: np.ndarray | None = None, s: np.ndarray | None = None,
-                  eps: float = 0.0) -> np.ndarray:
+                  transform: Transform | None = None) -> np.ndarray:
     """Requested directions of a gathered surface block, ``(direction, y, x, channel)``.
 
     ``values`` is the level-0 block gathered from a tile set: ``(y, x, layer, channel)``
     radiance, or with ``u`` (a compressed tile set) ``(y, x, k)`` eigentextures.
     """
     if u is not None:
-        return compressed_block(values, u=u, s=s, eps=eps, weights=weights, factor=factor)
+        return compressed_block(values, u=u, s=s, transform=transform, weights=weights,
+                                factor=factor)
     layers = np.moveaxis(values, 2, 0)
     return mix(block_mean(layers, factor), weights)

@@ -45,6 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.transform import Transform
+
 TILE = 16384  # columns per float32 product; longer sums are accumulated in float64
 IDENTITY_RESOLUTION = 1e-3  # relative errors the identity resolves (measured floor ~2e-4)
 GRAM_FLOOR = 1e-10  # Gram eigenvalues kept, relative to the largest (see factors_from_gram)
@@ -494,20 +496,20 @@ def estimated_error(z_phi: np.ndarray, vt_phi: np.ndarray, t: int, u, s,
 _LOG_MAX = 88.0  # exp of more overflows float32
 
 
-def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float) -> np.ndarray:
-    """Radiance ``max(exp(u diag(s) v^T) - eps, 0)`` (float32) of ``u`` rows and ``v`` texels.
+def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform
+                ) -> np.ndarray:
+    """Radiance (float32) of ``u`` rows and ``v`` texels: ``transform`` of ``u diag(s) v^T``.
 
-    Radiance was non-negative (or clamped to be) before compression, so the small negatives
-    that approximation error would give (down to ``-eps``) are set to 0.
+    Rows run over (layer, channel) with the channel fastest (:func:`matrix_rows`); the log
+    transform rebuilds ``max(exp(u diag(s) v^T) - eps, 0)``. Radiance was non-negative (or
+    clamped to be) before compression, so the small negatives that approximation error would
+    give are set to 0 (:meth:`tasks.transform.Transform.decode`).
     """
-    log_radiance = (blas_ready(u) * np.asarray(s, np.float32)) @ blas_ready(v).T
-    np.minimum(log_radiance, np.float32(_LOG_MAX), out=log_radiance)
-    out = np.exp(log_radiance, out=log_radiance)
-    out -= np.float32(eps)
-    return np.maximum(out, 0.0, out=out)
+    values = (blas_ready(u) * np.asarray(s, np.float32)) @ blas_ready(v).T
+    return transform.decode_rows(values)
 
 
-def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: float
+def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform
                        ) -> np.ndarray:
     """Radiance layers ``(..., y, x, channel)`` rebuilt from factors.
 
@@ -517,7 +519,8 @@ def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, eps: floa
     u = np.asarray(u)
     lead, nc, k = u.shape[:-2], u.shape[-2], u.shape[-1]
     ny, nx = v.shape[:2]
-    flat = reconstruct(u.reshape(-1, k), s, np.asarray(v).reshape(ny * nx, k), eps=eps)
+    flat = reconstruct(u.reshape(-1, k), s, np.asarray(v).reshape(ny * nx, k),
+                       transform=transform)
     return np.moveaxis(flat.reshape(*lead, nc, ny, nx), -3, -1)
 
 
@@ -636,29 +639,30 @@ def refactor_gram(u: np.ndarray, gram: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.asarray(u, np.float64) @ w, s, w
 
 
-def projected_level(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, factor: int, eps: float,
-                    budget: int = 64 << 20) -> np.ndarray:
+def projected_level(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, factor: int,
+                    transform: Transform, budget: int = 64 << 20) -> np.ndarray:
     """Eigentextures of a level of detail: block-mean radiance, back in the basis ``U``.
 
     ``v`` is a level-0 tile ``(y, x, k)`` whose sides are multiples of ``factor``. Its radiance
-    (:func:`reconstruct`, as many rows of ``U`` at a time as fit ``budget`` bytes) is averaged
-    over ``factor x factor`` blocks in linear radiance, range-reduced again and projected on
-    the orthonormal ``U``:
-    ``V = log(mean + eps) U / S``, the level's best approximation with the same ``U`` and
-    ``S`` in the log domain. (The block mean of ``V`` itself is the log-domain, geometric mean
-    of ``radiance + eps``.) Components with ``S = 0`` get 0.
+    (:func:`reconstruct`, as many rows of ``U`` at a time as fit ``budget`` bytes, whole
+    layers of channels) is averaged over ``factor x factor`` blocks in linear radiance,
+    range-reduced again (``transform.encode``) and projected on the orthonormal ``U``:
+    ``V = encode(mean) U / S``, the level's best approximation with the same ``U`` and ``S``
+    in the value domain. (For the log transform, the block mean of ``V`` itself would be the
+    geometric mean of ``radiance + eps``.) Components with ``S = 0`` get 0.
     """
     ty, tx, k = v.shape
     oy, ox = ty // factor, tx // factor
     texels = np.ascontiguousarray(v, np.float32).reshape(ty * tx, k)
     c = np.zeros((oy * ox, k))
-    rows = max(1, budget // (ty * tx * 4))
+    group = transform.channels or 1
+    rows = max(1, budget // (ty * tx * 4) // group) * group
     for r0 in range(0, u.shape[0], rows):
         ur = np.asarray(u[r0 : r0 + rows], np.float32)
-        radiance = reconstruct(ur, s, texels, eps=eps)  # (rows, texels) float32
+        radiance = reconstruct(ur, s, texels, transform=transform)  # (rows, texels) float32
         means = radiance.reshape(-1, oy, factor, ox, factor).mean(axis=(2, 4),
                                                                   dtype=np.float64)
-        c += np.log(means.reshape(len(ur), -1) + eps).T @ ur.astype(np.float64)
+        c += transform.encode_rows(means.reshape(len(ur), -1)).T @ ur.astype(np.float64)
     s = np.asarray(s, np.float64)
     out = np.zeros_like(c)
     kept = s > 0

@@ -9,6 +9,7 @@ import zarr
 from benchmarks.enlarge import abrdf_error, lookup_baseline, truth_rows
 from helpers import generate_store, no_partial_outputs
 from pipeline.stores.compressed import open_compressed
+from tasks.transform import Transform
 
 ORIGIN, HALF, SIZE, RANK = (16, 16), 32, 64, 8
 
@@ -87,16 +88,17 @@ def test_the_result_beats_the_lookup_and_tiling_baselines(inputs, enlarged):
     group = zarr.open_group(enlarged, mode="r")
     eps = group.attrs["transform"]["eps"]
     result = abrdf_error(group["U"][...].reshape(-1, RANK).astype(np.float64),
-                         group["V"][...] * group["S"][...], eps, truth, mask)
+                         group["V"][...] * group["S"][...], Transform("log", eps), truth,
+                         mask)
     sample = zarr.open_group(inputs["S_svd"], mode="r")
     u = sample["U"][...].reshape(-1, RANK).astype(np.float64)
     coef = sample["V"][...] * sample["S"][...]
     keys = np.log(truth_rows(inputs["C"]) + eps)
     lookup = abrdf_error(u, lookup_baseline(coef, keys[ORIGIN[0] : ORIGIN[0] + HALF,
                                                 ORIGIN[1] : ORIGIN[1] + HALF], keys),
-                         eps, truth, mask)
+                         Transform("log", eps), truth, mask)
     tiled = np.roll(np.tile(coef, (2, 2, 1)), ORIGIN, axis=(0, 1))
-    tiling = abrdf_error(u, tiled, eps, truth, mask)
+    tiling = abrdf_error(u, tiled, Transform("log", eps), truth, mask)
     assert result < lookup and result < tiling, (result, lookup, tiling)
 
 
@@ -202,7 +204,7 @@ def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):
     truth = truth_rows(inputs["M"])
     mask = np.ones((SIZE, SIZE), bool)
     mask[ORIGIN[0] : ORIGIN[0] + HALF, ORIGIN[1] : ORIGIN[1] + HALF] = False
-    errors = {name: abrdf_error(*_coefficients(path), 1e-3, truth, mask)
+    errors = {name: abrdf_error(*_coefficients(path), Transform("log", 1e-3), truth, mask)
               for name, path in (("whole", enlarged), ("tiled", tiled["tiled"]))}
     assert errors["tiled"] < 1.15 * errors["whole"], errors
     # the step between rows (columns) 31 and 32, the tile border, is no larger than the

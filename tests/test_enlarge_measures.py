@@ -19,8 +19,10 @@ from tasks.texture_optimization import (
     leading_components,
     texture_optimization,
 )
+from tasks.transform import Transform
 
 EPS = 1e-3
+LOG = Transform("log", EPS)
 
 
 def _abrdfs(rng, shape, rows=24, rank=5):
@@ -45,14 +47,14 @@ def test_the_oracle_of_a_rearranged_sample_is_its_compression_error():
     sample = _abrdfs(rng, (24, 24))
     u, coef = _compress(sample, 5)  # the field's rank: the error is the noise's
     everywhere = np.ones((24, 24), bool)
-    compression = abrdf_errors(u, coef, EPS, sample, everywhere)
+    compression = abrdf_errors(u, coef, LOG, sample, everywhere)
     # the target is the sample rearranged: quadrants swapped, rolled, transposed
     order = np.arange(24 * 24).reshape(24, 24)
     order = np.roll(np.concatenate([order[12:], order[:12]]), (5, -7), axis=(0, 1)).T
     truth = sample.reshape(-1, sample.shape[-1])[order]
-    found = nearest_abrdfs(u, coef, EPS, truth)
-    copy, constrained = oracle(u, coef, EPS, truth)
-    errors = abrdf_errors(u, copy, EPS, truth, everywhere)
+    found = nearest_abrdfs(u, coef, LOG, truth)
+    copy, constrained = oracle(u, coef, LOG, truth)
+    errors = abrdf_errors(u, copy, LOG, truth, everywhere)
     # each texel can do no worse than its own source texel's reconstruction
     assert np.all(errors <= compression[order.ravel()] * (1 + 1e-5) + 1e-7)
     assert np.mean(errors) == pytest.approx(np.mean(compression), rel=0.02)
@@ -65,8 +67,8 @@ def test_the_oracle_of_a_rearranged_sample_is_its_compression_error():
     rows = u[[0, 7]]
     values = np.log(truth[..., [0, 7]].astype(np.float64) + EPS)
     noise = ConstraintProjector.of(rows).rms_residual(coef, np.log(sample[..., [0, 7]] + EPS))
-    _, qp = oracle(u, coef, EPS, truth, rows=rows, values=values, noise=noise)
-    assert np.mean(abrdf_errors(u, qp, EPS, truth, everywhere)) == pytest.approx(
+    _, qp = oracle(u, coef, LOG, truth, rows=rows, values=values, noise=noise)
+    assert np.mean(abrdf_errors(u, qp, LOG, truth, everywhere)) == pytest.approx(
         np.mean(errors), rel=0.05)
 
 
@@ -77,10 +79,10 @@ def test_the_oracle_is_never_worse_than_the_lookup_texel_by_texel():
     u, coef = _compress(sample, 4)
     keys = np.log(big[..., :3] + EPS)
     lookup = lookup_baseline(coef, keys[12:36, 12:36], keys)
-    copy, _ = oracle(u, coef, EPS, big)
+    copy, _ = oracle(u, coef, LOG, big)
     everywhere = np.ones((48, 48), bool)
-    best = abrdf_errors(u, copy, EPS, big, everywhere)
-    assert np.all(best <= abrdf_errors(u, lookup, EPS, big, everywhere) * (1 + 1e-5) + 1e-7)
+    best = abrdf_errors(u, copy, LOG, big, everywhere)
+    assert np.all(best <= abrdf_errors(u, lookup, LOG, big, everywhere) * (1 + 1e-5) + 1e-7)
     assert gap_share(0.5, 1.0, 0.0) == 0.5 and gap_share(0.0, 1.0, 0.0) == 0.0
 
 

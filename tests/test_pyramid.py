@@ -10,6 +10,7 @@ import zarr
 
 from helpers import generate_store
 from pipeline.stores.compressed import open_compressed
+from tasks.transform import Transform
 
 
 def _block_means(a: np.ndarray, f: int, ay: int, ax: int) -> np.ndarray:
@@ -155,7 +156,8 @@ def test_projected_levels_of_many_tiles_equal_the_kernel_on_the_whole(tmp_path, 
     eps = g.attrs["transform"]["eps"]
     for n in (1, 2):
         f = 2**n
-        whole = projected_level(v0[: 75 // f * f, : 75 // f * f], u=u, s=s, factor=f, eps=eps)
+        whole = projected_level(v0[: 75 // f * f, : 75 // f * f], u=u, s=s, factor=f,
+                                 transform=Transform("log", eps))
         level = g[f"pyramid/{n}/V"]
         assert level.shape == (75 >> n, 75 >> n, 6) and level.chunks == (8, 8, 6)
         assert np.allclose(level[...], whole, rtol=1e-5, atol=1e-6)

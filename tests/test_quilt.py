@@ -22,6 +22,7 @@ from tasks.materials import Material
 from tasks.prescription import apply, check, to_csr
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.svd import reconstruct_layers
+from tasks.transform import Transform
 
 PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
 # the invariants of a plan hold for any plan: no planning again for the border bound
@@ -460,13 +461,14 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
     # patches blend (in the log domain: a weighted geometric mean). That layer is the measured
     # one up to the rank-8 compression error.
     eps = group.attrs["transform"]["eps"]
-    rebuilt = reconstruct_layers(group["U"][0, 2], group["S"][:], v, eps=eps).reshape(n, -1)
+    rebuilt = reconstruct_layers(group["U"][0, 2], group["S"][:], v,
+                                 transform=Transform("log", eps)).reshape(n, -1)
     layer = zarr.open_array(samples["stone"], path=RADIANCE)[0, 2]
     assert np.abs(rebuilt.reshape(layer.shape) - layer).mean() < 0.05 * layer.mean()
     for t in range(16):
         index, weight = group["prescription_index"][t], group["prescription_weight"][t]
         tile = reconstruct_layers(group["U"][0, 2], group["S"][:], group["V"][t],
-                                  eps=eps).reshape(-1, 3)
+                                  transform=Transform("log", eps)).reshape(-1, 3)
         single = (weight > 0).sum(axis=1) == 1
         # The tile's prescription P_t applied to the measured layer itself (not to its rank-8
         # rebuild) gives the tile up to the compression error: P_t @ layer where a texel has

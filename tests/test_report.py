@@ -11,6 +11,7 @@ import pytest
 
 from tasks.evaluation import abrdf_error, lookup_baseline, tiling_baseline
 from tasks.report_html import Picture, Section, Table, render
+from tasks.transform import Transform
 
 
 def _png(rgb) -> bytes:
@@ -58,7 +59,8 @@ def test_eq_11_is_the_mean_of_each_texel_s_rms_radiance_error():
     truth = exact + rng.normal(size=exact.shape) * 0.01
     mask = rng.random((5, 4)) < 0.6
     expected = np.sqrt(((exact - truth) ** 2).mean(-1))[mask].mean()
-    assert abrdf_error(u, coef, eps, truth, mask) == pytest.approx(expected, rel=1e-6)
+    assert abrdf_error(u, coef, Transform("log", eps), truth, mask) == pytest.approx(
+        expected, rel=1e-6)
 
 
 def _chromium() -> str | None:

@@ -11,6 +11,7 @@ import pytest
 import zarr
 
 from helpers import ROOT, generate_store, no_partial_outputs
+from tasks.transform import Transform
 
 
 def _write(path: Path, text: str) -> Path:
@@ -121,7 +122,7 @@ def test_levels_are_block_means_from_the_pyramid_or_on_the_fly(stores, tmp_path,
         g = zarr.open_group(with_levels, mode="r")
         v2 = g["pyramid/2/V"][2:10, 0:16]
         rebuilt = reconstruct_layers(g["U"][...], g["S"][...], v2,
-                                     eps=g.attrs["transform"]["eps"])
+                                     transform=Transform.from_attrs(g.attrs["transform"]))
         assert np.allclose(stored, rebuilt, rtol=1e-5, atol=1e-6)
         rel = np.sqrt(np.mean((stored - exact) ** 2) / np.mean(exact**2))
         assert rel < 0.15  # the projection's own error at rank 8 (measured: 8.1%)

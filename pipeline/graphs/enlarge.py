@@ -36,6 +36,7 @@ from tasks.texture_optimization import (
     optimize,
     upsample_region,
 )
+from tasks.transform import Transform
 
 WHOLE_TEXELS = 1 << 20  # targets up to 1024^2 texels are synthesized whole by default
 HALO = 4  # neighbourhoods of halo around a tile
@@ -43,18 +44,21 @@ HALO = 4  # neighbourhoods of halo around a tile
 
 @dataclass(frozen=True)
 class Guide:
-    """Where the constraint values come from: layers of the photos store, log domain."""
+    """Where the constraint values come from: layers of the photos store, encoded.
+
+    Values are in the sample's domain (its transform's :meth:`~tasks.transform.Transform.encode`).
+    """
 
     store: str  # absolute path of the constraints store
     layers: tuple[tuple[int, int], ...]  # (view, light) of every constraint layer
     offsets: tuple[float, ...]  # subtracted per value (a mean colour's Jensen offset)
-    eps: float
+    transform: Transform
     shape: tuple[int, int]  # full-resolution size of the photos
 
     def region(self, factor: int, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         """Constraint values of level texels ``[y0, y1) x [x0, x1)`` at ``1 / factor`` scale.
 
-        Block means of the full-resolution log values (a last partial block averages what it
+        Block means of the full-resolution values (a last partial block averages what it
         has), so a region computes what downsampling the whole image gives there.
         """
         import zarr
@@ -68,9 +72,8 @@ class Guide:
         out = []
         for a in range(y0, y1, step):
             rows = slice(a * factor, min(min(a + step, y1) * factor, h))
-            values = np.concatenate([np.log(np.asarray(array[v, li, rows, cols], np.float32)
-                                            + np.float32(self.eps)) for v, li in self.layers],
-                                    axis=-1)
+            values = np.concatenate([self.transform.encode(array[v, li, rows, cols])
+                                     for v, li in self.layers], axis=-1)
             values -= np.asarray(self.offsets, np.float32)
             out.append(downsample(values, factor))
         return np.concatenate(out, axis=0)

@@ -28,6 +28,7 @@ from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.scene import directions_per_chunk
 from tasks.scene import compressed_block, surface_block
+from tasks.transform import Transform
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,7 +164,8 @@ def read_u_rows(u, layers: list[tuple[int, int]], rank: int) -> tuple[np.ndarray
             len(needed))
 
 
-def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: Request):
+def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, transform: Transform,
+                     request: Request):
     """Scene from a compressed store: ``v`` the dask ``V`` (level n if stored, else level 0).
 
     Only the region's ``V`` tiles are read; each block rebuilds just the needed layers.
@@ -183,8 +185,9 @@ def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, eps: float, request: 
         chunks = ((len(dirs),), tuple(c // factor for c in region.chunks[0]),
                   tuple(c // factor for c in region.chunks[1]), (nc,))
         parts.append(region.map_blocks(
-            compressed_block, u=u_rows[used], s=np.asarray(s[:rank], np.float32), eps=eps,
-            weights=w, factor=factor, chunks=chunks, drop_axis=2, new_axis=[0, 3],
+            compressed_block, u=u_rows[used], s=np.asarray(s[:rank], np.float32),
+            transform=transform, weights=w, factor=factor, chunks=chunks, drop_axis=2,
+            new_axis=[0, 3],
             dtype=np.float32, meta=np.empty((0, 0, 0, 0), np.float32)))
     return da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
 
@@ -211,7 +214,7 @@ def _tile_data(store: str, tile: int, layers, rank, path: str):
     return np.stack([array[tile, v, li] for v, li in layers], axis=2)
 
 
-def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, eps,
+def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, transform,
              weights):
     from tasks.placement import gather, lattice_gather
 
@@ -225,7 +228,7 @@ def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s,
     else:
         values = gather(tiles, y0 * f, x0 * f, ny * f, nx * f, seed=placement["seed"],
                         corners=placement["corners"])
-    return surface_block(values, weights=weights, factor=f, u=u, s=s, eps=eps)
+    return surface_block(values, weights=weights, factor=f, u=u, s=s, transform=transform)
 
 
 def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape,
@@ -242,7 +245,7 @@ def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape
 
 
 def tileset_graph(store: str, group, request: Request, placement: dict, *, u_rows=None,
-                  s=None, eps: float = 0.0, level_path: str | None = None):
+                  s=None, transform: Transform | None = None, level_path: str | None = None):
     """Scene of the surface a tile set covers; returns the dask array and the tiles read.
 
     With ``level_path`` (the tiles' stored level n, ``request.stored_level``) the surface is
@@ -293,7 +296,7 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
                         read.add((int(order[c]), None if layers is None else tuple(layers)))
                 block = dask.delayed(_surface, pure=True)(
                     {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0,
-                    factor=f, placement=placement, u=u, s=s, eps=eps, weights=w)
+                    factor=f, placement=placement, u=u, s=s, transform=transform, weights=w)
                 blocks.append(da.from_delayed(block, (len(dirs), y1 - y0, x1 - x0, nc),
                                               dtype=np.float32))
             rows.append(blocks)

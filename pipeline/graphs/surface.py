@@ -17,6 +17,7 @@ from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE, check_computed, location
 from pipeline.stores.tileset import corner_order, open_tileset, stored_seed
 from tasks.placement import gather, lattice_gather
+from tasks.transform import Transform
 
 
 def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = None
@@ -32,8 +33,8 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
 
         u = group["U"][view, light]  # (channel, component)
         s = group["S"][:]
-        eps = float(group.attrs["transform"]["eps"])
-        tiles = np.stack([reconstruct_layers(u, s, v, eps=eps) for v in group["V"]])
+        transform = Transform.from_attrs(group.attrs["transform"])
+        tiles = np.stack([reconstruct_layers(u, s, v, transform=transform) for v in group["V"]])
     if order is None or np.array_equal(order, np.arange(len(tiles))):
         return tiles
     return tiles[order]

@@ -13,7 +13,8 @@ Inputs:
 - the sample's place in the photos (``--sample-origin``), or else it is found by normalised
   cross-correlation of the sample's own rendering of the constraint layers against ``C``.
 
-The constraint values are range-reduced like the sample (``log(C + eps)``), so that a photo
+The constraint values are range-reduced like the sample (``log(C + eps)``, or the sample's
+colour model: :mod:`tasks.transform`), so that a photo
 under sample direction row ``i`` is the linear function ``U_S[i] x`` of a texel's
 coefficients ``x``. The result's coefficients are re-factorised (:func:`tasks.svd.refactor`)
 into a compressed store whose ``U`` spans the sample's eigen-ABRDFs: ``open_compressed``,
@@ -68,6 +69,7 @@ from tasks.texture_optimization import (
     TextureOptimizationParams,
     downsample,
 )
+from tasks.transform import Transform
 
 WORKING_COPIES = 12  # target-sized float32 coefficient arrays held at the peak, about
 DEFAULT_TILE = 512  # texels per side of a tile when the target is too large for one task
@@ -188,13 +190,17 @@ class _Constraints:
 
 
 def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
-                 eps: float) -> _Constraints:
+                 transform: Transform) -> _Constraints:
     """Match every constraint layer to the sample (nothing of the photos' pixels is read)."""
     path = params.constraints
     d, ds = read_directions(group), read_directions(sample_group)
     u = sample_group["U"]
     nv, nl = d.views, d.lights
     nc = group[RADIANCE].shape[-1]
+    if params.mean_colour is not None and transform.name != "log":
+        raise BTFError(f"{params.sample}: --mean-colour needs a log range reduction (its "
+                       f"Jensen offset is of logs); the sample's transform is "
+                       f"{transform.name!r}: give photos instead")
     if params.mean_colour is not None and not 0 <= params.mean_colour < nv * nl:
         raise BTFError(f"{path}: --mean-colour {params.mean_colour} is not a layer of the "
                        f"store ({nv * nl} layers, indices 0 to {nv * nl - 1})")
@@ -231,7 +237,7 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
         offsets += [0.0] * nc
         described.append({"layer": k, "kind": "photo", "sample_view": sv, "sample_light": sl,
                           "angle_deg": angle})
-    guide = Guide(location(path), tuple(layers), tuple(offsets), eps,
+    guide = Guide(location(path), tuple(layers), tuple(offsets), transform,
                   tuple(group[RADIANCE].shape[2:4]))
     return _Constraints(guide, np.concatenate(rows, axis=0), described)
 
@@ -384,8 +390,8 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                        f"{coarsest[1]} at the coarsest of --levels {params.levels}, smaller than "
                        f"a neighbourhood (--patch {params.patch}): use fewer levels or a smaller "
                        "patch")
-    eps = float(sample_group.attrs["transform"]["eps"])
-    constraints = _constraints(params, group, sample_group, coefficients, eps)
+    transform = Transform.from_attrs(sample_group.attrs["transform"])
+    constraints = _constraints(params, group, sample_group, coefficients, transform)
     raise_on_bad_photos(session.compute(*check_photos(constraints.guide)), params.constraints,
                         constraints.guide)
     y0, x0, placement = _place_sample(params, constraints, coefficients, session)

@@ -43,6 +43,7 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, open_group
+from tasks.transform import Transform
 
 PYRAMID = "pyramid"
 MIN_SIDE = 16  # default levels stop before the smaller side would fall below this
@@ -226,14 +227,14 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
 
 
 def _basis(group) -> dict:
-    """What projecting needs of a compressed store: U (one task of the graph), S and eps."""
+    """What projecting needs of a compressed store: U (one task of the graph), S, transform."""
     import dask
     import numpy as np
 
     k = group["S"].shape[0]
     u = np.asarray(group["U"][...]).reshape(-1, k)
     return {"u": dask.delayed(u), "s": np.asarray(group["S"][...]),  # one copy of U
-            "eps": float(group.attrs["transform"]["eps"])}
+            "transform": Transform.from_attrs(group.attrs["transform"])}
 
 
 def _projected(basis: dict, level0, factor: int):
@@ -247,13 +248,13 @@ def _projected(basis: dict, level0, factor: int):
     whole = level0[:ny, :nx].rechunk((side, side, k))
     chunks = (*(tuple(c // factor for c in cs) for cs in whole.chunks[:2]), whole.chunks[2])
     return whole.map_blocks(_projected_block, basis["u"], s=basis["s"], factor=factor,
-                            eps=basis["eps"], dtype=np.float32, chunks=chunks)
+                            transform=basis["transform"], dtype=np.float32, chunks=chunks)
 
 
-def _projected_block(v, u, *, s, factor, eps):
+def _projected_block(v, u, *, s, factor, transform):
     from tasks.svd import projected_level
 
-    return projected_level(v, u=u, s=s, factor=factor, eps=eps)
+    return projected_level(v, u=u, s=s, factor=factor, transform=transform)
 
 
 def _mean32(block, axis=None):

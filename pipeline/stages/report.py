@@ -48,6 +48,7 @@ from tasks.realism import log_luminance, realism
 from tasks.report_html import Picture, Section, Table, render
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, tonemap
+from tasks.transform import Transform
 
 BAND = 64  # texel rows per band of the error evaluation
 
@@ -92,7 +93,7 @@ def _factors(path: str):
     group = open_group(path)
     return (group, np.asarray(group["U"][...], np.float64), np.asarray(group["S"][...],
                                                                          np.float64),
-            float(group.attrs["transform"]["eps"]))
+            Transform.from_attrs(group.attrs["transform"]))
 
 
 def _spread(count: int, lights: int) -> list[int]:
@@ -104,6 +105,12 @@ def _rows(radiance, ys: slice) -> np.ndarray:
     block = np.asarray(radiance[:, :, ys], np.float64)  # (views, lights, h, W, channels)
     nv, nl, h, w, nc = block.shape
     return np.moveaxis(block, (0, 1), (2, 3)).reshape(h, w, nv * nl * nc)
+
+
+def _values(transform: Transform, rows: np.ndarray, channels: int) -> np.ndarray:
+    """The store's values of ``(h, W, rows)`` radiance rows (channel fastest)."""
+    h, w, n = rows.shape
+    return transform.encode(rows.reshape(h, w, n // channels, channels)).reshape(h, w, n)
 
 
 def _fmt(x: float | None, digits: int = 4) -> str:
@@ -180,7 +187,7 @@ def _stages(history: list[dict]) -> Section | None:
 
 
 def _compression(path: str, params: ReportParams) -> Section:
-    group, u, s, eps = _factors(path)
+    group, u, s, transform = _factors(path)
     v = group["V"]
     nv, nl, nc, k = u.shape
     ny, nx = v.shape[:2]
@@ -200,7 +207,7 @@ def _compression(path: str, params: ReportParams) -> Section:
         for y0 in range(0, ny, BAND):
             ys = slice(y0, min(y0 + BAND, ny))
             coef = np.asarray(v[ys], np.float64) * s
-            e = abrdf_errors(flat_u, coef, eps, _rows(radiance, ys), np.ones(coef.shape[:2],
+            e = abrdf_errors(flat_u, coef, transform, _rows(radiance, ys), np.ones(coef.shape[:2],
                                                                              bool))
             total, count = total + e.sum(), count + e.size
         rows.append(("ABRDF RMSE against the source, linear (eq. 11)", _fmt(total / count)))
@@ -211,7 +218,8 @@ def _compression(path: str, params: ReportParams) -> Section:
             scale = exposure(truth)
             pictures += [Picture(f"source, light {li}", _png(tonemap(truth, scale=scale))),
                          Picture(f"rank {k}, light {li}",
-                                 _png(tonemap(reconstruct_layers(u[0, li], s, vw, eps=eps),
+                                 _png(tonemap(reconstruct_layers(u[0, li], s, vw,
+                                                                 transform=transform),
                                               scale=scale)))]
     return Section(f"Compression: {path}", (
         "Log range reduction and a randomized SVD: any layer is exp(U S V^T) - eps.",),
@@ -219,7 +227,7 @@ def _compression(path: str, params: ReportParams) -> Section:
 
 
 def _enlargement(path: str, params: ReportParams) -> Section:
-    group, u, s, eps = _factors(path)
+    group, u, s, transform = _factors(path)
     info = dict(group.attrs.get("enlargement", {}))
     parameters = dict(group.attrs.get("provenance", {})).get("parameters", {})
     paragraphs = [f"Synthesized from the compressed sample {parameters.get('sample')} under "
@@ -244,7 +252,7 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     sh, sw = sample.shape[:2]
     origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
     photos = open_group(parameters["constraints"])["radiance"]
-    keys_of = lambda ys: np.log(np.maximum(_rows(photos, ys), 0) + eps)  # noqa: E731
+    keys_of = lambda ys: _values(transform, _rows(photos, ys), u.shape[2])  # noqa: E731
     sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
     flat_u, flat_us = u.reshape(-1, k), us.reshape(-1, us.shape[-1])
     sums = {"oracle (nearest sample ABRDF)": 0.0, "enlargement": 0.0, "tiling": 0.0,
@@ -260,13 +268,13 @@ def _enlargement(path: str, params: ReportParams) -> Section:
         tiled = tiling_baseline(sample, (ys.stop - ys.start, nx), origin, (ys.start, 0))
         looked = lookup_baseline(sample, sample_keys, keys_of(ys))
         if index is None:  # the sample's ABRDFs, searched for every band
-            index = abrdf_index(flat_us, sample, eps)
-        best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, eps, rows,
+            index = abrdf_index(flat_us, sample, transform)
+        best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, transform, rows,
                                                                    index)]
         for name, (basis, c) in {"oracle (nearest sample ABRDF)": (flat_us, best),
                                  "enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
                                  "lookup": (flat_us, looked)}.items():
-            sums[name] += abrdf_errors(basis, c, eps, rows, mask).sum()
+            sums[name] += abrdf_errors(basis, c, transform, rows, mask).sum()
         count += int(mask.sum())
     errors = {n: sums[n] / max(count, 1) for n in sums}
     oracle = errors["oracle (nearest sample ABRDF)"]
@@ -282,7 +290,7 @@ def _enlargement(path: str, params: ReportParams) -> Section:
         pictures.append(Picture(f"ground truth, light {li}", _png(tonemap(true, scale=scale))))
         for name, basis, c in (("enlargement", u, coef_w), ("tiling", us, tiled_w),
                                ("lookup", us, looked_w)):
-            layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, eps=eps)
+            layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, transform=transform)
             pictures.append(Picture(f"{name}, light {li}", _png(tonemap(layer, scale=scale))))
             looks.setdefault(name, []).append(realism(log_luminance(layer),
                                                       log_luminance(true)))

@@ -30,6 +30,7 @@ from pipeline.params import option
 from pipeline.scene_spec import SceneSpec, load
 from pipeline.session import Session
 from pipeline.stores.base import RADIANCE, check_computed, location, open_group
+from tasks.transform import Transform
 
 SOURCE_KINDS = {"abtf": "radiance", "btf": "radiance", "compressed": "compressed",
                 "tileset": "tileset", "compressed-tileset": "tileset", "surface": "surface"}
@@ -326,7 +327,7 @@ def build(spec: SceneSpec, session: Session):
         s = np.asarray(group["S"][:rank])
         v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
         out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
-                                      float(group.attrs["transform"]["eps"]), req)
+                                      Transform.from_attrs(group.attrs["transform"]), req)
         ys, xs = req.read_window()
         info["reads"] = {
             v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
@@ -376,7 +377,7 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
         u = group["U"]
         u_rows, u_read = graphs.read_u_rows(u, layers, rank)
         extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]),
-                 "eps": float(group.attrs["transform"]["eps"])}
+                 "transform": Transform.from_attrs(group.attrs["transform"])}
     out, read = graphs.tileset_graph(path, group, req, placement, level_path=stored, **extra)
     if compressed:
         reads = {stored or "V": [len(read), n],

@@ -42,6 +42,7 @@ from pipeline.stores.base import (
     sampling_summary,
 )
 from tasks.svd import reconstruct_layers
+from tasks.transform import Transform
 
 NAME = "compressed"
 FACTOR_DIMS = {"U": ("view", "light", "channel", "component"), "S": ("component",),
@@ -79,11 +80,11 @@ def check_compressed(group, path: str | Path) -> None:
     check_coordinates(group, path, {"view": u[0], "light": u[1], "channel": u[2]}, "U")
 
 
-def _rebuild(u, s, v, *, eps: float) -> np.ndarray:
-    return reconstruct_layers(u, s, v, eps=eps)
+def _rebuild(u, s, v, *, transform: Transform) -> np.ndarray:
+    return reconstruct_layers(u, s, v, transform=transform)
 
 
-def lazy_radiance(u, s, v, *, eps: float):
+def lazy_radiance(u, s, v, *, transform: Transform):
     """Dask radiance ``(view, light, y, x, channel)`` from dask factors.
 
     There is one block per pair of a ``U`` chunk and a ``V`` tile.
@@ -92,7 +93,7 @@ def lazy_radiance(u, s, v, *, eps: float):
 
     return da.blockwise(
         _rebuild, "vlyxc", u, "vlck", s, "k", v, "yxk", concatenate=True, align_arrays=False,
-        dtype=np.float32, meta=np.empty((0,) * 5, np.float32), eps=eps)
+        dtype=np.float32, meta=np.empty((0,) * 5, np.float32), transform=transform)
 
 
 def open_compressed(path: str | Path, *, rank: int | None = None):
@@ -119,15 +120,16 @@ def open_compressed(path: str | Path, *, rank: int | None = None):
     store = storage.store(location(path))
     factors = {name: da.from_zarr(zarr.open_array(store, path=name, mode="r"))[..., :rank]
                for name in FACTOR_DIMS}
-    eps = float(group.attrs["transform"]["eps"])
-    radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], eps=eps)
+    transform = Transform.from_attrs(group.attrs["transform"])
+    radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], transform=transform)
     d = read_directions(group)
     coords = {name: (dim, getattr(d, name)) for name, dim in DIRECTION_COORDS.items()}
     coords["channel"] = ("channel", list(read_channels(group)))
     attrs = {**group.attrs, "rank_used": rank}
     data = {RADIANCE: (RADIANCE_DIMS, radiance,
-                       {"rank_used": rank, "eps": eps, "error": attrs.get("error"),
-                        "long_name": "radiance rebuilt as exp(U S V^T) - eps"})}
+                       {"rank_used": rank, "transform": transform.name, "eps": transform.eps,
+                        "error": attrs.get("error"),
+                        "long_name": f"radiance rebuilt as {transform.name} of U S V^T"})}
     data.update({name: (FACTOR_DIMS[name], factors[name]) for name in FACTOR_DIMS})
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
