@@ -1,9 +1,10 @@
-"""``btf export``: layers of a store as EXR or PNG files.
+"""``btf export``: layers of a store as EXR or PNG files, or a compressed store as a DFMF file.
 
 Exported files are named after their directions and listed with their exact angles in
 ``manifest.csv`` (:mod:`pipeline.layer_files`), so exporting to EXR and ingesting again gives
 back the same float32 values and directions. PNG files are tone-mapped with one exposure for
-all layers (from thumbnails of a few of them), so they stay comparable.
+all layers (from thumbnails of a few of them), so they stay comparable. An output named
+``*.btf`` is a Bonn DFMF file of a compressed store, for renderers (:mod:`pipeline.dfmf_io`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+
+import numpy as np
 
 from pipeline import storage
 from pipeline.atomic import atomic_output
@@ -20,9 +23,11 @@ from pipeline.images import write_exr, write_png
 from pipeline.layer_files import layer_name, write_manifest
 from pipeline.params import ParamError, option
 from pipeline.session import Session
+from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, location
-from pipeline.stores.radiance import open_radiance
+from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, to_uint8, tonemap
+from tasks.transform import Transform
 
 # Layers one export task holds at most: a whole stored light block if it fits (each chunk is
 # decoded once), else fewer (big layers: chunks are decoded once per task that needs them).
@@ -33,8 +38,10 @@ TASK_BUDGET = 256 << 20
 class ExportParams:
     """Parameters of ``btf export``."""
 
-    store: str = option(help="radiance store to export from", positional=True, path="in")
-    out_dir: str = option(help="folder to write the layers and manifest.csv to",
+    store: str = option(help="radiance or compressed store to export from", positional=True,
+                        path="in")
+    out_dir: str = option(help="folder to write the layers and manifest.csv to, or a .btf "
+                               "file: a compressed store as a Bonn DFMF file for renderers",
                           positional=True, path="out")
     light: tuple[int, ...] | None = option(None, metavar="I,..",
                                            help="light indices to export (default: all)")
@@ -42,18 +49,30 @@ class ExportParams:
                                           help="view indices to export (default: all)")
     format: str = option("exr", choices=("exr", "png"),
                          help="exr: radiance values; png: tone-mapped 8-bit sRGB previews")
-    half: bool = option(False, help="write EXR as half floats instead of float32")
+    half: bool = option(False, help="write EXR (or a .btf file's factors) as half floats "
+                                    "instead of float32")
     exposure: float | None = option(None, help="PNG exposure scale (default: automatic, one "
                                                "scale for all layers)")
     overwrite: bool = option(False, record=False, help="replace OUT_DIR if it exists")
 
     def __post_init__(self):
+        if self.dfmf:
+            for name in ("light", "view", "exposure"):
+                if getattr(self, name) is not None:
+                    raise ParamError(name, "does not apply to a .btf file (it holds every "
+                                           "layer, as factors)")
+            return
         if self.half and self.format != "exr":
             raise ParamError("half", "only applies to --format exr")
         if self.exposure is not None and self.format != "png":
             raise ParamError("exposure", "only applies to --format png (EXR keeps the values)")
         if self.exposure is not None and not self.exposure > 0:
             raise ParamError("exposure", f"must be positive, got {self.exposure}")
+
+    @property
+    def dfmf(self) -> bool:
+        """Whether the output is a Bonn DFMF ``.btf`` file."""
+        return self.out_dir.lower().endswith(".btf")
 
 
 def _sample_exposure(ds, layers: list[tuple[int, int]], session: Session) -> float:
@@ -65,12 +84,24 @@ def _sample_exposure(ds, layers: list[tuple[int, int]], session: Session) -> flo
     return exposure(values)
 
 
-def _export_block(store: str, out: str, view: int, lights: list[int], names: list[str], *,
-                  channels: tuple[str, ...], fmt: str, half: bool, scale: float) -> None:
+def _layers(store: str, view: int, lights: list[int]) -> np.ndarray:
+    """Layers ``(light, y, x, channel)`` of a radiance store, or rebuilt from a compressed one.
+
+    A compressed store's layers need its whole ``V``: one task holds it once for its lights.
+    """
     import zarr
 
-    array = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")
-    block = array.get_orthogonal_selection((view, lights))
+    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
+    if RADIANCE in group:
+        return group[RADIANCE].get_orthogonal_selection((view, lights))
+    u = group["U"].get_orthogonal_selection((view, lights))
+    return reconstruct_layers(u, group["S"][:], group["V"][:],
+                              transform=Transform.from_attrs(group.attrs["transform"]))
+
+
+def _export_block(store: str, out: str, view: int, lights: list[int], names: list[str], *,
+                  channels: tuple[str, ...], fmt: str, half: bool, scale: float) -> None:
+    block = _layers(store, view, lights)
     for pixels, name in zip(block, names, strict=True):
         if fmt == "exr":
             write_exr(Path(out) / name, pixels, channels, half=half)
@@ -81,9 +112,14 @@ def _export_block(store: str, out: str, view: int, lights: list[int], names: lis
 
 def export(params: ExportParams, session: Session) -> Path:
     """Write the selected layers of a store as image files plus ``manifest.csv``."""
+    if params.dfmf:
+        from pipeline.dfmf_io import export_dfmf
+
+        return export_dfmf(params.store, params.out_dir, half=params.half,
+                           overwrite=params.overwrite, session=session)
     import dask
 
-    ds = open_radiance(params.store)
+    ds = open_layers(params.store)  # a radiance store, or a compressed one rebuilt
     d = Directions.of(ds)
     views = layer_indices(params.view, d.theta_view.size, "view", params.store)
     lights = layer_indices(params.light, d.theta_light.size, "light", params.store)
@@ -91,7 +127,9 @@ def export(params: ExportParams, session: Session) -> Path:
     scale = params.exposure or 1.0
     if params.format == "png" and params.exposure is None:
         scale = _sample_exposure(ds, [(v, li) for v in views for li in lights], session)
-    block = ds[RADIANCE].encoding["chunks"][1]  # lights per stored chunk (and shard)
+    # lights per stored chunk (and shard): each is read once
+    block = (ds[RADIANCE].encoding["chunks"][1] if "U" not in ds
+             else int(ds["U"].data.chunksize[1]))
     layer_bytes = ds[RADIANCE][0, 0].nbytes
     per_task = max(1, min(block, TASK_BUDGET // max(layer_bytes, 1)))
     with atomic_output(params.out_dir, directory=True, overwrite=params.overwrite) as tmp:

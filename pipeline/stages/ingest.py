@@ -1,5 +1,7 @@
 """``btf ingest``: a folder of EXR or PNG layers into a radiance store.
 
+A Bonn DFMF ``.btf`` file becomes a compressed store instead (:mod:`pipeline.dfmf_io`).
+
 The directions of each image come from a manifest CSV (``file,theta_light,phi_light,
 theta_view,phi_view``; ``SRC/manifest.csv`` is used when present) or from UTIA file names
 ``tl{theta}_pl{phi}_tv{theta}_pv{phi}.{exr,png}``. Every image's header is checked before
@@ -201,6 +203,9 @@ def _stage_image(store: str, view: int, light: int, path: str, *, srgb: bool,
 
 def ingest(params: IngestParams, session: Session) -> Path:
     """Ingest the folder described by ``params`` into a radiance store; returns its path."""
+    if Path(params.src).suffix.lower() == ".btf":
+        from pipeline.dfmf_io import ingest_dfmf
+        return ingest_dfmf(params, session)
     import dask
     import dask.array as da
 

@@ -1,0 +1,304 @@
+"""Bonn DFMF ``.btf`` files in and out: ``btf ingest FILE.btf OUT``, ``btf export STORE OUT.btf``.
+
+A DFMF file is already a factorization (:mod:`tasks.dfmf`), so it becomes a compressed store
+without ever expanding it to radiance: its per-channel factors are re-expressed exactly, up to
+float32 rounding, as the store's one orthonormal ``U``, decreasing ``S`` and ``V``
+(:func:`tasks.dfmf.joint_u`, :func:`tasks.dfmf.svd_map`), and the colour model becomes the
+store's ``transform`` (:mod:`tasks.transform`). Two passes over the file's ``S V`` by texel
+tiles (its Gram matrix, then ``V`` itself) read it twice and hold one tile at a time; ``U`` is
+small (rows x components) and read whole.
+
+Export writes a compressed store as a DFMF file that Bonn's readers (btflib, ``btf.hh``,
+btf-extractor) open: each channel's values ``U_c S V^T`` at the channel's own rank
+(:func:`tasks.dfmf.per_channel`), in float32 (exact) or float16 (``--half``), the transform as
+its colour model. ``V`` is read once, a band of chunk rows at a time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import atomic_output
+from pipeline.errors import BTFError
+from pipeline.provenance import provenance
+from pipeline.resume import Progress
+from pipeline.session import Session
+from pipeline.stores.base import Directions, open_group, read_channels, read_directions
+from pipeline.stores.compressed import check_compressed, create_compressed_store
+from tasks.dfmf import (
+    ChannelBlock,
+    DfmfError,
+    DfmfHeader,
+    channel_head,
+    decode,
+    degrees,
+    header_bytes,
+    joint_u,
+    layout,
+    parse_header,
+    per_channel,
+    radians,
+    svd_map,
+)
+from tasks.sampling import known_sampling
+from tasks.transform import DFMF_EPS, DFMF_MODELS, Transform
+
+# transform name -> DFMF colour model written by export
+COLOUR_MODEL = {"log": 12, "linear": 0, "ylog-uv": 9, "ylog-ulog-vlog": 10,
+                "ylog-uv-over-y": 11}
+
+
+def read_header(path: str | Path) -> DfmfHeader:
+    """The header of a DFMF file, or one :class:`BTFError` naming the file and the fault."""
+    path = Path(path)
+    if not path.is_file():
+        raise BTFError(f"{path}: no such file")
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        return parse_header(lambda offset, n: os.pread(fd, n, offset), os.fstat(fd).st_size)
+    except DfmfError as exc:
+        raise BTFError(f"{path}: {exc}") from None
+    finally:
+        os.close(fd)
+
+
+def channel_u(path: str, block: ChannelBlock) -> np.ndarray:
+    """One channel's ``U`` (rows x k) as float64."""
+    values = np.fromfile(path, dtype=block.dtype, count=block.rows * block.k,
+                         offset=block.u_offset)
+    return values.reshape(block.rows, block.k).astype(np.float64)
+
+
+def _read_rows(f, block: ChannelBlock, width: int, ys: slice, xs: slice) -> np.ndarray:
+    """Channel ``block``'s ``S V`` rows of texels ``ys x xs`` from an open file.
+
+    Read into a fresh buffer (no memory map: mapped pages would count towards the process's
+    memory as the file is read), one read for whole rows, else one per texel row.
+    """
+    k, item = block.k, block.scalar
+    if xs.start == 0 and xs.stop == width:
+        f.seek(block.sxv_offset + ys.start * width * k * item)
+        data = np.fromfile(f, block.dtype, (ys.stop - ys.start) * width * k)
+        return data.reshape(-1, k)
+    out = np.empty((ys.stop - ys.start, xs.stop - xs.start, k), block.dtype)
+    for i, y in enumerate(range(ys.start, ys.stop)):
+        f.seek(block.sxv_offset + (y * width + xs.start) * k * item)
+        f.readinto(memoryview(out[i]).cast("B"))
+    return out.reshape(-1, k)
+
+
+def sxv_tile(path: str, header: DfmfHeader, ys: slice, xs: slice, *, ones: bool = False,
+             dtype=np.float64) -> np.ndarray:
+    """The file's ``S V`` rows of a texel tile, channels side by side: ``(texels, sum k_c)``.
+
+    With ``ones`` a last column of 1 (a linear colour model's mean) is added. Only the tile's
+    bytes are read.
+    """
+    with open(path, "rb") as f:
+        parts = [_read_rows(f, b, header.width, ys, xs).astype(dtype) for b in header.channels]
+    if ones:
+        parts.append(np.ones((parts[0].shape[0], 1), dtype))
+    return np.concatenate(parts, axis=1)
+
+
+def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
+                 band: int = 1 << 16) -> np.ndarray:
+    """Radiance images ``(n, height, width, channel)`` of (view, light) pairs, from the file.
+
+    Decoded as Bonn's readers do (:func:`tasks.dfmf.decode`), without a store. Reads the
+    pairs' rows of each ``U`` and the file's ``S V`` about ``band`` texels at a time, so memory
+    holds the images and one band, whatever the file's size.
+    """
+    lights = len(header.theta_light)
+    rows = np.array([v * lights + li for v, li in pairs])
+    theta = np.asarray(header.theta_light)[rows % lights]
+    texels = header.width * header.height
+    out = np.empty((len(rows), texels, len(header.channels)), np.float32)
+    step = max(1, band // header.width)
+    with open(path, "rb") as f:
+        u = []
+        for b in header.channels:
+            mm = np.memmap(f, b.dtype, "r", b.u_offset, (b.rows, b.k))
+            u.append(np.asarray(mm[rows], np.float32))
+            del mm
+        for y0 in range(0, header.height, step):
+            ys = slice(y0, min(y0 + step, header.height))
+            t = slice(y0 * header.width, ys.stop * header.width)
+            for c, b in enumerate(header.channels):
+                sxv = _read_rows(f, b, header.width, ys, slice(0, header.width))
+                np.matmul(u[c], sxv.astype(np.float32).T, out=out[:, t, c])
+            out[:, t] = decode(out[:, t], header, theta[:, None])
+    return out.reshape(len(rows), header.height, header.width, -1)
+
+
+def _gram(path: str, header: DfmfHeader, ys: slice, xs: slice, ones: bool) -> np.ndarray:
+    c = sxv_tile(path, header, ys, xs, ones=ones)
+    return c.T @ c
+
+
+def _v_tile(path: str, header: DfmfHeader, ones: bool, vmap: np.ndarray, *,
+            block_info=None) -> np.ndarray:
+    (y0, y1), (x0, x1), _ = block_info[None]["array-location"]
+    c = sxv_tile(path, header, slice(y0, y1), slice(x0, x1), ones=ones)
+    return (c @ vmap).astype(np.float32).reshape(y1 - y0, x1 - x0, -1)
+
+
+def store_transform(header: DfmfHeader) -> dict:
+    """The ``transform`` attrs of a store ingested from a file with this header."""
+    name, formula = DFMF_MODELS[header.colour_model]
+    eps = DFMF_EPS if name != "linear" else 0.0
+    return {"name": name, "formula": formula, "eps": eps, "clamp": False,
+            "dfmf_colour_model": header.colour_model}
+
+
+def ingest_dfmf(params, session: Session) -> Path:
+    """``btf ingest FILE.btf OUT``: a DFMF file as a compressed store, without expansion."""
+    import dask
+    import dask.array as da
+    from dask.array.core import normalize_chunks
+
+    src = str(Path(params.src).absolute())
+    header = read_header(src)
+    views, lights = len(header.theta_view), len(header.theta_light)
+    nc = len(header.channels)
+    tv, pv = degrees(header.theta_view, header.phi_view)
+    tl, pl = degrees(header.theta_light, header.phi_light)
+    directions = Directions(tv, pv, tl, pl)
+    try:
+        u, ones = joint_u(header, [channel_u(src, b) for b in header.channels])
+    except DfmfError as exc:
+        raise BTFError(f"{params.src}: {exc}") from None
+    # the colour models but 0 decode to RGB; model 0 keeps the file's channels (multispectral)
+    channels = header.channel_names if header.colour_model == 0 else ("R", "G", "B")
+    ks = [b.k for b in header.channels]
+    session.log(f"ingest: Bonn DFMF file, {views} views x {lights} lights, {header.height} x "
+                f"{header.width} texels, channels {','.join(header.channel_names)} with "
+                f"{'+'.join(map(str, ks))} components ({header.channels[0].dtype.name}), "
+                f"colour model {header.colour_model} -> {params.out}")
+    chunk = min(params.chunk, header.height, header.width)
+    tiles = normalize_chunks((chunk, chunk), (header.height, header.width))
+    regions = [(slice(y, y + h), slice(x, x + w))
+               for y, h in zip(np.cumsum((0, *tiles[0][:-1])), tiles[0], strict=True)
+               for x, w in zip(np.cumsum((0, *tiles[1][:-1])), tiles[1], strict=True)]
+    attrs = {"btf_kind": "compressed", "source": "ingest",
+             "source_btf_kind": directions.kind,
+             "source_shape": [views, lights, header.height, header.width, nc],
+             "transform": store_transform(header), "dfmf": header.metadata(),
+             "source_sampling": known_sampling(tv, pv, tl, pl) or "dfmf file",
+             "provenance": provenance("ingest", params)}
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        progress = Progress(tmp)
+        # the Gram matrix of S V, one read of the file (again on a resumed run: summed in a
+        # fixed order, it gives the same V bit for bit)
+        g = np.sum(session.compute(*[dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
+                                     for ys, xs in regions]), axis=0)
+        new_u, s, vmap = svd_map(u, g)
+        rank = len(s)
+        total = float(np.trace(u.T @ u @ g))  # ||U (SV)^T||_F^2 of the file's values
+        attrs["svd"] = {"rank": rank, "method": "exact SVD of the file's per-channel factors "
+                        "(QR of U, Gram matrix of S V)", "file_components": ks}
+        attrs["error"] = {"frobenius_norm": float(np.sqrt(max(total, 0.0))),
+                          "dropped_relative_frobenius": float(np.sqrt(
+                              max(total - float(np.sum(s**2)), 0.0) / max(total, 1e-300)))}
+
+        def create():
+            group = create_compressed_store(
+                tmp, directions=directions, channels=channels, ny=header.height,
+                nx=header.width, rank=rank, chunk=chunk, dir_chunk=params.dir_chunk,
+                attrs=attrs)
+            group["U"][...] = new_u.reshape(views, lights, nc, rank).astype(np.float32)
+            group["S"][...] = s.astype(np.float32)
+            return group
+
+        group = progress.skeleton(create)
+        joint = da.map_blocks(_v_tile, src, header, ones, vmap, dtype=np.float32,
+                              chunks=(*tiles, (rank,)), meta=np.empty((0, 0, 0), np.float32))
+        from pipeline.graphs.blocks import store_aligned
+
+        session.compute(store_aligned([joint], [group["V"]], progress=progress))
+    return Path(params.out)
+
+
+def _written_header(group, directions: Directions, channels: tuple[str, ...], model: int,
+                    ks: list[int], scalar: int, ny: int, nx: int) -> DfmfHeader:
+    """The header export writes: the store's directions, channels, size and colour model.
+
+    The descriptive fields of a store ingested from a DFMF file are written back.
+    """
+    meta = dict(group.attrs.get("dfmf") or {})
+    tv, pv = radians(directions.theta_view, directions.phi_view)
+    tl, pl = radians(directions.theta_light, directions.phi_light)
+    header = DfmfHeader(
+        version=4, rotations=0,
+        measurement_setup=meta.get("measurement_setup", "btf-pipeline export"),
+        image_sensor=meta.get("image_sensor", ""), light_source=meta.get("light_source", ""),
+        ppmm=float(meta.get("ppmm", 0.0)),
+        rgb_scale=tuple(meta.get("rgb_scale", (1.0, 1.0, 1.0))), cosine=False,
+        xml=meta.get("xml", ""), channel_names=channels, theta_view=tv, phi_view=pv,
+        theta_light=tl, phi_light=pl, width=nx, height=ny, components=max(ks),
+        colour_model=model, colour_mean=(0.0, 0.0, 0.0),
+        colour_matrix=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), channels=())
+    return dataclasses.replace(header, channels=layout(
+        len(header_bytes(header)), scalar, ks, directions.views * directions.lights, ny * nx))
+
+
+def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
+                session: Session) -> Path:
+    """``btf export STORE OUT.btf``: a compressed store as a DFMF file for renderers."""
+    group = open_group(store)
+    if group.attrs.get("btf_kind") != "compressed":
+        raise BTFError(f"{store}: a {group.attrs.get('btf_kind')!r} store; a DFMF file holds "
+                       "factors: compress it first (btf compress STORE OUT.zarr), then export "
+                       "the compressed store")
+    check_compressed(group, store)
+    transform = Transform.from_attrs(group.attrs["transform"])
+    model = COLOUR_MODEL[transform.name]
+    d = read_directions(group)
+    channels = read_channels(group)
+    u = np.asarray(group["U"][...], np.float64)  # small: rows x channels x K
+    s = np.asarray(group["S"][...], np.float64)
+    v = group["V"]
+    ny, nx, k = v.shape
+    per = [per_channel(u[:, :, c, :].reshape(-1, k), s) for c in range(len(channels))]
+    ks = [p[0].shape[1] for p in per]
+    scalar = 2 if half else 4
+    dtype = np.dtype("<f2" if half else "<f4")
+    if half:
+        biggest = max(float(np.abs(p[0]).max()) for p in per)
+        if biggest > 65504:
+            raise BTFError(f"{store}: U values up to {biggest:g} do not fit float16; export "
+                           "without --half")
+    header = _written_header(group, d, channels, model, ks, scalar, ny, nx)
+    session.log(f"export: {d.views} views x {d.lights} lights, {ny} x {nx} texels as a DFMF "
+                f"file, colour model {model} ({transform.name}), components "
+                f"{'+'.join(map(str, ks))}, {'float16' if half else 'float32'} -> {out}")
+    if transform.name != "linear" and transform.eps != DFMF_EPS:
+        session.log(f"export: note: the store's eps is {transform.eps:g}, Bonn's readers "
+                    f"subtract {DFMF_EPS:g}: every decoded value is "
+                    f"{transform.eps - DFMF_EPS:+.3g} off (compress with --eps {DFMF_EPS:g} "
+                    "for an exact file)")
+    if d.views != d.lights:
+        session.log(f"export: note: {d.views} view(s) and {d.lights} lights: btf.hh and "
+                    "btf-extractor open only files with as many views as lights (btflib "
+                    "opens any)")
+    with atomic_output(out, directory=False, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header_bytes(header))
+            f.truncate(header.end)
+            for block, (pc, sigma, _) in zip(header.channels, per, strict=True):
+                f.seek(block.s_offset - len(channel_head(block)))
+                f.write(channel_head(block))
+                f.write(sigma.astype(dtype).tobytes())
+                f.write(pc.astype(dtype).tobytes())
+            band = v.chunks[0]
+            for y0 in range(0, ny, band):
+                rows = np.asarray(v[y0 : y0 + band], np.float64).reshape(-1, k)
+                for block, (_, _, vmap) in zip(header.channels, per, strict=True):
+                    f.seek(block.sxv_offset + y0 * nx * block.k * scalar)
+                    f.write((rows @ vmap).astype(dtype).tobytes())
+    return Path(out)

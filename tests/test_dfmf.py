@@ -1,0 +1,281 @@
+"""Bonn DFMF .btf files in and out (issue 32): ingest without expansion, export, bad files.
+
+The files are written by tests/dfmf_files.py from the format description (not by the exporter
+under test), and decoded there by a plain reimplementation of btflib's colour models.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+import zarr
+from dfmf_files import reference_decode, write_dfmf
+
+from helpers import no_partial_outputs
+from pipeline.dfmf_io import read_header
+from pipeline.stores.base import RADIANCE
+from pipeline.stores.compressed import open_compressed
+from tasks.transform import DFMF_MODELS
+
+WIDTH, HEIGHT = 19, 11  # odd, not square, more than one 8-texel tile: a transposed order fails
+VIEWS = [(0.0, 0.0), (0.3, 1.2), (0.6, -2.0)]  # radians, phi in (-pi, pi] as Bonn's files
+LIGHTS = [(0.0, 0.0), (0.5, 0.4), (0.9, 3.0), (1.1, -1.5)]
+
+
+def _factors(rng, model: int, ks=(3, 2, 4)):
+    """Per-channel U and S x V whose decoded radiance is moderate and mostly positive."""
+    rows, texels = len(VIEWS) * len(LIGHTS), WIDTH * HEIGHT
+    u, sxv = [], []
+    for c, k in enumerate(ks):
+        uc = rng.normal(size=(rows, k)) * 0.3
+        vc = rng.normal(size=(texels, k)) * 0.3
+        log_like = model in (9, 10, 11, 12) and (c == 0 or model == 12)
+        uc[:, 0] = (-1.0 if log_like else 0.5) + rng.normal(size=rows) * 0.1
+        vc[:, 0] = 1.0
+        if model in (9, 10, 11) and c > 0:
+            uc *= 0.1  # chroma well inside the gamut
+        if model in (0, 1, 3, 4) and c > 0:
+            uc *= 0.2
+        u.append(uc)
+        sxv.append(vc)
+    return u, sxv
+
+
+def _write(path, rng, model, *, scalar_size=4, ks=(3, 2, 4), **kw):
+    u, sxv = _factors(rng, model, ks)
+    if model == 3:
+        kw.setdefault("color_matrix", np.array([[0.9, 0.1, 0.05], [0.2, 0.7, -0.1],
+                                                [0.0, 0.3, 1.1]]))
+        kw.setdefault("color_mean", (0.2, 0.3, 0.25))
+    write_dfmf(path, views=VIEWS, lights=LIGHTS, u=u, sxv=sxv, width=WIDTH, height=HEIGHT,
+               color_model=model, scalar_size=scalar_size, **kw)
+    return u, sxv, kw
+
+
+def _expected(u, sxv, model, kw, scalar_size):
+    if scalar_size == 2:  # what the file holds
+        u = [x.astype(np.float16).astype(np.float64) for x in u]
+        sxv = [x.astype(np.float16).astype(np.float64) for x in sxv]
+    return np.maximum(reference_decode(u, sxv, color_model=model, width=WIDTH, height=HEIGHT,
+                                       lights=LIGHTS, **kw), 0)
+
+
+@pytest.mark.parametrize("model", sorted(DFMF_MODELS))
+@pytest.mark.parametrize("scalar_size", [2, 4])
+def test_a_dfmf_file_becomes_a_compressed_store_that_decodes_like_bonns_reader(
+        tmp_path, btf, model, scalar_size):
+    rng = np.random.default_rng(model * 10 + scalar_size)
+    u, sxv, kw = _write(tmp_path / "m.btf", rng, model, scalar_size=scalar_size)
+    r = btf("ingest", tmp_path / "m.btf", tmp_path / "m.zarr", "--chunk", "8", "--quiet")
+    assert r.code == 0, r.err
+    ds = open_compressed(tmp_path / "m.zarr")
+    got = ds[RADIANCE].values  # (view, light, y, x, channel)
+    expected = _expected(u, sxv, model, kw, scalar_size)
+    scale = np.abs(expected).max()
+    assert got.shape == expected.shape == (3, 4, HEIGHT, WIDTH, 3)
+    assert np.allclose(got, expected, rtol=1e-4, atol=1e-5 * scale), (
+        model, np.abs(got - expected).max(), scale)
+    # the exact SVD of the file's factors: orthonormal U and V, decreasing S
+    g = zarr.open_group(tmp_path / "m.zarr", mode="r")
+    k = g["S"].shape[0]
+    uu = g["U"][...].reshape(-1, k).astype(np.float64)
+    vv = g["V"][...].reshape(-1, k).astype(np.float64)
+    assert np.allclose(uu.T @ uu, np.eye(k), atol=1e-5)
+    assert np.allclose(vv.T @ vv, np.eye(k), atol=1e-5)
+    assert np.all(np.diff(g["S"][...]) <= 0)
+    assert g.attrs["transform"]["dfmf_colour_model"] == model
+    # directions in degrees, phi in [0, 360)
+    assert np.allclose(ds["theta_light"].values, np.degrees([t for t, _ in LIGHTS]))
+    phi = np.degrees([p for _, p in LIGHTS]) % 360
+    phi[0] = 0.0
+    assert np.allclose(ds["phi_light"].values, phi)
+    assert np.allclose(ds["phi_view"].values[2], np.degrees(-2.0) % 360)
+
+
+def test_the_file_s_metadata_is_kept_and_a_rotations_block_is_skipped(tmp_path, btf):
+    rng = np.random.default_rng(4)
+    _write(tmp_path / "r.btf", rng, 11, rotations=True, channel_names=("R", "G", "B"))
+    header = read_header(tmp_path / "r.btf")
+    assert header.rotations > 0 and header.colour_model == 11
+    assert btf("ingest", tmp_path / "r.btf", tmp_path / "r.zarr", "--quiet").code == 0
+    meta = zarr.open_group(tmp_path / "r.zarr", mode="r").attrs["dfmf"]
+    assert meta["components"] == [3, 2, 4] and meta["colour_model"] == 11
+
+
+def test_export_writes_each_channel_at_its_own_rank_and_ingest_reads_it_back(tmp_path, btf):
+    rng = np.random.default_rng(7)
+    _write(tmp_path / "a.btf", rng, 11, scalar_size=4)
+    assert btf("ingest", tmp_path / "a.btf", tmp_path / "a.zarr", "--quiet").code == 0
+    r = btf("export", tmp_path / "a.zarr", tmp_path / "b.btf")
+    assert r.code == 0, r.err
+    header = read_header(tmp_path / "b.btf")
+    assert [c.k for c in header.channels] == [3, 2, 4]  # the file's own ranks come back
+    assert header.colour_model == 11 and header.channels[0].scalar == 4
+    assert btf("ingest", tmp_path / "b.btf", tmp_path / "b.zarr", "--quiet").code == 0
+    a = open_compressed(tmp_path / "a.zarr")[RADIANCE].values
+    b = open_compressed(tmp_path / "b.zarr")[RADIANCE].values
+    assert np.allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(a).max())
+    a_dirs = open_compressed(tmp_path / "a.zarr")
+    b_dirs = open_compressed(tmp_path / "b.zarr")
+    for name in ("theta_view", "phi_view", "theta_light", "phi_light"):
+        assert np.array_equal(a_dirs[name].values, b_dirs[name].values), name
+    # half floats: a smaller file, float16's error
+    assert btf("export", tmp_path / "a.zarr", tmp_path / "h.btf", "--half", "--quiet").code == 0
+    assert (tmp_path / "h.btf").stat().st_size < 0.6 * (tmp_path / "b.btf").stat().st_size
+    assert btf("ingest", tmp_path / "h.btf", tmp_path / "h.zarr", "--quiet").code == 0
+    h = open_compressed(tmp_path / "h.zarr")[RADIANCE].values
+    err = np.abs(h - a).max() / np.abs(a).max()
+    assert 1e-6 < err < 1e-2, err
+
+
+def test_a_compressed_store_of_the_pipeline_exports_as_colour_model_12(tmp_path, btf,
+                                                                       small_btf):
+    out = tmp_path / "c.zarr"
+    assert btf("compress", small_btf, out, "--rank", "6", "--eps", "1e-5", "--quiet").code == 0
+    r = btf("export", out, tmp_path / "c.btf")
+    assert r.code == 0, r.err
+    assert "off" not in r.err  # eps 1e-5: exact, no note
+    header = read_header(tmp_path / "c.btf")
+    assert header.colour_model == 12 and [c.k for c in header.channels] == [6, 6, 6]
+    # decoded from the file's own matrices by the test's reader
+    u = [np.fromfile(tmp_path / "c.btf", "<f4", c.rows * c.k, offset=c.u_offset).reshape(
+        c.rows, c.k) for c in header.channels]
+    sxv = [np.fromfile(tmp_path / "c.btf", "<f4", c.columns * c.k, offset=c.sxv_offset
+                       ).reshape(c.columns, c.k) for c in header.channels]
+    lights = list(zip(header.theta_light, header.phi_light, strict=True))
+    decoded = reference_decode(u, sxv, color_model=12, width=header.width,
+                               height=header.height, lights=lights)
+    expected = open_compressed(out)[RADIANCE].values
+    assert np.allclose(np.maximum(decoded, 0), expected, rtol=1e-4,
+                       atol=1e-6 * expected.max())
+    # another eps: exported with a note saying how far off every value is
+    assert btf("compress", small_btf, tmp_path / "d.zarr", "--rank", "6", "--quiet").code == 0
+    r = btf("export", tmp_path / "d.zarr", tmp_path / "d.btf")
+    assert r.code == 0 and "eps is 0.001" in r.err and "--eps 1e-05" in r.err, r.err
+
+
+def test_a_radiance_store_is_refused_with_the_way_to_compress_it(tmp_path, btf, small_btf):
+    r = btf("export", small_btf, tmp_path / "x.btf")
+    assert r.code != 0 and "compress it first" in r.err
+    assert no_partial_outputs(tmp_path / "x.btf")
+
+
+def _corrupt(path, how):
+    data = bytearray(path.read_bytes())
+    if how == "truncated":
+        return bytes(data[: len(data) - 7])
+    if how == "signature":
+        return b"!FMF12FCE" + bytes(data[9:])
+    if how == "garbage":
+        return b"GIF89a" + bytes(data[6:])
+    if how == "metadata size":
+        (size,) = struct.unpack_from("<I", data, 9)
+        struct.pack_into("<I", data, 9, size + 4)
+        return bytes(data)
+    if how == "trailing":
+        return bytes(data) + b"\0" * 8
+    raise AssertionError(how)
+
+
+@pytest.mark.parametrize("how,message", [
+    ("truncated", "truncated"),
+    ("signature", "FMF12"),
+    ("garbage", "not a DFMF file"),
+    ("metadata size", "metadata block says"),
+    ("trailing", "bytes follow the last channel"),
+])
+def test_a_bad_file_gets_one_clear_error_and_nothing_at_out(tmp_path, btf, how, message):
+    rng = np.random.default_rng(1)
+    _write(tmp_path / "good.btf", rng, 11)
+    bad = tmp_path / "bad.btf"
+    bad.write_bytes(_corrupt(tmp_path / "good.btf", how))
+    r = btf("ingest", bad, tmp_path / "o.zarr")
+    assert r.code != 0 and message in r.err and "bad.btf" in r.err, r.err
+    assert len(r.err.strip().splitlines()) == 1
+    assert no_partial_outputs(tmp_path / "o.zarr")
+
+
+def test_light_lists_that_differ_between_views_and_unknown_models_are_refused(tmp_path, btf):
+    rng = np.random.default_rng(2)
+    _write(tmp_path / "d.btf", rng, 0, light_lists=[LIGHTS, LIGHTS[::-1], LIGHTS])
+    r = btf("ingest", tmp_path / "d.btf", tmp_path / "d.zarr")
+    assert r.code != 0 and "view 1 lists other light directions" in r.err, r.err
+    _write(tmp_path / "m.btf", rng, 0)
+    data = bytearray((tmp_path / "m.btf").read_bytes())
+    header = read_header(tmp_path / "m.btf")
+    model_at = header.channels[0].s_offset - 13 - 4 * 13  # i32 model, f32[3], f32[9] before
+    assert struct.unpack_from("<i", data, model_at)[0] == 0
+    struct.pack_into("<i", data, model_at, 7)
+    (tmp_path / "m.btf").write_bytes(bytes(data))
+    r = btf("ingest", tmp_path / "m.btf", tmp_path / "m.zarr")
+    assert r.code != 0 and "unknown colour model 7" in r.err, r.err
+    assert no_partial_outputs(tmp_path / "m.zarr") and no_partial_outputs(tmp_path / "d.zarr")
+
+
+@pytest.mark.parametrize("model", [0, 3, 11])
+def test_images_decoded_straight_from_the_file_match_the_reference(tmp_path, model):
+    from pipeline.dfmf_io import decode_pairs
+
+    rng = np.random.default_rng(11)
+    u, sxv, kw = _write(tmp_path / "f.btf", rng, model, scalar_size=2, cosine=model != 11)
+    header = read_header(tmp_path / "f.btf")
+    pairs = [(2, 1), (0, 3), (1, 0)]
+    got = decode_pairs(str(tmp_path / "f.btf"), header, pairs, band=3 * WIDTH)  # 4 bands
+    expected = _expected(u, sxv, model, {**kw, "cosine": model != 11}, 2)
+    want = np.stack([expected[v, li] for v, li in pairs])
+    assert np.allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
+
+
+def test_a_cosine_flag_is_folded_into_linear_models_and_refused_with_log_models(tmp_path,
+                                                                                btf):
+    rng = np.random.default_rng(12)
+    u, sxv, _ = _write(tmp_path / "c.btf", rng, 1, cosine=True)
+    assert btf("ingest", tmp_path / "c.btf", tmp_path / "c.zarr", "--quiet").code == 0
+    got = open_compressed(tmp_path / "c.zarr")[RADIANCE].values
+    expected = _expected(u, sxv, 1, {"cosine": True}, 4)
+    assert np.allclose(got, expected, rtol=1e-4, atol=1e-5 * np.abs(expected).max())
+    _write(tmp_path / "l.btf", rng, 11, cosine=True)
+    r = btf("ingest", tmp_path / "l.btf", tmp_path / "l.zarr")
+    assert r.code != 0 and "cosine flag" in r.err and "l.btf" in r.err, r.err
+    assert no_partial_outputs(tmp_path / "l.zarr")
+
+
+def test_layers_of_an_ingested_file_export_as_exr_and_a_scene_reads_only_its_chunks(
+        tmp_path, btf):
+    rng = np.random.default_rng(13)
+    big = {"width": 64, "height": 48}
+    ks = (3, 2, 2)
+    rows = len(VIEWS) * len(LIGHTS)
+    u = [rng.normal(size=(rows, k)) * 0.1 for k in ks]
+    sxv = [rng.normal(size=(64 * 48, k)) * 0.3 for k in ks]
+    u[0][:, 0], sxv[0][:, 0] = -1.0, 1.0
+    write_dfmf(tmp_path / "s.btf", views=VIEWS, lights=LIGHTS, u=u, sxv=sxv, color_model=11,
+               scalar_size=2, **big)
+    assert btf("ingest", tmp_path / "s.btf", tmp_path / "s.zarr", "--chunk", "16",
+               "--dir-chunk", "2", "--quiet").code == 0
+    ds = open_compressed(tmp_path / "s.zarr")
+    r = btf("export", tmp_path / "s.zarr", tmp_path / "layers", "--view", "1", "--light", "0,3",
+            "--quiet")
+    assert r.code == 0, r.err
+    from pipeline.images import read_image
+
+    for li in (0, 3):
+        name = (f"tl{ds['theta_light'].values[li]:.4f}".rstrip("0").rstrip(".")
+                + f"_pl{ds['phi_light'].values[li]:.4f}".rstrip("0").rstrip("."))
+        (path,) = (tmp_path / "layers").glob(f"{name}_tv*.exr")
+        pixels, _ = read_image(path)
+        assert np.allclose(pixels, ds[RADIANCE].values[1, li], rtol=1e-6, atol=1e-7)
+    # a scene of one 16 x 16 tile of the 12 and one layer reads that tile and its U chunks
+    (tmp_path / "scene.yaml").write_text(
+        f"source: {tmp_path / 's.zarr'}\ndirections:\n"
+        f"  - [{np.degrees(LIGHTS[1][0])}, {np.degrees(LIGHTS[1][1]) % 360}, 0, 0]\n"
+        "region: [16, 32, 32, 48]\nformat: zarr\n")
+    assert btf("scene", tmp_path / "scene.yaml", tmp_path / "out.zarr", "--quiet").code == 0
+    reads = zarr.open_group(tmp_path / "out.zarr", mode="r").attrs["reads"]
+    assert reads["V"] == [1, 12] and reads["U"][0] <= 2 and reads["U"][1] == 6, reads
+    got = zarr.open_group(tmp_path / "out.zarr", mode="r")[RADIANCE][...]
+    assert got.shape == (1, 16, 16, 3), got.shape  # (direction, y, x, channel)
+    assert np.allclose(got[0], ds[RADIANCE].values[0, 1, 16:32, 32:48], rtol=1e-5,
+                       atol=1e-7)
