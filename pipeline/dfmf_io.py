@@ -11,7 +11,7 @@ small (rows x components) and read whole.
 Export writes a compressed store as a DFMF file that Bonn's readers (btflib, ``btf.hh``,
 btf-extractor) open: each channel's values ``U_c S V^T`` at the channel's own rank
 (:func:`tasks.dfmf.per_channel`), in float32 (exact) or float16 (``--half``), the transform as
-its colour model. ``V`` is read once, a band of chunk rows at a time.
+its colour model. ``V`` is read once, a chunk at a time.
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ from pipeline.session import Session
 from pipeline.stores.base import Directions, open_group, read_channels, read_directions
 from pipeline.stores.compressed import check_compressed, create_compressed_store
 from tasks.dfmf import (
+    DFMF,
+    OTHER_SIGNATURES,
     ChannelBlock,
     DfmfError,
     DfmfHeader,
@@ -47,9 +49,22 @@ from tasks.dfmf import (
 from tasks.sampling import known_sampling
 from tasks.transform import DFMF_EPS, DFMF_MODELS, Transform
 
+HALF_MAX = float(np.finfo(np.float16).max)
 # transform name -> DFMF colour model written by export
 COLOUR_MODEL = {"log": 12, "linear": 0, "ylog-uv": 9, "ylog-ulog-vlog": 10,
                 "ylog-uv-over-y": 11}
+
+
+def is_bonn_file(path: str | Path) -> bool:
+    """Whether ``path`` is one of Bonn's ``.btf`` files: by its suffix or its signature."""
+    path = Path(path)
+    if path.suffix.lower() == ".btf":
+        return True
+    if not path.is_file():
+        return False
+    with path.open("rb") as f:
+        head = f.read(16)
+    return any(head.startswith(sig) for sig in (DFMF, *OTHER_SIGNATURES))
 
 
 def read_header(path: str | Path) -> DfmfHeader:
@@ -159,8 +174,11 @@ def ingest_dfmf(params, session: Session) -> Path:
     """``btf ingest FILE.btf OUT``: a DFMF file as a compressed store, without expansion."""
     import dask
     import dask.array as da
-    from dask.array.core import normalize_chunks
+    from dask.array.core import normalize_chunks, slices_from_chunks
 
+    if params.shard:
+        raise BTFError(f"{params.src}: --shard does not apply to a DFMF file (its compressed "
+                       "store is small: U, S and V in chunks of --chunk texels)")
     src = str(Path(params.src).absolute())
     header = read_header(src)
     views, lights = len(header.theta_view), len(header.theta_light)
@@ -172,8 +190,8 @@ def ingest_dfmf(params, session: Session) -> Path:
         u, ones = joint_u(header, [channel_u(src, b) for b in header.channels])
     except DfmfError as exc:
         raise BTFError(f"{params.src}: {exc}") from None
-    # the colour models but 0 decode to RGB; model 0 keeps the file's channels (multispectral)
-    channels = header.channel_names if header.colour_model == 0 else ("R", "G", "B")
+    # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
+    channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
     ks = [b.k for b in header.channels]
     session.log(f"ingest: Bonn DFMF file, {views} views x {lights} lights, {header.height} x "
                 f"{header.width} texels, channels {','.join(header.channel_names)} with "
@@ -181,9 +199,7 @@ def ingest_dfmf(params, session: Session) -> Path:
                 f"colour model {header.colour_model} -> {params.out}")
     chunk = min(params.chunk, header.height, header.width)
     tiles = normalize_chunks((chunk, chunk), (header.height, header.width))
-    regions = [(slice(y, y + h), slice(x, x + w))
-               for y, h in zip(np.cumsum((0, *tiles[0][:-1])), tiles[0], strict=True)
-               for x, w in zip(np.cumsum((0, *tiles[1][:-1])), tiles[1], strict=True)]
+    regions = slices_from_chunks(tiles)
     attrs = {"btf_kind": "compressed", "source": "ingest",
              "source_btf_kind": directions.kind,
              "source_shape": [views, lights, header.height, header.width, nc],
@@ -195,8 +211,12 @@ def ingest_dfmf(params, session: Session) -> Path:
         progress = Progress(tmp)
         # the Gram matrix of S V, one read of the file (again on a resumed run: summed in a
         # fixed order, it gives the same V bit for bit)
-        g = np.sum(session.compute(*[dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
-                                     for ys, xs in regions]), axis=0)
+        grams = [dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
+                 for ys, xs in regions]
+        while len(grams) > 1:  # a fixed tree of sums: the client gets one matrix
+            grams = [dask.delayed(np.add, pure=True)(*grams[i : i + 2])
+                     if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
+        (g,) = session.compute(grams[0])
         new_u, s, vmap = svd_map(u, g)
         rank = len(s)
         total = float(np.trace(u.T @ u @ g))  # ||U (SV)^T||_F^2 of the file's values
@@ -249,7 +269,13 @@ def _written_header(group, directions: Directions, channels: tuple[str, ...], mo
 
 def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
                 session: Session) -> Path:
-    """``btf export STORE OUT.btf``: a compressed store as a DFMF file for renderers."""
+    """``btf export STORE OUT.btf``: a compressed store as a DFMF file for renderers.
+
+    ``V`` is read a chunk at a time; each chunk's rows of every channel's ``S V`` are written at
+    their offsets, so memory holds one chunk whatever the store's size.
+    """
+    from dask.array.core import normalize_chunks, slices_from_chunks
+
     group = open_group(store)
     if group.attrs.get("btf_kind") != "compressed":
         raise BTFError(f"{store}: a {group.attrs.get('btf_kind')!r} store; a DFMF file holds "
@@ -268,11 +294,9 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
     ks = [p[0].shape[1] for p in per]
     scalar = 2 if half else 4
     dtype = np.dtype("<f2" if half else "<f4")
-    if half:
-        biggest = max(float(np.abs(p[0]).max()) for p in per)
-        if biggest > 65504:
-            raise BTFError(f"{store}: U values up to {biggest:g} do not fit float16; export "
-                           "without --half")
+    if half and max(float(p[1][0]) for p in per) > HALF_MAX:
+        session.log(f"export: note: singular values above {HALF_MAX:g} are written as "
+                    f"{HALF_MAX:g} in float16 (Bonn's readers do not use them)")
     header = _written_header(group, d, channels, model, ks, scalar, ny, nx)
     session.log(f"export: {d.views} views x {d.lights} lights, {ny} x {nx} texels as a DFMF "
                 f"file, colour model {model} ({transform.name}), components "
@@ -293,12 +317,31 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
             for block, (pc, sigma, _) in zip(header.channels, per, strict=True):
                 f.seek(block.s_offset - len(channel_head(block)))
                 f.write(channel_head(block))
-                f.write(sigma.astype(dtype).tobytes())
+                top = HALF_MAX if half else np.inf
+                f.write(np.minimum(sigma, top).astype(dtype).tobytes())
                 f.write(pc.astype(dtype).tobytes())
-            band = v.chunks[0]
-            for y0 in range(0, ny, band):
-                rows = np.asarray(v[y0 : y0 + band], np.float64).reshape(-1, k)
-                for block, (_, _, vmap) in zip(header.channels, per, strict=True):
-                    f.seek(block.sxv_offset + y0 * nx * block.k * scalar)
-                    f.write((rows @ vmap).astype(dtype).tobytes())
+            for ys, xs, _ in slices_from_chunks(normalize_chunks(v.chunks, v.shape)):
+                _write_tile(f, np.asarray(v[ys, xs]), ys, xs, nx,
+                            header.channels, [p[2] for p in per], dtype, store)
     return Path(out)
+
+
+def _write_tile(f, tile: np.ndarray, ys: slice, xs: slice, width: int,
+                blocks: tuple[ChannelBlock, ...], maps: list[np.ndarray], dtype, store: str
+                ) -> None:
+    """Each channel's ``S V`` rows of one ``V`` tile, written at their offsets in the file.
+
+    A tile's rows are runs of ``x`` in the file (texel ``y * width + x``): one write per row.
+    """
+    h, w, k = tile.shape
+    flat = tile.reshape(-1, k).astype(np.float64)
+    for block, vmap in zip(blocks, maps, strict=True):
+        values = flat @ vmap
+        if dtype.itemsize == 2 and np.abs(values).max(initial=0.0) > HALF_MAX:
+            raise BTFError(f"{store}: S V values up to {np.abs(values).max():g} (texels "
+                           f"{ys.start}:{ys.stop}, {xs.start}:{xs.stop}) do not fit float16; "
+                           "export without --half")
+        rows = values.astype(dtype).reshape(h, w * block.k)
+        for i, y in enumerate(range(ys.start, ys.stop)):
+            f.seek(block.sxv_offset + (y * width + xs.start) * block.k * block.scalar)
+            f.write(rows[i].tobytes())

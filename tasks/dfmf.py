@@ -234,6 +234,9 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
         raise DfmfError(f"unknown colour model {model} (btf reads "
                         f"{', '.join(map(str, DFMF_MODELS))}: btflib's models but LAB, "
                         "spectral and spectral-linear)")
+    if model not in (0, 12) and len(meta["channel_names"]) != 3:
+        raise DfmfError(f"colour model {model} needs 3 channels, the metadata names "
+                        f"{len(meta['channel_names'])} ({', '.join(meta['channel_names'])})")
     rows, columns = len(theta_view) * len(theta_light), width * height
     blocks = []
     for name in meta["channel_names"]:
@@ -426,7 +429,8 @@ def decode(values: np.ndarray, header: DfmfHeader, theta_light: np.ndarray | Non
                                      np.asarray(header.colour_mean), values.shape[-1])
         out = (np.asarray(values, np.float32) @ m.astype(np.float32)
                + mean.astype(np.float32))
-        if header.cosine:
-            out /= np.maximum(np.cos(np.asarray(theta_light, np.float32)), 1e-6)[..., None]
-        return np.maximum(out, 0.0, out=out)
-    return Transform(name, DFMF_EPS).decode(np.array(values, np.float32))
+    else:
+        out = Transform(name, DFMF_EPS).decode(np.array(values, np.float32))
+    if header.cosine:
+        out /= np.maximum(np.cos(np.asarray(theta_light, np.float32)), 1e-6)[..., None]
+    return np.maximum(out, 0.0, out=out)

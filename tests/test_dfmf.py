@@ -279,3 +279,38 @@ def test_layers_of_an_ingested_file_export_as_exr_and_a_scene_reads_only_its_chu
     assert got.shape == (1, 16, 16, 3), got.shape  # (direction, y, x, channel)
     assert np.allclose(got[0], ds[RADIANCE].values[0, 1, 16:32, 32:48], rtol=1e-5,
                        atol=1e-7)
+
+
+def test_channels_other_than_three_the_signature_and_the_limits_of_half_floats(tmp_path, btf):
+    rng = np.random.default_rng(14)
+    rows = len(VIEWS) * len(LIGHTS)
+    names = ("L450", "L550", "L650", "L750", "L850")  # multispectral, log model 12
+    u = [rng.normal(size=(rows, 2)) * 0.1 - 1.0 for _ in names]
+    sxv = [np.c_[np.ones(WIDTH * HEIGHT), rng.normal(size=WIDTH * HEIGHT) * 0.2] for _ in names]
+    write_dfmf(tmp_path / "spectral.dat", views=VIEWS, lights=LIGHTS, u=u, sxv=sxv,
+               width=WIDTH, height=HEIGHT, color_model=12, channel_names=names, scalar_size=4)
+    # no .btf suffix: known by its signature
+    assert btf("ingest", tmp_path / "spectral.dat", tmp_path / "s.zarr", "--quiet").code == 0
+    ds = open_compressed(tmp_path / "s.zarr")
+    assert list(ds["channel"].values) == list(names)
+    expected = np.maximum(reference_decode(u, sxv, color_model=12, width=WIDTH, height=HEIGHT,
+                                           lights=LIGHTS), 0)
+    assert np.allclose(ds[RADIANCE].values, expected, rtol=1e-4, atol=1e-7)
+    r = btf("ingest", tmp_path / "spectral.dat", tmp_path / "x.zarr", "--shard", "256")
+    assert r.code != 0 and "--shard does not apply" in r.err
+    # a YUV model needs three channels
+    write_dfmf(tmp_path / "two.btf", views=VIEWS, lights=LIGHTS, u=u[:2], sxv=sxv[:2],
+               width=WIDTH, height=HEIGHT, color_model=11, channel_names=names[:2])
+    r = btf("ingest", tmp_path / "two.btf", tmp_path / "t.zarr")
+    assert r.code != 0 and "colour model 11 needs 3 channels" in r.err, r.err
+    # values beyond float16's range: --half is refused, float32 is exact
+    big = [np.c_[np.full(rows, 3.0), rng.normal(size=rows) * 0.01] for _ in range(3)]
+    wide = [np.c_[np.full(WIDTH * HEIGHT, 3e4), rng.normal(size=WIDTH * HEIGHT)]
+            for _ in range(3)]
+    write_dfmf(tmp_path / "hdr.btf", views=VIEWS, lights=LIGHTS, u=big, sxv=wide, width=WIDTH,
+               height=HEIGHT, color_model=0, scalar_size=4)
+    assert btf("ingest", tmp_path / "hdr.btf", tmp_path / "h.zarr", "--quiet").code == 0
+    r = btf("export", tmp_path / "h.zarr", tmp_path / "h.btf", "--half")
+    assert r.code != 0 and "do not fit float16" in r.err, r.err
+    assert no_partial_outputs(tmp_path / "h.btf")
+    assert btf("export", tmp_path / "h.zarr", tmp_path / "h.btf", "--quiet").code == 0
