@@ -34,6 +34,8 @@ def _exr_channels(names: list[str], path: Path) -> tuple[str, ...]:
         return ("R", "G", "B")
     if len(names) == 1:
         return (names[0],)
+    if {"X", "Y", "Z"} <= set(names):  # CIE XYZ, kept as named (btf ingest converts it)
+        return ("X", "Y", "Z")
     if "Y" in names:
         return ("Y",)
     raise BTFError(f"{path}: channels {sorted(names)} are neither R,G,B nor a single channel")

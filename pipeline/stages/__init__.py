@@ -54,15 +54,22 @@ STAGES: dict[str, Stage] = {
               "the ground-truth height, albedo, roughness and specular fields. The same "
               "arguments give a bit-identical store on every scheduler.", makes_store=True),
         Stage("ingest", ingest.IngestParams, ingest.ingest,
-              "read a folder of EXR/PNG layers into a store",
-              "Read EXR or PNG layers into a radiance store. Directions come from a manifest "
-              "CSV (file,theta_light,phi_light,theta_view,phi_view; SRC/manifest.csv is used "
-              "when present) or from UTIA names tl{theta}_pl{phi}_tv{theta}_pv{phi}.exr. "
-              "Images are streamed a block of directions at a time.", makes_store=True),
+              "read measured BTFs (folders, zip archives, BIG, Bonn .btf) into a store",
+              "Read a measured BTF into a store; the format comes from SRC. A folder of EXR or "
+              "PNG layers (directions from a manifest CSV file,theta_light,phi_light,theta_view,"
+              "phi_view, SRC/manifest.csv when present, or UTIA names tl{theta}_pl{phi}_tv"
+              "{theta}_pv{phi}.exr, also a folder per view), a Bonn UBO2003/ATRIUM .zip archive "
+              "of JPEG or RGBE images (read from the zip), or a UTIA .big file becomes a "
+              "radiance store, streamed a block of directions at a time. A Bonn UBO2014 .btf "
+              "(DFMF) file becomes a compressed store without expansion: its factors, exactly, "
+              "with its colour model. See docs/formats.md.", makes_store=True),
         Stage("export", export.ExportParams, export.export,
-              "write layers of a store as EXR or PNG files",
-              "Write the selected layers as EXR (exact float32, or --half) or tone-mapped PNG, "
-              "named by their directions, with a manifest.csv that btf ingest reads back."),
+              "write layers as EXR/PNG files, or a compressed store as a Bonn .btf file",
+              "Write the selected layers of a radiance or compressed store as EXR (exact "
+              "float32, or --half) or tone-mapped PNG, named by their directions, with a "
+              "manifest.csv that btf ingest reads back. An OUT ending in .btf gets a compressed "
+              "store as a Bonn DFMF file for renderers (btflib, btf-extractor, Mitsuba's BTF "
+              "plugin): each channel at its own rank, float32 (exact) or --half."),
         Stage("preview", preview.PreviewParams, preview.preview,
               "draw a contact sheet of a spread of directions",
               "Draw a contact sheet of layers spread over the directions (farthest-point "
