@@ -412,25 +412,3 @@ def radians(theta: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     p = np.where(p > 180.0, p - 360.0, p)
     return np.radians(np.asarray(theta, np.float64)), np.radians(p)
 
-
-def decode(values: np.ndarray, header: DfmfHeader, theta_light: np.ndarray | None = None
-           ) -> np.ndarray:
-    """Radiance ``(..., C)`` (float32, >= 0) of a file's channel values ``(..., C)``.
-
-    As btflib's ``undecorrelate``: the linear colour models' matrix and mean, or the log and
-    YUV models (:mod:`tasks.transform`, eps 1e-5); then, for a set cosine flag, a division by
-    ``cos(theta_light)`` (radians, broadcast against ``values[..., 0]``).
-    """
-    from tasks.transform import DFMF_EPS, Transform
-
-    name = DFMF_MODELS[header.colour_model][0]
-    if name == "linear":
-        m, mean = dfmf_colour_matrix(header.colour_model, np.asarray(header.colour_matrix),
-                                     np.asarray(header.colour_mean), values.shape[-1])
-        out = (np.asarray(values, np.float32) @ m.astype(np.float32)
-               + mean.astype(np.float32))
-    else:
-        out = Transform(name, DFMF_EPS).decode(np.array(values, np.float32))
-    if header.cosine:
-        out /= np.maximum(np.cos(np.asarray(theta_light, np.float32)), 1e-6)[..., None]
-    return np.maximum(out, 0.0, out=out)

@@ -214,16 +214,16 @@ def test_light_lists_that_differ_between_views_and_unknown_models_are_refused(tm
     assert no_partial_outputs(tmp_path / "m.zarr") and no_partial_outputs(tmp_path / "d.zarr")
 
 
-@pytest.mark.parametrize("model", [0, 3, 11])
+@pytest.mark.parametrize("model", sorted(DFMF_MODELS))
 def test_images_decoded_straight_from_the_file_match_the_reference(tmp_path, model):
     from pipeline.dfmf_io import decode_pairs
 
     rng = np.random.default_rng(11)
-    u, sxv, kw = _write(tmp_path / "f.btf", rng, model, scalar_size=2, cosine=model != 11)
+    u, sxv, kw = _write(tmp_path / "f.btf", rng, model, scalar_size=2, cosine=model in (1, 10))
     header = read_header(tmp_path / "f.btf")
     pairs = [(2, 1), (0, 3), (1, 0)]
-    got = decode_pairs(str(tmp_path / "f.btf"), header, pairs, band=3 * WIDTH)  # 4 bands
-    expected = _expected(u, sxv, model, {**kw, "cosine": model != 11}, 2)
+    got = decode_pairs(str(tmp_path / "f.btf"), header, pairs, band=3 * WIDTH + 5)  # 4 bands
+    expected = _expected(u, sxv, model, {**kw, "cosine": model in (1, 10)}, 2)
     want = np.stack([expected[v, li] for v, li in pairs])
     assert np.allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
 
@@ -314,3 +314,15 @@ def test_channels_other_than_three_the_signature_and_the_limits_of_half_floats(t
     assert r.code != 0 and "do not fit float16" in r.err, r.err
     assert no_partial_outputs(tmp_path / "h.btf")
     assert btf("export", tmp_path / "h.zarr", tmp_path / "h.btf", "--quiet").code == 0
+
+
+def test_halves_become_float32_exactly_as_numpy_converts_them():
+    from tasks.dfmf_kernel import halves_to_float32
+
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    halves = bits.view(np.float16)
+    finite = np.isfinite(halves)
+    out = np.empty(bits.shape, np.float32)
+    halves_to_float32(bits, out)
+    assert np.array_equal(out[finite], halves[finite].astype(np.float32))  # subnormals too
+    assert np.array_equal(np.signbit(out[finite]), np.signbit(halves[finite]))
