@@ -70,3 +70,22 @@ def test_a_compressed_store_exports_as_model_12_whose_sums_btf_extractor_reads(t
     decoded = np.maximum(np.exp(sums) - 1e-5, 0).reshape(ours.shape)
     assert np.allclose(decoded, ours, rtol=1e-4, atol=1e-6 * ours.max()), (
         np.abs(decoded - ours).max(), ours.max())
+
+
+@pytest.mark.slow  # a benchmark suite end to end (about 20 s)
+def test_btf_bench_formats_decodes_side_by_side_and_ingests_an_archive():
+    import argparse
+
+    from benchmarks import formats as suite
+
+    args = argparse.Namespace(sampling="ubo2003", texels="32,48", components=4, batch=64,
+                              views=2, archive=True, archive_views=2, json=None)
+    result = suite.run(args)
+    text = suite.report(result)
+    for row in result["files"]:
+        assert row["btf"]["images"] == row["btfx"]["images"] == 2 * 81
+        assert row["btf"]["whole"] > 0 and row["btfx"]["whole"] > 0
+        assert row["ingest"]["peak_rss"] > 0
+    assert "| 48^2 |" in text and "btf-extractor 1.7.0" in text
+    assert result["archive"]["images"] == 2 * 81 and result["archive"]["ingest_per_s"] > 0
+    assert "UBO2003-style zip, 162 JPEGs" in text
