@@ -49,6 +49,9 @@ from tasks.sampling import known_sampling
 from tasks.transform import DFMF_EPS, DFMF_MODELS, Transform
 
 HALF_MAX = float(np.finfo(np.float16).max)
+# From this many images on, a band of S V is converted to float32 once and multiplied by BLAS
+# (faster than the compiled product, which converts inside it and wins for a few images).
+GEMM_ROWS = 8
 # transform name -> DFMF colour model written by export
 COLOUR_MODEL = {"log": 12, "linear": 0, "ylog-uv": 9, "ylog-ulog-vlog": 10,
                 "ylog-uv-over-y": 11}
@@ -144,6 +147,8 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    from threadpoolctl import threadpool_limits
+
     from tasks.dfmf_kernel import decode_colour, halves_product
 
     lights, texels = len(header.theta_light), header.width * header.height
@@ -161,16 +166,15 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
         t1 = min(t0 + band, texels)
         for c, b in enumerate(header.channels):
             data = os.pread(fd, (t1 - t0) * b.k * b.scalar, b.sxv_offset + t0 * b.k * b.scalar)
-            if b.scalar == 2:  # Bonn's files: converted inside the product
-                bits = np.frombuffer(data, "<u2").reshape(t1 - t0, b.k)
-                halves_product(u[c], bits, out[:, t0:t1, c])
-            else:
-                sxv = np.frombuffer(data, b.dtype).reshape(t1 - t0, b.k)
-                out[:, t0:t1, c] = u[c] @ sxv.astype(np.float32).T
+            sxv = np.frombuffer(data, b.dtype).reshape(t1 - t0, b.k)
+            if b.scalar == 2 and len(rows) < GEMM_ROWS:  # converted inside the product
+                halves_product(u[c], sxv.view("<u2"), out[:, t0:t1, c])
+            else:  # converted once, then BLAS
+                out[:, t0:t1, c] = u[c] @ _as_float(sxv, np.float32).T
         decode_colour(out[:, t0:t1], model, eps, matrix, mean, scale)
 
-    try:
-        with ThreadPoolExecutor(threads) as pool:
+    try:  # the bands are the parallelism: BLAS on one thread in each
+        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
             list(pool.map(one_band, range(0, texels, band)))
     finally:
         os.close(fd)
