@@ -16,6 +16,7 @@ its colour model. ``V`` is read once, a chunk at a time.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 from pathlib import Path
@@ -135,16 +136,18 @@ def _as_float(values: np.ndarray, dtype) -> np.ndarray:
 
 
 def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
-                 band: int = 8192, threads: int = 2) -> np.ndarray:
+                 band: int | None = None, threads: int = 2) -> np.ndarray:
     """Radiance images ``(n, height, width, channel)`` of (view, light) pairs, from the file.
 
     Decoded as Bonn's readers do (:mod:`tasks.transform`'s colour models, a cosine flag
-    divided out), without a store: per band of ``band`` texels, each channel's ``S V`` rows are
+    divided out), without a store: per band of ``band`` texels (default: two bands per thread
+    for a few images, bands of a few MiB of output for many), each channel's ``S V`` rows are
     read from the file and multiplied with the pairs' rows of ``U`` (float16 converted inside
     the compiled product, :mod:`tasks.dfmf_kernel`), then decoded in place; bands run on
     ``threads`` threads. Memory holds the images and a band per thread, whatever the file's
     size.
     """
+    import threading
     from concurrent.futures import ThreadPoolExecutor
 
     from threadpoolctl import threadpool_limits
@@ -159,22 +162,32 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
     u = [np.asarray(np.memmap(path, b.dtype, "r", b.u_offset, (b.rows, b.k))[rows],
                     np.float32) for b in header.channels]
     out = np.empty((len(rows), texels, len(header.channels)), np.float32)
+    if band is None:
+        band = max(4096, min(-(-texels // (2 * threads)),
+                             (4 << 20) // (4 * len(rows) * len(header.channels))))
 
     fd = os.open(path, os.O_RDONLY)
+    local = threading.local()  # a read buffer per thread, reused band after band
 
     def one_band(t0: int) -> None:
         t1 = min(t0 + band, texels)
         for c, b in enumerate(header.channels):
-            data = os.pread(fd, (t1 - t0) * b.k * b.scalar, b.sxv_offset + t0 * b.k * b.scalar)
-            sxv = np.frombuffer(data, b.dtype).reshape(t1 - t0, b.k)
+            size = (t1 - t0) * b.k * b.scalar
+            if getattr(local, "buffer", None) is None or local.buffer.size < size:
+                local.buffer = np.empty(size, np.uint8)
+            data = local.buffer[:size]
+            if os.preadv(fd, [data], b.sxv_offset + t0 * b.k * b.scalar) != size:
+                raise BTFError(f"{path}: truncated while reading channel {c}'s S V")
+            sxv = data.view(b.dtype).reshape(t1 - t0, b.k)
             if b.scalar == 2 and len(rows) < GEMM_ROWS:  # converted inside the product
                 halves_product(u[c], sxv.view("<u2"), out[:, t0:t1, c])
             else:  # converted once, then BLAS
                 out[:, t0:t1, c] = u[c] @ _as_float(sxv, np.float32).T
         decode_colour(out[:, t0:t1], model, eps, matrix, mean, scale)
 
-    try:  # the bands are the parallelism: BLAS on one thread in each
-        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(threads) as pool:
+    try:  # the bands are the parallelism: BLAS (many images only) on one thread in each
+        with (threadpool_limits(1, user_api="blas") if len(rows) >= GEMM_ROWS
+              else contextlib.nullcontext()), ThreadPoolExecutor(threads) as pool:
             list(pool.map(one_band, range(0, texels, band)))
     finally:
         os.close(fd)

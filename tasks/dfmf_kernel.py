@@ -64,6 +64,17 @@ def halves_product(u: np.ndarray, bits: np.ndarray, out: np.ndarray) -> None:
     every row of ``u``, so the file's bytes are read once and no float32 copy is made.
     """
     n, k = u.shape
+    if n == 1:  # one image: convert and multiply in one vectorised loop, no row copy
+        for t in range(bits.shape[0]):
+            acc = np.float32(0.0)
+            for j in range(k):
+                h = np.uint32(bits[t, j])
+                magnitude = _bits_to_float32(
+                    np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
+                acc += u[0, j] * (magnitude * _MAGIC * (
+                    np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))))
+            out[0, t] = acc
+        return
     row = np.empty(k, np.float32)
     for t in range(bits.shape[0]):
         for j in range(k):

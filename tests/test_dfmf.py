@@ -326,3 +326,45 @@ def test_halves_become_float32_exactly_as_numpy_converts_them():
     halves_to_float32(bits, out)
     assert np.array_equal(out[finite], halves[finite].astype(np.float32))  # subnormals too
     assert np.array_equal(np.signbit(out[finite]), np.signbit(halves[finite]))
+
+
+def test_inspect_quilt_and_enlarge_take_an_ingested_file(tmp_path, btf):
+    rng = np.random.default_rng(15)
+    views = [(0.0, 0.0), (0.4, 1.0)]
+    lights = [(0.0, 0.0), (0.6, 0.5), (0.9, 2.5)]
+    rows, side, ks = 6, 64, (3, 2, 2)
+    y, x = np.mgrid[0:side, 0:side] / side
+    texture = np.sin(2 * np.pi * 4 * x) * np.cos(2 * np.pi * 3 * y)  # structure to quilt
+    u = [rng.normal(size=(rows, k)) * 0.05 for k in ks]
+    sxv = [np.c_[np.ones(side * side), texture.ravel(),
+                 rng.normal(size=(side * side, k - 2)) * 0.1] for k in ks]
+    u[0][:, 0], u[0][:, 1] = -1.0, 0.4
+    write_dfmf(tmp_path / "m.btf", views=views, lights=lights, u=u, sxv=sxv, width=side,
+               height=side, color_model=11)
+    assert btf("ingest", tmp_path / "m.btf", tmp_path / "m.zarr", "--chunk", "32",
+               "--quiet").code == 0
+    r = btf("inspect", tmp_path / "m.zarr")
+    # 7 components in the file, but ones and the texture repeat in every channel: rank 3
+    assert r.code == 0 and "compressed store" in r.out and "rank 3," in r.out, r.out
+    r = btf("quilt", tmp_path / "m.zarr", tmp_path / "q.zarr", "--corners", "1", "--block",
+            "16", "--overlap", "4", "--quiet")
+    assert r.code == 0, r.err
+    q = zarr.open_group(tmp_path / "q.zarr", mode="r")
+    assert q.attrs["transform"]["name"] == "ylog-uv-over-y"
+    # the enlarged store keeps the sample's colour model, and meets its photo
+    assert btf("reconstruct", tmp_path / "m.zarr", tmp_path / "photo.zarr", "--view", "0",
+               "--light", "1", "--quiet").code == 0
+    assert btf("crop", tmp_path / "m.zarr", tmp_path / "s.zarr", "--region", "0:32,0:32",
+               "--quiet").code != 0  # crop takes radiance stores: the sample comes from a file
+    small = [c.reshape(side, side, -1)[:32, :32].reshape(32 * 32, -1) for c in sxv]
+    write_dfmf(tmp_path / "s.btf", views=views, lights=lights, u=u, sxv=small, width=32,
+               height=32, color_model=11)
+    assert btf("ingest", tmp_path / "s.btf", tmp_path / "s.zarr", "--quiet").code == 0
+    r = btf("enlarge", tmp_path / "s.zarr", tmp_path / "photo.zarr", tmp_path / "e.zarr",
+            "--sample-origin", "0,0", "--levels", "2", "--patch", "5", "--quiet")
+    assert r.code == 0, r.err
+    e = open_compressed(tmp_path / "e.zarr")
+    assert e.attrs["transform"]["name"] == "ylog-uv-over-y"
+    photo = zarr.open_group(tmp_path / "photo.zarr", mode="r")[RADIANCE][0, 0]
+    got = e[RADIANCE].values[0, 1]
+    assert np.abs(got - photo).mean() < 0.05 * photo.mean()  # the photo is met
