@@ -136,21 +136,19 @@ class Transform:
 
     def decode_rows(self, values: np.ndarray) -> np.ndarray:
         """Radiance of BTF matrix rows ``(rows, texels)`` whose channel index runs fastest."""
-        group = self.channels
-        if group is None:
-            return self.decode(values)
-        rows, texels = values.shape
-        return self.decode(values.reshape(rows // group, group, texels), axis=1).reshape(
-            rows, texels)
+        return self._by_rows(self.decode, values)
 
     def encode_rows(self, radiance: np.ndarray) -> np.ndarray:
         """Values of radiance rows ``(rows, texels)`` whose channel index runs fastest."""
+        return self._by_rows(self.encode, radiance)
+
+    def _by_rows(self, fn, rows: np.ndarray) -> np.ndarray:
+        """``fn`` on matrix rows, each layer's channels taken together where they must be."""
         group = self.channels
         if group is None:
-            return self.encode(radiance)
-        rows, texels = radiance.shape
-        return self.encode(radiance.reshape(rows // group, group, texels), axis=1).reshape(
-            rows, texels)
+            return fn(rows)
+        n, texels = rows.shape
+        return fn(rows.reshape(n // group, group, texels), axis=1).reshape(n, texels)
 
 
 def dfmf_colour_matrix(model: int, matrix: np.ndarray, mean: np.ndarray, channels: int
