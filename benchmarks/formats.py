@@ -98,7 +98,7 @@ _OURS = r"""
 import json, resource, sys, time
 from pipeline.dfmf_io import decode_pairs, read_header
 
-path, batch, views, repeat = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), 5
+path, batch, views, repeat = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), 15
 t = time.perf_counter()
 h = read_header(path)
 opened = time.perf_counter() - t
@@ -127,7 +127,7 @@ _BTFX = r"""
 import json, resource, sys, time
 from btf_extractor import Ubo2014
 
-path, views, repeat = sys.argv[1], int(sys.argv[2]), 5
+path, views, repeat = sys.argv[1], int(sys.argv[2]), 15
 t = time.perf_counter()
 b = Ubo2014(path)
 opened = time.perf_counter() - t

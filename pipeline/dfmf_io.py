@@ -18,7 +18,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import mmap
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -142,14 +146,12 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
     Decoded as Bonn's readers do (:mod:`tasks.transform`'s colour models, a cosine flag
     divided out), without a store: per band of ``band`` texels (default: two bands per thread
     for a few images, bands of a few MiB of output for many), each channel's ``S V`` rows are
-    read from the file and multiplied with the pairs' rows of ``U`` (float16 converted inside
-    the compiled product, :mod:`tasks.dfmf_kernel`), then decoded in place; bands run on
-    ``threads`` threads. Memory holds the images and a band per thread, whatever the file's
-    size.
+    multiplied where the file is mapped with the pairs' rows of ``U`` (float16 converted by
+    the CPU inside the compiled product, :mod:`tasks.dfmf_kernel`), then decoded in place;
+    bands run on the calling thread and ``threads - 1`` others. Memory holds the images and
+    the bands in flight, whatever the file's size: a band's pages of the file are dropped from
+    the process once it is done.
     """
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
-
     from threadpoolctl import threadpool_limits
 
     from tasks.dfmf_kernel import decode_colour, halves_product
@@ -159,39 +161,75 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
     model, eps, matrix, mean = _kernel_model(header)
     scale = (1.0 / np.maximum(np.cos(np.asarray(header.theta_light)[rows % lights]), 1e-6)
              if header.cosine else np.ones(len(rows))).astype(np.float32)
-    u = [np.asarray(np.memmap(path, b.dtype, "r", b.u_offset, (b.rows, b.k))[rows],
-                    np.float32) for b in header.channels]
     out = np.empty((len(rows), texels, len(header.channels)), np.float32)
     if band is None:
         band = max(4096, min(-(-texels // (2 * threads)),
                              (4 << 20) // (4 * len(rows) * len(header.channels))))
 
-    fd = os.open(path, os.O_RDONLY)
-    local = threading.local()  # a read buffer per thread, reused band after band
+    # The file is mapped, not read: a band's S V is multiplied where the page cache holds it
+    # (no copy), and its pages leave this process once the band is done, so resident memory
+    # holds the images and the bands in flight, whatever the file's size.
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+        if len(mapped) < header.end:
+            raise BTFError(f"{path}: truncated: {len(mapped)} bytes where the header "
+                           f"promises {header.end}")
+        u_rows = [_as_float(np.frombuffer(mapped, b.dtype, b.rows * b.k, b.u_offset)
+                            .reshape(b.rows, b.k)[rows], np.float32) for b in header.channels]
 
-    def one_band(t0: int) -> None:
-        t1 = min(t0 + band, texels)
-        for c, b in enumerate(header.channels):
-            size = (t1 - t0) * b.k * b.scalar
-            if getattr(local, "buffer", None) is None or local.buffer.size < size:
-                local.buffer = np.empty(size, np.uint8)
-            data = local.buffer[:size]
-            if os.preadv(fd, [data], b.sxv_offset + t0 * b.k * b.scalar) != size:
-                raise BTFError(f"{path}: truncated while reading channel {c}'s S V")
-            sxv = data.view(b.dtype).reshape(t1 - t0, b.k)
-            if b.scalar == 2 and len(rows) < GEMM_ROWS:  # converted inside the product
-                halves_product(u[c], sxv.view("<u2"), out[:, t0:t1, c])
-            else:  # converted once, then BLAS
-                out[:, t0:t1, c] = u[c] @ _as_float(sxv, np.float32).T
-        decode_colour(out[:, t0:t1], model, eps, matrix, mean, scale)
+        def one_band(t0: int) -> None:
+            t1 = min(t0 + band, texels)
+            for c, b in enumerate(header.channels):
+                start, size = b.sxv_offset + t0 * b.k * b.scalar, (t1 - t0) * b.k * b.scalar
+                sxv = np.frombuffer(mapped, b.dtype, (t1 - t0) * b.k, start)
+                sxv = sxv.reshape(t1 - t0, b.k)
+                if b.scalar == 2 and len(rows) < GEMM_ROWS:  # converted inside the product
+                    halves_product(u_rows[c], sxv.view("<u2"), out[:, t0:t1, c])
+                else:  # converted once, then BLAS
+                    out[:, t0:t1, c] = u_rows[c] @ _as_float(sxv, np.float32).T
+                del sxv  # the buffer export ends before the pages are dropped
+                _release(mapped, start, size)
+            decode_colour(out[:, t0:t1], model, eps, matrix, mean, scale)
 
-    try:  # the bands are the parallelism: BLAS (many images only) on one thread in each
+        # the bands are the parallelism: BLAS (many images only) on one thread in each
         with (threadpool_limits(1, user_api="blas") if len(rows) >= GEMM_ROWS
-              else contextlib.nullcontext()), ThreadPoolExecutor(threads) as pool:
-            list(pool.map(one_band, range(0, texels, band)))
-    finally:
-        os.close(fd)
+              else contextlib.nullcontext()):
+            _run_shared(one_band, range(0, texels, band), threads)
     return out.reshape(len(rows), header.height, header.width, -1)
+
+
+@functools.cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """Threads that decode bands, kept between calls (starting them costs about a tenth of a
+    millisecond, a fair part of one small image's time)."""
+    return ThreadPoolExecutor(threads, thread_name_prefix="btf-dfmf")
+
+
+def _run_shared(work, items, threads: int) -> None:
+    """``work(item)`` for every item, on the calling thread and ``threads - 1`` kept ones,
+    each taking the next item when it is free (the caller works instead of waiting)."""
+    lock, todo = threading.Lock(), iter(items)
+
+    def drain() -> None:
+        while True:
+            with lock:
+                item = next(todo, None)
+            if item is None:
+                return
+            work(item)
+
+    helpers = [_pool(threads - 1).submit(drain) for _ in range(threads - 1)]
+    drain()
+    for helper in helpers:
+        helper.result()
+
+
+def _release(mapped: mmap.mmap, start: int, size: int) -> None:
+    """Drop the pages of ``mapped[start:start + size]`` from this process (not from the page
+    cache): the whole pages inside the range, so a neighbouring band's are kept."""
+    first = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE
+    last = (start + size) // mmap.PAGESIZE * mmap.PAGESIZE
+    if last > first:
+        mapped.madvise(mmap.MADV_DONTNEED, first, last - first)
 
 
 def _kernel_model(header: DfmfHeader) -> tuple[int, float, np.ndarray, np.ndarray]:

@@ -1,13 +1,16 @@
 """Compiled loops (numba) that decode DFMF files: float16 to float32, and the colour models.
 
-numpy converts float16 at about 3.4 ns a value here (no F16C): slower than the products
-themselves. :func:`halves_to_float32` converts with integer operations and one bit cast per
-value, which LLVM vectorises (0.3 ns a value); :func:`halves_product` converts inside the
-product with a channel's ``U`` rows, so a file's bytes are read once. :func:`decode_colour`
-applies a colour model to a block of channel values in one pass, where numpy's expression
-would make a temporary per step. All release the GIL (the caller runs bands on threads) and
-use no numba threads or disk cache, as :mod:`tasks.csr_kernel`. Kept apart from
-:mod:`tasks.dfmf`, so that reading a header does not load numba.
+numpy converts float16 at about 3.4 ns a value here (it does not use the CPU's conversion
+instruction): slower than the products themselves. :func:`half` converts one value with the
+CPU's instruction where it has one (x86's F16C, as every x86-64 CPU since 2013; ARM's
+``fcvt``), which LLVM vectorises (8 values an instruction), or else with integer operations
+and one bit cast. :func:`halves_to_float32` converts arrays; :func:`halves_product` converts
+inside the product with a channel's ``U`` rows, so a file's bytes are read once and no
+float32 copy is made. :func:`decode_colour` applies a colour model to a block of channel
+values in one pass, where numpy's expression would make a temporary per step. All release
+the GIL (the caller runs bands on threads) and use no numba threads or disk cache, as
+:mod:`tasks.csr_kernel`. Kept apart from :mod:`tasks.dfmf`, so that reading a header does not
+load numba.
 """
 
 from __future__ import annotations
@@ -36,23 +39,59 @@ def _bits_to_float32(typingctx, bits):
     return types.float32(types.uint32), codegen
 
 
+@intrinsic
+def _half_instruction(typingctx, bits):
+    """The float16 whose bit pattern is the uint16 ``bits``, as float32, by the CPU's own
+    conversion (LLVM's ``fpext half``): exact for every value, infinities and NaN too."""
+    if not isinstance(bits, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+
+    return types.float32(types.uint16), codegen
+
+
 _MAGIC = np.float32(2.0**112)  # rescales a half's exponent field shifted into a float's
 
 
-@numba.njit(nogil=True, fastmath=False)
-def halves_to_float32(bits: np.ndarray, out: np.ndarray) -> None:
-    """Float32 values of float16 ``bits`` (uint16, any shape, C order) into ``out``.
+@numba.njit(inline="always")
+def _half_integer(bits):
+    """The float16 ``bits`` as float32 by integer operations: the exponent and mantissa fields
+    moved into a float32's and scaled by 2^112 give every normal and subnormal half exactly
+    (and 0); infinities and NaN come out as large finite values (a DFMF file holds neither:
+    its readers would fail on them too)."""
+    h = np.uint32(bits)
+    magnitude = _bits_to_float32(np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
+    sign = np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))
+    return magnitude * _MAGIC * sign
 
-    The exponent and mantissa fields moved into a float32's and scaled by 2^112 give every
-    normal and subnormal half exactly (and 0); infinities and NaN come out as large finite
-    values (a DFMF file holds neither: its readers would fail on them too).
-    """
+
+def _has_half_instruction() -> bool:
+    """Whether the JIT's target converts float16 in one instruction (else LLVM would call a
+    runtime helper that numba's linker may not have)."""
+    import platform
+
+    import llvmlite.binding as llvm
+
+    if platform.machine().lower() in ("aarch64", "arm64"):
+        return True
+    try:
+        return bool(llvm.get_host_cpu_features().get("f16c", False))
+    except RuntimeError:  # features unknown: take the portable path
+        return False
+
+
+HALF_INSTRUCTION = _has_half_instruction()
+half = _half_instruction if HALF_INSTRUCTION else _half_integer
+
+
+@numba.njit(nogil=True)
+def halves_to_float32(bits: np.ndarray, out: np.ndarray) -> None:
+    """Float32 values of float16 ``bits`` (uint16, any shape, C order) into ``out``."""
     flat, dest = bits.ravel(), out.ravel()
     for i in range(flat.size):
-        h = np.uint32(flat[i])
-        magnitude = _bits_to_float32(np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
-        sign = np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))
-        dest[i] = magnitude * _MAGIC * sign
+        dest[i] = half(flat[i])
 
 
 @numba.njit(nogil=True, fastmath=True)
@@ -60,28 +99,21 @@ def halves_product(u: np.ndarray, bits: np.ndarray, out: np.ndarray) -> None:
     """``out = u @ halves(bits)^T``: rows ``u`` ``(n, k)`` float32 times float16 ``bits``.
 
     ``bits`` ``(texels, k)`` uint16 are a channel's ``S V`` rows as a DFMF file stores them;
-    each texel's row is converted once (as :func:`halves_to_float32`) and multiplied with
-    every row of ``u``, so the file's bytes are read once and no float32 copy is made.
+    each texel's row is converted once and multiplied with every row of ``u``, so the file's
+    bytes are read once and no float32 copy is made.
     """
     n, k = u.shape
     if n == 1:  # one image: convert and multiply in one vectorised loop, no row copy
         for t in range(bits.shape[0]):
             acc = np.float32(0.0)
             for j in range(k):
-                h = np.uint32(bits[t, j])
-                magnitude = _bits_to_float32(
-                    np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
-                acc += u[0, j] * (magnitude * _MAGIC * (
-                    np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))))
+                acc += u[0, j] * half(bits[t, j])
             out[0, t] = acc
         return
     row = np.empty(k, np.float32)
     for t in range(bits.shape[0]):
         for j in range(k):
-            h = np.uint32(bits[t, j])
-            magnitude = _bits_to_float32(np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
-            row[j] = (magnitude * _MAGIC
-                      * (np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))))
+            row[j] = half(bits[t, j])
         for i in range(n):
             acc = np.float32(0.0)
             for j in range(k):

@@ -221,11 +221,13 @@ def test_images_decoded_straight_from_the_file_match_the_reference(tmp_path, mod
     rng = np.random.default_rng(11)
     u, sxv, kw = _write(tmp_path / "f.btf", rng, model, scalar_size=2, cosine=model in (1, 10))
     header = read_header(tmp_path / "f.btf")
-    pairs = [(2, 1), (0, 3), (1, 0)]
-    got = decode_pairs(str(tmp_path / "f.btf"), header, pairs, band=3 * WIDTH + 5)  # 4 bands
     expected = _expected(u, sxv, model, {**kw, "cosine": model in (1, 10)}, 2)
-    want = np.stack([expected[v, li] for v, li in pairs])
-    assert np.allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
+    every = [(v, li) for v in range(len(VIEWS)) for li in range(len(LIGHTS))][::-1]
+    # one image, a few (the compiled product) and many (converted once, then BLAS)
+    for pairs in ([(2, 1)], [(2, 1), (0, 3), (1, 0)], every):
+        got = decode_pairs(str(tmp_path / "f.btf"), header, pairs, band=3 * WIDTH + 5)
+        want = np.stack([expected[v, li] for v, li in pairs])  # 4 bands above: a short one
+        assert np.allclose(got, want, rtol=1e-4, atol=1e-5 * np.abs(want).max())
 
 
 def test_a_cosine_flag_is_folded_into_linear_models_and_refused_with_log_models(tmp_path,
@@ -316,16 +318,32 @@ def test_channels_other_than_three_the_signature_and_the_limits_of_half_floats(t
     assert btf("export", tmp_path / "h.zarr", tmp_path / "h.btf", "--quiet").code == 0
 
 
-def test_halves_become_float32_exactly_as_numpy_converts_them():
-    from tasks.dfmf_kernel import halves_to_float32
+@pytest.mark.parametrize("way", ["chosen", "integer"])
+def test_halves_become_float32_exactly_as_numpy_converts_them(way):
+    """Both conversions: the one this CPU uses (its instruction where it has one) and the
+    integer one a CPU without it would use."""
+    import numba
 
+    from tasks import dfmf_kernel
+
+    if way == "integer":
+        half = dfmf_kernel._half_integer
+
+        @numba.njit
+        def convert(bits, out):
+            for i in range(bits.size):
+                out[i] = half(bits[i])
+    else:
+        convert = dfmf_kernel.halves_to_float32
     bits = np.arange(1 << 16, dtype=np.uint16)
     halves = bits.view(np.float16)
     finite = np.isfinite(halves)
     out = np.empty(bits.shape, np.float32)
-    halves_to_float32(bits, out)
+    convert(bits, out)
     assert np.array_equal(out[finite], halves[finite].astype(np.float32))  # subnormals too
     assert np.array_equal(np.signbit(out[finite]), np.signbit(halves[finite]))
+    if dfmf_kernel.HALF_INSTRUCTION and way == "chosen":  # the instruction's are exact too
+        assert np.array_equal(out, halves.astype(np.float32), equal_nan=True)
 
 
 def test_inspect_quilt_and_enlarge_take_an_ingested_file(tmp_path, btf):
