@@ -463,3 +463,17 @@ def test_archive_names():
     assert bonn_angles("UBO2003/tv030_pv030/tl000_pl000_tv030_pv030.jpg") is None
     assert utia_angles("tv000_pv000/tl015_pl060_tv000_pv000.png") == (15, 60, 0, 0)
     assert utia_angles("tl15_pl60_tv0_pv0.png") is None  # btf export's names, not UTIA's
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("decoding", ["srgb", "gamma2.2", "none"])
+def test_display_codes_become_the_curve_of_their_value(dtype, decoding):
+    from tasks.colour import decode_display, decode_values
+
+    top = np.iinfo(dtype).max
+    codes = np.random.default_rng(3).permutation(np.arange(top + 1, dtype=dtype))
+    pixels = codes[: (top + 1) // 3 * 3].reshape(-1, 1, 3)[::-1]  # any order, not contiguous
+    want = decode_values(pixels.astype(np.float64) / top, decoding)
+    got = decode_display(pixels, decoding)
+    assert got.dtype == np.float32 and got.shape == pixels.shape
+    assert np.allclose(got, want, rtol=2e-6, atol=1e-7)
