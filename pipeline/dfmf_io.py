@@ -199,14 +199,18 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
 
 @functools.cache
 def _pool(threads: int) -> ThreadPoolExecutor:
-    """Threads that decode bands, kept between calls (starting them costs about a tenth of a
-    millisecond, a fair part of one small image's time)."""
+    """Threads that decode bands, kept between calls.
+
+    Starting them costs about a tenth of a millisecond, a fair part of one small image's time.
+    """
     return ThreadPoolExecutor(threads, thread_name_prefix="btf-dfmf")
 
 
 def _run_shared(work, items, threads: int) -> None:
-    """``work(item)`` for every item, on the calling thread and ``threads - 1`` kept ones,
-    each taking the next item when it is free (the caller works instead of waiting)."""
+    """``work(item)`` for every item, on the calling thread and ``threads - 1`` kept ones.
+
+    Each takes the next item when it is free: the caller works instead of waiting.
+    """
     lock, todo = threading.Lock(), iter(items)
 
     def drain() -> None:
@@ -224,8 +228,10 @@ def _run_shared(work, items, threads: int) -> None:
 
 
 def _release(mapped: mmap.mmap, start: int, size: int) -> None:
-    """Drop the pages of ``mapped[start:start + size]`` from this process (not from the page
-    cache): the whole pages inside the range, so a neighbouring band's are kept."""
+    """Drop the pages of ``mapped[start:start + size]`` from this process, not the page cache.
+
+    Only the whole pages inside the range: a neighbouring band's are kept.
+    """
     first = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE
     last = (start + size) // mmap.PAGESIZE * mmap.PAGESIZE
     if last > first:

@@ -41,8 +41,10 @@ def _bits_to_float32(typingctx, bits):
 
 @intrinsic
 def _half_instruction(typingctx, bits):
-    """The float16 whose bit pattern is the uint16 ``bits``, as float32, by the CPU's own
-    conversion (LLVM's ``fpext half``): exact for every value, infinities and NaN too."""
+    """The float16 whose bit pattern is the uint16 ``bits``, as float32, by the CPU.
+
+    LLVM's ``fpext half``: exact for every value, infinities and NaN too.
+    """
     if not isinstance(bits, types.Integer):
         return None
 
@@ -57,10 +59,12 @@ _MAGIC = np.float32(2.0**112)  # rescales a half's exponent field shifted into a
 
 @numba.njit(inline="always")
 def _half_integer(bits):
-    """The float16 ``bits`` as float32 by integer operations: the exponent and mantissa fields
-    moved into a float32's and scaled by 2^112 give every normal and subnormal half exactly
-    (and 0); infinities and NaN come out as large finite values (a DFMF file holds neither:
-    its readers would fail on them too)."""
+    """The float16 ``bits`` as float32 by integer operations.
+
+    The exponent and mantissa fields moved into a float32's and scaled by 2^112 give every
+    normal and subnormal half exactly (and 0); infinities and NaN come out as large finite
+    values (a DFMF file holds neither: its readers would fail on them too).
+    """
     h = np.uint32(bits)
     magnitude = _bits_to_float32(np.uint32((h & np.uint32(0x7FFF)) << np.uint32(13)))
     sign = np.float32(1.0) - np.float32(2.0) * np.float32(h >> np.uint32(15))
@@ -68,8 +72,10 @@ def _half_integer(bits):
 
 
 def _has_half_instruction() -> bool:
-    """Whether the JIT's target converts float16 in one instruction (else LLVM would call a
-    runtime helper that numba's linker may not have)."""
+    """Whether the JIT's target converts float16 in one instruction.
+
+    Without one, LLVM would call a runtime helper that numba's linker may not have.
+    """
     import platform
 
     import llvmlite.binding as llvm
