@@ -38,7 +38,7 @@ def kernel_reference(material: str, size: int, sampling: str) -> float:
     """Seconds to render the store's blocks serially with the bare kernels (no dask, no zarr)."""
     import numpy as np
 
-    from pipeline.graphs.blocks import TASK_TEXELS
+    from pipeline.graphs.blocks import task_side
     from pipeline.stores.radiance import Layout
     from tasks.materials import Material
     from tasks.sampling import parse_sampling
@@ -51,7 +51,7 @@ def kernel_reference(material: str, size: int, sampling: str) -> float:
     layout = Layout()
     chunk, shard = layout.spatial(size)
     unit = shard or chunk
-    step = unit * max(1, TASK_TEXELS // unit)  # the pipeline's task block (store.task_block)
+    step = task_side(unit)  # the pipeline's task block
     start = time.perf_counter()
     for y0 in range(0, size, step):
         for x0 in range(0, size, step):

@@ -85,7 +85,7 @@ def _main_source(tile) -> np.ndarray:
 
 
 def _planning(store: Path, args, session) -> tuple[dict, object, object]:
-    from pipeline.stages.reference import compute_reference
+    from pipeline.graphs.reference import compute_reference
     from pipeline.stores import open_layers
     from pipeline.stores.base import RADIANCE
     from tasks.corner_tiles import plan_tiles

@@ -175,6 +175,22 @@ def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool =
         yield from _fill(_resumable(path, resume), path, shown, directory)
 
 
+def write_whole(out: str, data: bytes, overwrite: bool) -> None:
+    """The file ``out`` written whole: a page, a picture, a record.
+
+    Locally through :func:`atomic_output` (a sibling and a rename); in object storage as one
+    ``PUT`` (an object appears complete or not at all).
+    """
+    location = storage.parse(out, what="output")
+    if not storage.is_url(location):
+        with atomic_output(out, directory=False, overwrite=overwrite) as tmp:
+            Path(tmp).write_bytes(data)
+        return
+    if storage.exists(location) and not overwrite:
+        raise BTFError(f"{out}: already exists; pass --overwrite to replace it")
+    storage.write(location, data)
+
+
 def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]:
     """The body of :func:`atomic_output` once ``tmp`` is chosen: yield it, then swap."""
     try:
@@ -203,6 +219,39 @@ def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]
         _remove(tmp)
         raise
     _remove(old)
+
+
+@contextmanager
+def atomic_subtree(root: str, name: str) -> Iterator[str]:
+    """Yield the path, inside store ``root``, of a hidden group to write in place of ``name``.
+
+    When the block succeeds the new group replaces ``name`` (the levels of ``btf pyramid``);
+    when it fails, it is removed and ``name`` is left as it was. Partial groups a killed run
+    left are removed first. Locally the swap is two renames, so the old group stays whole
+    until the new one is in place. In object storage there is no rename: the old group is
+    deleted, then the new one copied in on the server (a run killed in between leaves a store
+    without ``name``, which the stage that wrote it makes again).
+    """
+    for stale in storage.children(root):  # left by a killed run
+        if stale.startswith(f".{name}."):
+            storage.remove(storage.join(root, stale))
+    partial = f".{name}.partial-{uuid.uuid4().hex[:8]}"
+    try:
+        yield partial
+    except BaseException:
+        storage.remove(storage.join(root, partial))
+        raise
+    target, new = storage.join(root, name), storage.join(root, partial)
+    if storage.is_url(root):
+        storage.remove(target)
+        storage.copy_tree(new, target)
+        storage.remove(new)
+        return
+    old = storage.join(root, f".{name}.old-{uuid.uuid4().hex[:8]}")
+    if Path(target).exists():
+        Path(target).rename(old)
+    Path(new).rename(target)
+    storage.remove(old)
 
 
 def _root_attrs(location: str) -> dict | None:

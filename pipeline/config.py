@@ -25,8 +25,8 @@ A ``scene:`` section (a scene spec, :mod:`pipeline.scene_spec`, plus its ``out``
 the stage that makes its source computes only what the scene reads: ``reconstruct`` only the
 scene's layers and texels, ``quilt`` and ``roller`` of a radiance store apply their tiles only
 to the scene's layers (all through their ``for_scene`` parameter, set to the config). Other
-stages compute their whole output; :data:`WHOLE` says why, and ``btf run --check`` prints it
-per stage.
+stages compute their whole output; their declaration says why (``Stage.whole``), and ``btf run
+--check`` prints it per stage.
 """
 
 from __future__ import annotations
@@ -43,34 +43,26 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, from_mapping, names_path, paths
 from pipeline.provenance import command_line, up_to_date
 from pipeline.session import RuntimeOptions, Session, check_scheduler
-from pipeline.stages import STAGES
+from pipeline.stages import STAGES, Stage
 from pipeline.yaml_lines import Mapping
 
 TOP_KEYS = ("description", "scheduler", "workers", "stages", "scene")
-RESTRICTABLE = ("reconstruct", "quilt", "roller")
-WHOLE = {
-    "generate": "a measurement: the stages after it read all of it",
-    "ingest": "a measurement: the stages after it read all of it",
-    "crop": "cuts what its own region, light and view say",
-    "compress": "the SVD needs every layer and texel",
-    "enlarge": "Texture Optimization synthesizes the whole target; its eigentextures serve "
-               "every layer",
-    "pyramid": "levels are made for the whole store",
-    "fit": "fits every texel over all lights",
-}
-
-
 @dataclasses.dataclass(frozen=True)
 class PlannedStage:
-    """A validated stage of a run: its name, parameters and where it is in the file."""
+    """A validated stage of a run: its parameters and where it is in the file."""
 
-    name: str
+    stage: Stage
     params: Any
     where: str
 
+    @property
+    def name(self) -> str:
+        """The stage's name (its subcommand)."""
+        return self.stage.name
+
 
 @dataclasses.dataclass(frozen=True)
-class Plan:
+class RunConfig:
     """A validated run config."""
 
     path: str
@@ -97,7 +89,7 @@ def _apply_overrides(stages: list, overrides: list[str], path: str) -> None:
             params[key] = yaml.safe_load(raw)
 
 
-def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
+def load(path: str | Path, overrides: tuple[str, ...] = ()) -> RunConfig:
     """Read and validate a run config (see the module docstring); nothing runs.
 
     Raises
@@ -158,11 +150,11 @@ def load(path: str | Path, overrides: tuple[str, ...] = ()) -> Plan:
                 fail(lines.get(field.name, line), f"{where}.{field.name}",
                      f"{value!r} does not exist and no earlier stage makes it")
         made.update(storage.parse(p) for p in paths(params, "out"))
-        planned.append(PlannedStage(name, params, f"{path}:{line}: {where}"))
+        planned.append(PlannedStage(STAGES[name], params, f"{path}:{line}: {where}"))
     if "scene" not in data:
-        return Plan(path, tuple(planned), scheduler, workers)
+        return RunConfig(path, tuple(planned), scheduler, workers)
     spec, out = _scene_section(data, path, made, fail)
-    return Plan(path, _restricted(tuple(planned), spec, path), scheduler, workers, spec, out)
+    return RunConfig(path, _restricted(tuple(planned), spec, path), scheduler, workers, spec, out)
 
 
 def _scene_section(data, path: str, made: set, fail):
@@ -201,7 +193,7 @@ def producer(stages, source: str) -> int | None:
 def _restricted(stages: tuple, spec, path: str) -> tuple:
     """The stages, the scene source's producer set to compute only what the scene needs."""
     k = producer(stages, spec.source)
-    if k is None or stages[k].name not in RESTRICTABLE or _read_later(stages, k, spec.source):
+    if k is None or not stages[k].stage.for_scene or _read_later(stages, k, spec.source):
         return stages
     step = stages[k]
     try:
@@ -216,7 +208,7 @@ def _read_later(stages, k: int, source: str) -> bool:
     return any(names_path(s.params, "in", source) for s in stages[k + 1:])
 
 
-def scene_lines(plan: Plan) -> list[str]:
+def scene_lines(plan: RunConfig) -> list[str]:
     """What each stage computes for the scene, in stored chunks (``btf run --check``)."""
     from pipeline import planning
 
@@ -241,35 +233,35 @@ def scene_lines(plan: Plan) -> list[str]:
             lines.append(f"  {step.name}: restricted to the scene: {what}")
         elif i == k and _read_later(plan.stages, k, plan.scene.source):
             lines.append(f"  {step.name}: {whole}: a later stage reads its output too")
-        elif i == k and step.name in RESTRICTABLE:
+        elif i == k and step.stage.for_scene:
             lines.append(f"  {step.name}: {whole}: it was given its own light, view or region, "
                          "or writes EXR files")
         elif not outputs:
             lines.append(f"  {step.name}: writes no store")
         else:
-            reason = WHOLE.get(step.name, "it makes no store the scene reads")
+            reason = step.stage.whole or "it makes no store the scene reads"
             lines.append(f"  {step.name}: {whole}: {reason}")
     return lines
 
 
-def _restricted_count(step, plan: Plan, shapes: dict) -> str | None:
+def _restricted_count(step, plan: RunConfig, shapes: dict) -> str | None:
     """Stored chunks (or blocks of layers) a restricted stage computes, out of all."""
     import math
 
     from pipeline.planning import planned_directions
-    from pipeline.stages.scene import needs_of
+    from pipeline.scene_needs import needs_of
 
     d = planned_directions(plan.stages, step.params.store)
     src = shapes.get(step.params.store)
     if d is None or src is None or not src.radiance:
         return None  # its input's shape or directions are not known before it runs
     if step.name == "reconstruct":
-        from pipeline.graphs.blocks import TASK_TEXELS
+        from pipeline.graphs.blocks import task_side
 
         ny, nx = src.radiance[2:4]
         needs = needs_of(plan.scene, d, (ny, nx))
         chunk, dl = step.params.chunk, step.params.dir_chunk
-        side = chunk * max(1, TASK_TEXELS // chunk)  # written in task blocks of whole chunks
+        side = task_side(chunk)  # written in task blocks of whole chunks
         kept = total = 0
         for view in range(d.views):
             for l0 in range(0, d.lights, dl):
@@ -314,12 +306,12 @@ def peak_rss() -> int | None:
     return None
 
 
-def execute(plan: Plan, session: Session) -> None:
+def execute(plan: RunConfig, session: Session) -> None:
     """Run the stages of a validated plan in order, skipping up-to-date stores."""
     start = time.perf_counter()
     skipped = 0
     for k, step in enumerate(plan.stages, 1):
-        stage = STAGES[step.name]
+        stage = step.stage
         outputs = paths(step.params, "out")
         header = f"[{k}/{len(plan.stages)}] {step.name}" + (f" -> {outputs[0]}" if outputs
                                                           else "")
@@ -348,7 +340,7 @@ def execute(plan: Plan, session: Session) -> None:
                 f"{time.perf_counter() - start:.1f} s")
 
 
-def runtime_for(plan: Plan, options: RuntimeOptions, given: set[str]) -> RuntimeOptions:
+def runtime_for(plan: RunConfig, options: RuntimeOptions, given: set[str]) -> RuntimeOptions:
     """Runtime options: the command line's where given, else the config's, else defaults."""
     changes = {}
     if "scheduler" not in given and plan.scheduler is not None:

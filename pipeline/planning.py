@@ -5,7 +5,9 @@ passes over its input, the peak memory of one task and of the client, and an est
 from rates measured on this machine by ``btf bench`` (stored in :func:`rates_path`; built-in
 rates, measured on the project's 2-core test machine and listed in BENCHMARKS.md, stand in for
 suites not yet run here). Shapes come from the input stores' metadata, or from the plan of the
-earlier stage that makes them: nothing is read or computed.
+earlier stage that makes them: nothing is read or computed. Each stage estimates itself (its
+declaration's ``estimate``, :class:`pipeline.stage.Stage`, with :class:`StageEstimate`,
+:class:`Shape` and :func:`rate` from here); this module is the engine and imports no stage.
 
 A plan whose per-worker memory exceeds the workers' limit (or whose client memory exceeds the
 machine's) is refused before anything runs, naming the stage and the option to change.
@@ -88,20 +90,22 @@ class Shape:
     @property
     def side(self) -> int:
         """Texels per side of a task block (as :func:`pipeline.graphs.blocks.task_block`)."""
-        return _task_side(self.unit or self.chunk)
+        from pipeline.graphs.blocks import task_side
+
+        return task_side(self.unit or self.chunk)
 
 
 @dataclasses.dataclass
-class StagePlan:
+class StageEstimate:
     """The estimate of one stage."""
 
     name: str
     where: str
-    read: int = 0
-    written: int = 0
+    bytes_read: int = 0
+    bytes_written: int = 0
     tasks: int = 0
     passes: int = 0
-    reads: int = 0  # reads of the input (a pass may read it twice)
+    input_reads: int = 0  # reads of the input (a pass may read it twice)
     task_bytes: int = 0
     client_bytes: int = 0
     core_seconds: float | None = None  # work that parallelises over the workers' cores
@@ -110,7 +114,7 @@ class StagePlan:
     option: str = ""
     note: str = ""
     # the same stage in its other mode (compress: one pass or several), for the user to compare
-    alternatives: list[StagePlan] = dataclasses.field(default_factory=list)
+    alternatives: list[StageEstimate] = dataclasses.field(default_factory=list)
 
 
 def shape_of(path: str) -> Shape | None:
@@ -133,171 +137,12 @@ def shape_of(path: str) -> Shape | None:
     return Shape(str(kind), (), 0, 0)
 
 
-def _task_side(chunk: int) -> int:
-    from pipeline.graphs.blocks import TASK_TEXELS
-
-    return chunk * max(1, TASK_TEXELS // chunk)
-
-
-def _generate(params, shapes: dict) -> tuple[StagePlan, Shape]:
-    from tasks.sampling import parse_sampling
-
-    s = parse_sampling(params.sampling)
-    nv, nl, n = s.theta_view.size, s.theta_light.size, params.size**2
-    nc = 3
-    side = min(_task_side(params.shard or params.chunk), params.size)
-    spatial = math.ceil(params.size / side) ** 2
-    light_blocks = math.ceil(nl / params.dir_chunk)
-    block = side * side * min(params.dir_chunk, nl) * nc * 4
-    per_core, source = rate("generate_texel_directions_per_core_second")
-    plan = StagePlan("generate", "", written=nv * nl * n * nc * 4 + n * 6 * 4,
-                     tasks=nv * light_blocks * spatial + spatial, passes=1, reads=0,
-                     task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
-                     client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
-                     option="--chunk / --dir-chunk (smaller task blocks)")
-    return plan, Shape("btf", (nv, nl, params.size, params.size, nc), params.chunk,
-                       params.dir_chunk, unit=params.shard or params.chunk, truth=True)
-
-
-def _compress(params, shapes: dict, *, alternative: bool = True) -> tuple[StagePlan, Shape]:
-    from pipeline.graphs.row_passes import FAN_IN, memory_estimate, plan_row_blocks
-    from pipeline.graphs.tile_passes import (
-        plan_tile_rows,
-        sketch_memory,
-        tile_memory,
-    )
-    from tasks.svd import Sketch
-
-    src = shapes[params.store]
-    nv, nl, ny, nx, nc = src.radiance
-    m, n = nv * nl * nc, ny * nx
-    extra = min(params.extra, min(m, n) - params.rank)
-    width = params.rank + extra
-    side = params.side(m, n)
-    iterations = params.iterations(side)
-    matrix = m * n * 4
-    tile = (min(src.chunk, ny), min(src.chunk, nx))
-    texels = tile[0] * tile[1]
-    tile_rows = plan_tile_rows(src.radiance, src.dir_chunk, tile)
-    tiles = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
-    note = f"sketches on the {side} side"
-    if params.one_pass:
-        sketch = Sketch.for_rank(params.rank, extra, m)
-        passes = reads = 1 + params.verify
-        tasks = tiles
-        memory = sketch_memory(m, texels, sketch, tile_rows, workers=1)
-        task, client = memory["task"], memory["client"]
-        note = (f"one view (k = {sketch.k}, s = {sketch.s}) by texel tiles; scratch "
-                f"{_size(n * sketch.s * 4)} written once, read once")
-        option = "--oversample (a smaller sketch: less memory per task, more error)"
-    elif side == "rows":
-        rows = tile_rows
-        cache = params.tile_cache_bytes
-        twice = m * texels * 4 > cache  # a tile's column read twice per pass
-        passes = iterations + 2 + params.verify
-        reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
-        tasks = tiles
-        task = tile_memory(m, texels, width, rows, cache=cache)
-        client = 8 * 6 * m * width + FAN_IN * 8 * m * width
-        if twice:  # each pass would read once if a tile's column were kept
-            note += (f"; {reads} reads: a tile's column ({_size(m * texels * 4)}) exceeds "
-                     f"--tile-cache ({_size(cache)}); --tile-cache "
-                     f"{math.ceil(m * texels * 4 / 2**30)}GiB would keep it: "
-                     f"{iterations + 2 + params.verify} reads")
-        option = ("--rank, --tile-cache, or the source's --chunk (smaller texel tiles: each "
-                  "task holds a tile's rows)")
-    else:
-        blocks = plan_row_blocks(src.radiance, src.dir_chunk)
-        passes = reads = iterations + 1 + params.verify
-        tasks = len(blocks)
-        memory = memory_estimate(src.radiance, blocks, rank=params.rank, extra=extra,
-                                 workers=1)
-        task, client = memory["task"], memory["client"]
-        option = "--sketch rows (client memory then grows with the rows only)"
-    per_core, source = rate("compress_bytes_per_core_second")
-    seconds = reads * matrix / per_core
-    if params.one_pass:  # its own rate (sparse sketches: about the same work per value at any
-        one, source = rate("compress_one_pass_bytes_per_core_second")  # k, s), or one read
-        seconds = max(matrix / per_core, matrix / one) + params.verify * matrix / per_core
-    plan = StagePlan("compress", "", read=reads * matrix, written=(m + n + 1) * params.rank * 4,
-                     tasks=tasks * passes, passes=passes, reads=reads, task_bytes=task,
-                     client_bytes=client, core_seconds=seconds, rate_source=source,
-                     option=option, note=note)
-    if alternative:  # the other mode: one pass (texel side), or the default passes
-        other = dataclasses.replace(params, passes="auto" if params.one_pass else "1",
-                                    sketch="auto" if params.one_pass else "texels",
-                                    power_iters=None, oversample=None)
-        plan.alternatives = [_compress(other, shapes, alternative=False)[0]]
-        plan.alternatives[0].name = ("compress (default passes)" if params.one_pass else
-                                     "compress --passes 1")
-    return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
-                       unit=src.chunk)
-
-
-def _quilt(params, shapes: dict) -> tuple[StagePlan, Shape]:
-    from tasks.canvas import TERMS
-
-    src = shapes[params.store]
-    nv, nl, ny, nx, nc = src.radiance
-    block = params.block or 32
-    overlap = params.overlap if params.overlap is not None else block // 4
-    th, tw = params.tile_shape((ny, nx), block - overlap)
-    tiles = params.corners**4
-    values = src.rank if src.kind == "compressed" else nv * nl * nc
-    out = tiles * th * tw * values * 4
-    # planning compares every tile position with every sample position: measured time grows
-    # with their product (16 tiles of 1008^2 on a 1024^2 sample: 14.5 min, estimated 16.9)
-    plan_seconds, source = rate("quilt_plan_seconds_per_texel_pair")
-    per_core, _ = rate("quilt_values_per_core_second")
-    side = src.side
-    spatial = math.ceil(th / side) * math.ceil(tw / side)
-    groups = 1 if src.kind == "compressed" else max(1, math.ceil(nl / src.dir_chunk)) * nv
-    plan = StagePlan("quilt", "", read=ny * nx * 3 * 4 + out, written=out,
-                     tasks=tiles * spatial * groups, passes=1, reads=1,
-                     task_bytes=3 * side * side * min(values, src.dir_chunk * nc) * 4
-                     + th * tw * TERMS * 8,
-                     client_bytes=ny * nx * 3 * 4 * 4 + tiles * th * tw * TERMS * 8,
-                     core_seconds=tiles * th * tw * values / per_core,
-                     serial_seconds=tiles * th * tw * ny * nx * plan_seconds,
-                     rate_source=source,
-                     option="--size (smaller tiles)",
-                     note=f"{tiles} tile(s) of {th} x {tw}"
-                     + (", compressed: V only" if src.kind == "compressed" else ""))
-    kind = "compressed-tileset" if src.kind == "compressed" else "tileset"
-    return plan, Shape(kind, (), 0, 0)
-
-
-def _crop(params, shapes: dict) -> tuple[StagePlan, Shape]:
-    src = shapes[params.store]
-    nv, nl, ny, nx, nc = src.radiance
-    if params.region is not None:
-        from pipeline.params import parse_region
-
-        ys, xs = parse_region(params.region)
-        ny, nx = ys.stop - ys.start, xs.stop - xs.start
-    nv = len(set(params.view)) if params.view else nv
-    nl = len(set(params.light)) if params.light else nl
-    size = nv * nl * ny * nx * nc * 4
-    truth = ny * nx * 6 * 4 if src.truth else 0  # height, albedo (3), roughness, specular
-    chunk = params.chunk or src.chunk
-    dir_chunk = params.dir_chunk or src.dir_chunk
-    side = _task_side(chunk)
-    per_core, source = rate("compress_bytes_per_core_second")  # a read-and-write pass
-    plan = StagePlan("crop", "", read=size + truth, written=size + truth,
-                     tasks=max(1, size // (side * side * dir_chunk * nc * 4)), passes=1, reads=1,
-                     task_bytes=2 * max(side, src.side) ** 2 * dir_chunk * nc * 4,
-                     core_seconds=size / per_core, rate_source=source, option="--chunk")
-    return plan, Shape(src.kind, (nv, nl, ny, nx, nc), chunk, dir_chunk, unit=chunk,
-                       truth=src.truth)
-
-
-ESTIMATORS = {"generate": _generate, "compress": _compress, "quilt": _quilt, "crop": _crop}
-
-
-def plan_stages(stages, shapes: dict | None = None) -> list[StagePlan]:
+def plan_stages(stages, shapes: dict | None = None) -> list[StageEstimate]:
     """The estimates of a validated config's stages (``pipeline.config.PlannedStage``).
 
-    ``shapes`` (a dict, filled in) receives the shape of every input and planned output.
+    Each stage estimates itself (its declaration's ``estimate``, :class:`pipeline.stage.Stage`)
+    from the shapes of its inputs. ``shapes`` (a dict, filled in) receives the shape of every
+    input and planned output.
     """
     from pipeline.params import paths
 
@@ -307,16 +152,15 @@ def plan_stages(stages, shapes: dict | None = None) -> list[StagePlan]:
         for p in paths(step.params, "in"):
             if p not in shapes and (found := shape_of(p)) is not None:
                 shapes[p] = found
-        estimate = ESTIMATORS.get(step.name)
-        if step.name == "generate" and step.params.albedo is not None:
-            estimate = None  # the size comes from the photo
-        inputs_known = all(p in shapes for p in paths(step.params, "in"))
-        if estimate is None or not inputs_known or not _radiance_known(step, shapes):
-            plan = StagePlan(step.name, step.where, note="no estimate: " + (
-                "its cost depends on the data" if estimate is None else
-                "its input's shape is not known before it runs"))
+        estimate, result, why = step.stage.estimate, None, "its cost depends on the data"
+        if estimate is not None and not _inputs_known(step, shapes):
+            why = "its input's shape is not known before it runs"
+        elif estimate is not None:
+            result = estimate(step.params, shapes)
+        if result is None:
+            plan = StageEstimate(step.name, step.where, note=f"no estimate: {why}")
         else:
-            plan, made = estimate(step.params, shapes)
+            plan, made = result
             plan.where = step.where
             for p in paths(step.params, "out"):
                 shapes[p] = made
@@ -338,35 +182,32 @@ def chunks_of(shape: Shape) -> int | None:
 def planned_directions(stages, path: str):
     """Directions of an existing store, or of one a stage of ``stages`` makes (None: unknown).
 
-    Follows the stages that keep their input's directions back to a store or a ``generate``.
+    Follows the stages' declared ``directions`` back to a store, or to a stage that makes
+    its own (``generate``).
     """
     from pipeline.params import names_path
-    from pipeline.stores.base import Directions, open_group, read_directions
-    from tasks.sampling import parse_sampling
+    from pipeline.stores.base import open_group, read_directions
 
     for step in reversed(stages):
         if not names_path(step.params, "out", path):
             continue
-        p = step.params
-        if step.name == "generate":
-            s = parse_sampling(p.sampling)
-            return Directions(s.theta_view, s.phi_view, s.theta_light, s.phi_light)
-        if step.name in ("compress", "quilt", "reconstruct", "crop", "pyramid", "roller"):
-            d = planned_directions(stages, p.store)
-            if d is None or step.name not in ("reconstruct", "crop"):
-                return d
-            return d.select(p.view or range(d.views), p.light or range(d.lights))
-        return None
+        derive = step.stage.directions
+        if derive is None:
+            return None
+        store = getattr(step.params, "store", None)
+        return derive(step.params, None if store is None else planned_directions(stages, store))
     try:
         return read_directions(open_group(path))
     except BTFError:
         return None
 
 
-def _radiance_known(step, shapes) -> bool:
+def _inputs_known(step, shapes) -> bool:
+    """Whether the shapes (and radiance shapes) of all of a stage's inputs are known."""
     from pipeline.params import paths
 
-    return all(shapes[p].radiance for p in paths(step.params, "in") if p in shapes)
+    inputs = paths(step.params, "in")
+    return all(p in shapes and shapes[p].radiance for p in inputs)
 
 
 def worker_limit(options, client=None) -> tuple[int, int, str]:
@@ -381,13 +222,13 @@ def worker_limit(options, client=None) -> tuple[int, int, str]:
     import psutil
 
     total = psutil.virtual_memory().total
-    workers = options.workers or (os.cpu_count() or 1) + 1
+    workers = options.local_workers(reads=True)
     if options.scheduler == "processes":
         return total // workers, 1, f"this machine's memory over {workers} processes"
     return total, workers, f"this machine's memory ({workers} worker threads in one process)"
 
 
-def check_memory(plans: list[StagePlan], limit: int, threads: int, source: str,
+def check_memory(plans: list[StageEstimate], limit: int, threads: int, source: str,
                  available: int) -> None:
     """Refuse a plan whose workers or client would need more memory than they have."""
     for p in plans:
@@ -404,14 +245,15 @@ def check_memory(plans: list[StagePlan], limit: int, threads: int, source: str,
                            f"{p.option}")
 
 
-def _size(n: float) -> str:
+def human_bytes(n: float) -> str:
+    """``n`` bytes in kB, MB, GB or TB, one decimal."""
     for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if n >= scale:
             return f"{n / scale:.1f} {unit}"
     return f"{n / 1e3:.0f} kB"
 
 
-def report(plans: list[StagePlan], *, cores: int, limit: int, threads: int,
+def report(plans: list[StageEstimate], *, cores: int, limit: int, threads: int,
            source: str) -> str:
     """The plan as a table, with totals and the cores that finish it in an hour."""
     lines = ["| stage | read | written | tasks | passes | per task | client | est. time "
@@ -438,10 +280,12 @@ def report(plans: list[StagePlan], *, cores: int, limit: int, threads: int,
     return "\n".join(lines)
 
 
-def _row(p: StagePlan, name: str, note: str, cores: int) -> str:
-    passes = f"{p.passes} ({p.reads} reads)" if p.reads > p.passes else str(p.passes)
-    return (f"| {name} | {_size(p.read)} | {_size(p.written)} | {p.tasks} | {passes} | "
-            f"{_size(p.task_bytes)} | {_size(p.client_bytes)} | "
+def _row(p: StageEstimate, name: str, note: str, cores: int) -> str:
+    passes = (f"{p.passes} ({p.input_reads} reads)" if p.input_reads > p.passes
+              else str(p.passes))
+    return (f"| {name} | {human_bytes(p.bytes_read)} | {human_bytes(p.bytes_written)} | "
+            f"{p.tasks} | {passes} | "
+            f"{human_bytes(p.task_bytes)} | {human_bytes(p.client_bytes)} | "
             f"{_duration(p.serial_seconds + p.core_seconds / cores)} | {note} |")
 
 
@@ -453,6 +297,6 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.1f} s"
 
 
-def plan_record(plans: list[StagePlan]) -> list[dict[str, Any]]:
+def plan_record(plans: list[StageEstimate]) -> list[dict[str, Any]]:
     """The plan as JSON-ready records."""
     return [dataclasses.asdict(p) for p in plans]

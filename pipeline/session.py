@@ -96,6 +96,16 @@ class RuntimeOptions:
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
 
+    def local_workers(self, *, reads: bool = False) -> int:
+        """Tasks the local schedulers run at once.
+
+        ``--workers``, else one per core, and one more for graphs that read zarr chunks (see
+        :meth:`Session.compute`).
+        """
+        if self.workers is not None:
+            return self.workers
+        return (os.cpu_count() or 1) + reads
+
 
 def limit_blas() -> None:
     """Use one BLAS thread in this process (dask workers: parallelism comes from tasks).
@@ -214,7 +224,14 @@ class Session:
             return sum(self.client.nthreads().values()) or os.cpu_count() or 1
         if self.options.scheduler == "synchronous":
             return 1
-        return self.options.workers or os.cpu_count() or 1
+        return self.options.local_workers()
+
+    @property
+    def read_parallelism(self) -> int:
+        """How many tasks run at once in a graph that reads (:meth:`compute` with ``reads``)."""
+        if self.client is not None or self.options.scheduler == "synchronous":
+            return self.parallelism
+        return self.options.local_workers(reads=True)
 
     def log(self, message: str) -> None:
         """Print a progress message on stderr unless quiet."""
@@ -240,7 +257,7 @@ class Session:
         settings: dict[str, Any] = {"scheduler": self.options.scheduler}
         workers = self.options.workers
         if workers is None and reads and self.options.scheduler != "synchronous":
-            workers = (os.cpu_count() or 1) + 1
+            workers = self.options.local_workers(reads=True)
         pool = self._local_pool(workers)
         if pool is not None:
             settings["pool"] = pool
@@ -262,7 +279,7 @@ class Session:
 
     def _local_pool(self, workers: int | None):
         """A pool of our own for the local schedulers, so that we can wait for it to drain."""
-        workers = workers or os.cpu_count() or 1
+        workers = workers or self.options.local_workers()
         if self.options.scheduler == "threads":
             from dask.threaded import ContextAwareThreadPoolExecutor
 

@@ -88,6 +88,26 @@ def test_the_import_graph_has_no_cycles_and_layers_import_downwards():
     assert breaks == []
 
 
+def test_no_stage_imports_another_and_the_engines_import_no_stage():
+    """What two stages share lives below them; the cost engine reads their declarations."""
+    edges = _import_graph()
+    stages = {m for m in edges if m.startswith("pipeline.stages.")}
+    crossing = {m: sorted(edges[m] & stages) for m in stages if edges[m] & stages}
+    assert not crossing, crossing
+    for engine in ("pipeline.planning", "pipeline.stage"):
+        assert not edges[engine] & stages, (engine, sorted(edges[engine] & stages))
+
+
+def test_every_stage_declares_itself_in_its_own_module():
+    from pipeline.stages import STAGES
+
+    for name, stage in STAGES.items():
+        module = sys.modules[stage.run.__module__]
+        assert module.__name__ == f"pipeline.stages.{name}", (name, module.__name__)
+        assert module.STAGE is stage
+        assert stage.params.__module__ == module.__name__
+
+
 def test_the_cycle_finder_finds_a_cycle():  # the check above could not pass by accident
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 

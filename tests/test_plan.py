@@ -25,27 +25,27 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     plans = planning.plan_stages(load(TERABYTE).stages)
     generate, compress, quilt = plans
     rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
-    assert generate.written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
+    assert generate.bytes_written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
     # the texel side would need 15 GB; the note says how to read less
     assert compress.note == ("sketches on the rows side; 7 reads: a tile's column (4.5 GB) "
                              "exceeds --tile-cache (268.4 MB); --tile-cache 5GiB would keep "
                              "it: 4 reads")
     kept = planning.plan_stages(load(TERABYTE, ("compress.tile_cache=5GiB",)).stages)[1]
-    assert kept.reads == kept.passes == 4 and kept.read == 4 * rows * texels * 4
+    assert kept.input_reads == kept.passes == 4 and kept.bytes_read == 4 * rows * texels * 4
     assert rows * 128 * 128 * 4 < kept.task_bytes < 5 << 30
     # rows side: 2 power passes and the projection read each tile's column twice (68403 rows
     # x 128^2 texels do not fit the cache), then the V pass: 7 reads of the 1.1 TB matrix
-    assert compress.passes == 4 and compress.reads == 7
-    assert compress.read == 7 * rows * texels * 4
+    assert compress.passes == 4 and compress.input_reads == 7
+    assert compress.bytes_read == 7 * rows * texels * 4
     assert compress.client_bytes < 1 << 30 and compress.task_bytes < 1 << 30
     # the other mode is shown beside it: one read of the matrix by texel tiles, the client
     # holding rows x k (k = 6 x 64 + 1 = 385), each task a tile's co-range sketch (s = 771)
     (one,) = compress.alternatives
-    assert one.name == "compress --passes 1" and one.passes == one.reads == 1
-    assert one.read == rows * texels * 4
+    assert one.name == "compress --passes 1" and one.passes == one.input_reads == 1
+    assert one.bytes_read == rows * texels * 4
     assert rows * 385 * 8 * 3 < one.client_bytes < 1e9
     assert 771 * 128 * 128 * 4 * 2 < one.task_bytes < 1 << 30
-    assert f"scratch {planning._size(texels * 771 * 4)} written once" in one.note
+    assert f"scratch {planning.human_bytes(texels * 771 * 4)} written once" in one.note
     assert "16 tile(s)" in quilt.note and quilt.serial_seconds > 0
     result = btf("run", TERABYTE, "--plan", "--memory-limit", "4GiB")
     assert result.code == 0, result.err
@@ -84,9 +84,9 @@ def test_estimated_bytes_match_a_real_run_and_a_refused_run_writes_nothing(tmp_p
     assert btf("run", config, "--quiet").code == 0
     generate, crop, compress = plans
     truth = ("radiance", "height", "albedo", "roughness", "specular")
-    assert generate.written == _nbytes(out / "s.zarr", truth)
-    assert crop.written == _nbytes(out / "c.zarr", truth)
-    assert compress.written == _nbytes(out / "k.zarr", ("U", "S", "V"))
+    assert generate.bytes_written == _nbytes(out / "s.zarr", truth)
+    assert crop.bytes_written == _nbytes(out / "c.zarr", truth)
+    assert compress.bytes_written == _nbytes(out / "k.zarr", ("U", "S", "V"))
     k = zarr.open_group(out / "k.zarr", mode="r").attrs["svd"]
     assert compress.passes == k["passes"] and compress.note.endswith(k["sketch_side"] + " side")
     big, sharded = (planning.plan_stages(load(config, ("generate.size=4096", *extra)).stages)[0]
@@ -103,4 +103,4 @@ def test_rates_measured_by_bench_replace_the_built_in_ones(tmp_path, monkeypatch
     value, source = planning.rate(key)
     assert value == 1e9 and source.startswith("measured by btf bench compress")
     plan = planning.plan_stages(load(TERABYTE).stages)[1]
-    assert plan.core_seconds == pytest.approx(plan.read / 1e9)
+    assert plan.core_seconds == pytest.approx(plan.bytes_read / 1e9)

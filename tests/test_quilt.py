@@ -404,8 +404,8 @@ def test_rendering_one_layer_reads_no_other_layer(tmp_path, btf, samples, monkey
 def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
     path = generate_store(tmp_path / "leather.zarr", "--material", "leather", "--size", "96",
                           "--sampling", "abtf:12,6", "--seed", "1")
+    from pipeline.graphs.reference import compute_reference
     from pipeline.session import RuntimeOptions, Session
-    from pipeline.stages.reference import compute_reference
 
     with Session(RuntimeOptions(quiet=True)) as session:
         maps, view = compute_reference(path, weights=(1, 0.5, 0.5), view=None, session=session)

@@ -19,10 +19,18 @@ def write_unit(array) -> tuple[int, ...]:
     return tuple(array.shards or array.chunks)
 
 
+def task_side(unit: int) -> int:
+    """Texels per side of a task block over write units of ``unit`` texels a side.
+
+    Whole units, about :data:`TASK_TEXELS` (one unit when a unit is larger).
+    """
+    return unit * max(1, TASK_TEXELS // unit)
+
+
 def task_block(array) -> tuple[int, ...]:
     """The block one task reads or writes: whole write units, ~TASK_TEXELS per spatial side."""
     dims = array.metadata.dimension_names or (None,) * array.ndim
-    return tuple(unit * max(1, TASK_TEXELS // unit) if dim in ("y", "x") else unit
+    return tuple(task_side(unit) if dim in ("y", "x") else unit
                  for unit, dim in zip(write_unit(array), dims, strict=True))
 
 

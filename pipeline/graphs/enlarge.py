@@ -273,7 +273,7 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     import dask
 
     from pipeline.resume import Progress
-    from pipeline.stores.base import add_array, location
+    from pipeline.stores.base import location
     from tasks.constrained_blend import ConstraintProjector
     from tasks.enlargement import statistics_channels
     from tasks.statistical_synthesis import sample_statistics
@@ -300,17 +300,11 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
                              rotation, guide_weight, to, rng)
         name = "_coefficients" if level == 0 else f"_level{level}"
-        if name not in out:
-            add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
-                      chunks=(tile, tile, rank))
         whole = max(shape) <= tile  # a level that fits in one tile is one task
         regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
         finish = None if level else (projector, noise, params, statistics)
         blend = level == 0 and not whole  # the finest level's tiles are blended
-        if blend and "_grown" not in out:
-            add_array(out, "_grown", shape=(len(regions), tile + 2 * halo, tile + 2 * halo,
-                                            rank), dims=("tile", "gy", "gx", "component"),
-                      chunks=(1, tile + 2 * halo, tile + 2 * halo, rank))
+        _level_arrays(out, name, shape, rank, tile, len(regions) if blend else 0, halo)
         shared = session.share(source)
         tasks = [(f"level{level}-tile{k}", dask.delayed(level_task)(
                      here, "_grown" if blend else name, region, shape=shape, factor=factor,
@@ -335,14 +329,35 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         if coarse is not None and coarse in out:
             del out[coarse]
         coarse, coarse_shape = name, shape
+    return {**report, **_finest_report(reports), "sample_constraint_residual_rms": noise,
+            "constraint_rank": projector.rank}
+
+
+def _level_arrays(out, name: str, shape: tuple[int, int], rank: int, tile: int, grown: int,
+                  halo: int) -> None:
+    """A level's scratch array, and with ``grown`` tiles to blend, their halo-grown copies.
+
+    Both are kept when a killed run made them: their finished tiles are not redone.
+    """
+    from pipeline.stores.base import add_array
+
+    if name not in out:
+        add_array(out, name, shape=(*shape, rank), dims=("y", "x", "component"),
+                  chunks=(tile, tile, rank))
+    if grown and "_grown" not in out:
+        side = tile + 2 * halo
+        add_array(out, "_grown", shape=(grown, side, side, rank),
+                  dims=("tile", "gy", "gx", "component"), chunks=(1, side, side, rank))
+
+
+def _finest_report(reports: list[dict]) -> dict:
+    """What the finest level's tasks report, summed over them: rounds, changes, residual."""
     residual2 = sum(r["residual2"] for r in reports)
     values = sum(r["values"] for r in reports)
-    report.update(rounds=max(len(r["changes"]) for r in reports),
-                  changes=[r["changes"] for r in reports],
-                  damping=[r["damping"] for r in reports],
-                  constraint_residual_rms=float(np.sqrt(residual2 / values)),
-                  sample_constraint_residual_rms=noise, constraint_rank=projector.rank)
-    return report
+    return {"rounds": max(len(r["changes"]) for r in reports),
+            "changes": [r["changes"] for r in reports],
+            "damping": [r["damping"] for r in reports],
+            "constraint_residual_rms": float(np.sqrt(residual2 / values))}
 
 
 def write_factors(out, path, u: np.ndarray, *, tile: int, session

@@ -89,7 +89,7 @@ def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_
     """Delayed tasks writing every tile's layers of a radiance source of ``shape``.
 
     ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`). With
-    ``needs`` (:class:`pipeline.stages.scene.Needs`), only blocks of lights holding a layer
+    ``needs`` (:class:`pipeline.scene_needs.Needs`), only blocks of lights holding a layer
     it needs.
     """
     import dask

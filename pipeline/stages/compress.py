@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -56,9 +55,11 @@ from pipeline.graphs.tile_passes import (
     tile_pass_graph,
 )
 from pipeline.params import ParamError, check_seed, option
+from pipeline.planning import Shape, StageEstimate, human_bytes, rate
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage, same_directions
 from pipeline.stores.base import RADIANCE, location, open_group, read_channels, read_directions
 from pipeline.stores.compressed import create_compressed_store
 from pipeline.stores.radiance import check_radiance
@@ -253,6 +254,84 @@ class _Passes:
         return result
 
 
+def _memory(params: CompressParams, shape: tuple[int, ...], dir_chunk: int,
+            tile: tuple[int, int], workers: int) -> dict[str, int]:
+    """Peak memory of compressing a store of ``shape``, in bytes.
+
+    The client's sketches, one task, and their total with ``workers`` tasks at once: the run
+    logs it and ``btf run --plan`` checks it (one formula for both).
+    """
+    nv, nl, ny, nx, nc = shape
+    m, n = nv * nl * nc, ny * nx
+    extra = min(params.extra, min(m, n) - params.rank)
+    texels = tile[0] * tile[1]
+    tile_rows = plan_tile_rows(shape, dir_chunk, tile)
+    if params.one_pass:
+        return sketch_memory(m, texels, Sketch.for_rank(params.rank, extra, m), tile_rows,
+                             workers=workers)
+    if params.side(m, n) == "rows":
+        width = params.rank + extra
+        client = 8 * 6 * m * width + FAN_IN * 8 * m * width  # sketches; shares being summed
+        task = tile_memory(m, texels, width, tile_rows, cache=params.tile_cache_bytes)
+        return {"client": client, "task": task, "total": client + workers * task}
+    return memory_estimate(shape, plan_row_blocks(shape, dir_chunk), rank=params.rank,
+                           extra=extra, workers=workers)
+
+
+def _output_attrs(params: CompressParams, source: dict, shape: tuple[int, ...]) -> dict:
+    """The compressed store's attrs before the SVD: its source, transform and provenance."""
+    attrs = {
+        "source": "compress",
+        "source_btf_kind": source.get("btf_kind"),
+        "source_shape": list(shape),
+        "transform": {"name": "log", "formula": "log(radiance + eps)", "eps": params.eps,
+                      "clamp": params.clamp},
+        "provenance": provenance("compress", params),
+    }
+    for key in ("sampling", "material"):
+        if key in source:
+            attrs[f"source_{key}"] = source[key]
+    return attrs
+
+
+def _method(params: CompressParams, side: str) -> str:
+    """The ``svd.method`` attribute: how the factors were found."""
+    if params.one_pass:
+        return "one-view sketch"
+    if side == "texels":
+        return ("randomized SVD with fused power iterations, projected on the block Krylov "
+                "space of the last two iterates")
+    return ("randomized SVD with row-side fused power iterations (A A^T Q), projected on the "
+            "Gram-orthonormalised A^T Q of the last")
+
+
+def _verified(passes: _Passes, u: np.ndarray, s: np.ndarray, n: int, norm: float) -> dict:
+    """``--verify``: one more pass for the average ABRDF RMSE and the measured error."""
+    part = passes("verify", u=u, s=s)
+    return {"abrdf_rmse": float(part.sums["rmse"][0]) / n,
+            "log_relative_frobenius_measured": math.sqrt(part.frobenius2) / norm if norm
+            else 0.0,
+            "abrdf_rmse_definition": (
+                "paper 000 eq. 11: mean over texels of the RMS difference of the texel's "
+                "ABRDF (all view x light x channel values), linear radiance")}
+
+
+def _say_plan(params: CompressParams, session: Session, m: int, n: int, side: str,
+              sketch: Sketch, memory: dict[str, int]) -> None:
+    """Log the matrix, the sketch and the expected peak memory before the passes."""
+    session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
+                f"rank {params.rank}, "
+                + ("one pass by texel tiles" if params.one_pass
+                   else f"sketches on the {side} side") + f" -> {params.out}")
+    if params.one_pass:
+        session.log(f"compress: one-view sketch k = {sketch.k}, s = {sketch.s}, t = "
+                    f"{sketch.t}; scratch {n * sketch.s * 4 / 2**30:.2f} GiB written once and "
+                    "read once (not the store)")
+    session.log(f"compress: expected peak memory ~{memory['total'] / 2**30:.2f} GiB "
+                f"(sketches {memory['client'] / 2**30:.2f} GiB, each task "
+                f"{memory['task'] / 2**30:.2f} GiB)")
+
+
 def compress(params: CompressParams, session: Session) -> Path:
     """Compress the store of ``params`` into U, S, V; returns the output path."""
     group = open_group(params.store)  # zarr metadata only: no xarray needed here
@@ -271,40 +350,10 @@ def compress(params: CompressParams, session: Session) -> Path:
     blocks = plan_row_blocks(shape, dir_chunk)
     v_chunk = (min(chunk, ny), min(chunk, nx))  # the V chunks of create_compressed_store
     tiles, tile_rows = plan_tiles(ny, nx, v_chunk), plan_tile_rows(shape, dir_chunk, v_chunk)
-    source_attrs = dict(group.attrs)
-    attrs = {
-        "source": "compress",
-        "source_btf_kind": source_attrs.get("btf_kind"),
-        "source_shape": list(shape),
-        "transform": {"name": "log", "formula": "log(radiance + eps)", "eps": params.eps,
-                      "clamp": params.clamp},
-        "provenance": provenance("compress", params),
-    }
-    for key in ("sampling", "material"):
-        if key in source_attrs:
-            attrs[f"source_{key}"] = source_attrs[key]
-    session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
-                f"rank {params.rank}, "
-                + ("one pass by texel tiles" if params.one_pass
-                   else f"sketches on the {side} side") + f" -> {params.out}")
-    workers = (os.cpu_count() or 1) + 1
+    attrs = _output_attrs(params, dict(group.attrs), shape)
     sketch = Sketch.for_rank(params.rank, extra, m)
-    if params.one_pass:
-        memory = sketch_memory(m, tiles[0].texels, sketch, tile_rows, workers=workers)
-        session.log(f"compress: one-view sketch k = {sketch.k}, s = {sketch.s}, t = "
-                    f"{sketch.t}; scratch {n * sketch.s * 4 / 2**30:.2f} GiB written once and "
-                    "read once (not the store)")
-    elif side == "rows":
-        width = params.rank + extra
-        client = 8 * 6 * m * width + FAN_IN * 8 * m * width  # sketches; shares being summed
-        task = tile_memory(m, tiles[0].texels, width, tile_rows,
-                           cache=params.tile_cache_bytes)
-        memory = {"client": client, "task": task, "total": client + workers * task}
-    else:
-        memory = memory_estimate(shape, blocks, rank=params.rank, extra=extra, workers=workers)
-    session.log(f"compress: expected peak memory ~{memory['total'] / 2**30:.2f} GiB "
-                f"(sketches {memory['client'] / 2**30:.2f} GiB, each task "
-                f"{memory['task'] / 2**30:.2f} GiB)")
+    _say_plan(params, session, m, n, side, sketch,
+              _memory(params, shape, dir_chunk, v_chunk, workers=session.read_parallelism))
     planned = (1 if params.one_pass else iterations + (2 if side == "rows" else 1)) \
         + params.verify
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
@@ -328,26 +377,14 @@ def compress(params: CompressParams, session: Session) -> Path:
         u, s, error = f.u.astype(np.float32), f.s.astype(np.float32), f.error
         out["U"][...] = u.reshape(nv, nl, nc, params.rank)
         out["S"][...] = s
+        if params.verify:
+            error.update(_verified(passes, u, s, n, error["frobenius_norm"]))
         svd = {"rank": params.rank, "oversample": extra, **f.widths,
                "sketch_side": "one view by texel tiles" if params.one_pass else side,
                "power_iterations": 0 if params.one_pass else iterations,
                "passes": passes.count, "seed": params.seed,
                **({"scratch_bytes": n * sketch.s * 4} if params.one_pass else {}),
-               "method": "one-view sketch" if params.one_pass else
-                         "randomized SVD with fused power iterations, projected on "
-                         "the block Krylov space of the last two iterates" if side == "texels"
-                         else "randomized SVD with row-side fused power iterations (A A^T Q), "
-                              "projected on the Gram-orthonormalised A^T Q of the last"}
-        if params.verify:
-            part = passes("verify", u=u, s=s)
-            error["abrdf_rmse"] = float(part.sums["rmse"][0]) / n
-            norm = error["frobenius_norm"]
-            error["log_relative_frobenius_measured"] = (
-                math.sqrt(part.frobenius2) / norm if norm else 0.0)
-            error["abrdf_rmse_definition"] = (
-                "paper 000 eq. 11: mean over texels of the RMS difference of the texel's "
-                "ABRDF (all view x light x channel values), linear radiance")
-            svd["passes"] = passes.count
+               "method": _method(params, side)}
         out.attrs.update({"svd": svd, "error": error,
                           "singular_values_energy": float(np.sum(f.s**2))})
         session.log(f"compress: relative error in the log domain "
@@ -355,3 +392,80 @@ def compress(params: CompressParams, session: Session) -> Path:
                     + (f", average ABRDF RMSE {error['abrdf_rmse']:.4g}"
                        if params.verify else ""))
     return Path(params.out)
+
+
+
+def _estimate(params: CompressParams, shapes: dict, *,
+              alternative: bool = True) -> tuple[StageEstimate, Shape]:
+    """``btf run --plan``'s estimate, with the other mode (one pass or several) beside it."""
+    src = shapes[params.store]
+    nv, nl, ny, nx, nc = src.radiance
+    m, n = nv * nl * nc, ny * nx
+    extra = min(params.extra, min(m, n) - params.rank)
+    side = params.side(m, n)
+    iterations = params.iterations(side)
+    matrix = m * n * 4
+    tile = (min(src.chunk, ny), min(src.chunk, nx))
+    texels = tile[0] * tile[1]
+    tiles = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
+    note = f"sketches on the {side} side"
+    memory = _memory(params, src.radiance, src.dir_chunk, tile, workers=1)
+    task, client = memory["task"], memory["client"]
+    if params.one_pass:
+        sketch = Sketch.for_rank(params.rank, extra, m)
+        passes = reads = 1 + params.verify
+        tasks = tiles
+        note = (f"one view (k = {sketch.k}, s = {sketch.s}) by texel tiles; scratch "
+                f"{human_bytes(n * sketch.s * 4)} written once, read once")
+        option = "--oversample (a smaller sketch: less memory per task, more error)"
+    elif side == "rows":
+        cache = params.tile_cache_bytes
+        twice = m * texels * 4 > cache  # a tile's column read twice per pass
+        passes = iterations + 2 + params.verify
+        reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
+        tasks = tiles
+        if twice:  # each pass would read once if a tile's column were kept
+            note += (f"; {reads} reads: a tile's column ({human_bytes(m * texels * 4)}) exceeds "
+                     f"--tile-cache ({human_bytes(cache)}); --tile-cache "
+                     f"{math.ceil(m * texels * 4 / 2**30)}GiB would keep it: "
+                     f"{iterations + 2 + params.verify} reads")
+        option = ("--rank, --tile-cache, or the source's --chunk (smaller texel tiles: each "
+                  "task holds a tile's rows)")
+    else:
+        passes = reads = iterations + 1 + params.verify
+        tasks = len(plan_row_blocks(src.radiance, src.dir_chunk))
+        option = "--sketch rows (client memory then grows with the rows only)"
+    per_core, source = rate("compress_bytes_per_core_second")
+    seconds = reads * matrix / per_core
+    if params.one_pass:  # its own rate (sparse sketches: about the same work per value at any
+        one, source = rate("compress_one_pass_bytes_per_core_second")  # k, s), or one read
+        seconds = max(matrix / per_core, matrix / one) + params.verify * matrix / per_core
+    plan = StageEstimate("compress", "", bytes_read=reads * matrix,
+                         bytes_written=(m + n + 1) * params.rank * 4, tasks=tasks * passes,
+                         passes=passes, input_reads=reads, task_bytes=task,
+                         client_bytes=client, core_seconds=seconds, rate_source=source,
+                         option=option, note=note)
+    if alternative:  # the other mode: one pass (texel side), or the default passes
+        other = dataclasses.replace(params, passes="auto" if params.one_pass else "1",
+                                    sketch="auto" if params.one_pass else "texels",
+                                    power_iters=None, oversample=None)
+        plan.alternatives = [_estimate(other, shapes, alternative=False)[0]]
+        plan.alternatives[0].name = ("compress (default passes)" if params.one_pass else
+                                     "compress --passes 1")
+    return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
+                       unit=src.chunk)
+
+
+STAGE = Stage("compress", CompressParams, compress,
+              "out-of-core randomized SVD of a store into U, S, V",
+              "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
+              "channel textures, columns: texels) as U S V^T with a randomized SVD that streams "
+              "the store in row blocks: power iterations + 1 passes (each A^T A fused into one "
+              "pass), or one read with --passes 1 (a one-view sketch by texel tiles, its co-range "
+              "sketch kept in a scratch array that is removed at the end). The relative error "
+              "comes from an exact identity (or, for one pass, an error sketch); --verify adds "
+              "a pass for the average ABRDF RMSE in linear radiance. Memory: a few blocks and "
+              "sketches; with --sketch rows or --passes 1 nothing grows with the texels.",
+              makes_store=True,
+              estimate=_estimate, whole="the SVD needs every layer and texel",
+              directions=same_directions)

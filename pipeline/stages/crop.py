@@ -15,11 +15,13 @@ from pathlib import Path
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
 from pipeline.params import check_region, option, parse_region
+from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage, selected_directions
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, open_group, read_channels
 from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store, open_radiance
 
@@ -91,3 +93,40 @@ def crop(params: CropParams, session: Session) -> Path:
         sources = [selected[n].data.rechunk(aligned_chunks(out[n])) for n in names]
         session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))
     return Path(params.out)
+
+
+
+def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
+    src = shapes[params.store]
+    nv, nl, ny, nx, nc = src.radiance
+    if params.region is not None:
+        from pipeline.params import parse_region
+
+        ys, xs = parse_region(params.region)
+        ny, nx = ys.stop - ys.start, xs.stop - xs.start
+    nv = len(set(params.view)) if params.view else nv
+    nl = len(set(params.light)) if params.light else nl
+    size = nv * nl * ny * nx * nc * 4
+    truth = ny * nx * 6 * 4 if src.truth else 0  # height, albedo (3), roughness, specular
+    chunk = params.chunk or src.chunk
+    dir_chunk = params.dir_chunk or src.dir_chunk
+    side = task_side(chunk)
+    per_core, source = rate("compress_bytes_per_core_second")  # a read-and-write pass
+    plan = StageEstimate("crop", "", bytes_read=size + truth, bytes_written=size + truth,
+                         tasks=max(1, size // (side * side * dir_chunk * nc * 4)), passes=1,
+                         input_reads=1,
+                         task_bytes=2 * max(side, src.side) ** 2 * dir_chunk * nc * 4,
+                         core_seconds=size / per_core, rate_source=source, option="--chunk")
+    return plan, Shape(src.kind, (nv, nl, ny, nx, nc), chunk, dir_chunk, unit=chunk,
+                       truth=src.truth)
+
+
+STAGE = Stage("crop", CropParams, crop,
+              "cut a region and some layers of a radiance store into a new store",
+              "Write a texel region (--region Y0:Y1,X0:X1) and optionally some lights "
+              "(--light) and views (--view) of a radiance store as a new radiance store, "
+              "streamed block by block; ground-truth fields of a generated store are cut "
+              "along. For samples, constraint photos and ground-truth regions.",
+              makes_store=True,
+              estimate=_estimate, whole="cuts what its own region, light and view say",
+              directions=selected_directions)

@@ -50,6 +50,7 @@ from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import (
     RADIANCE,
     add_array,
@@ -365,18 +366,10 @@ def _whole(params, session, constraints, coefficients, sample_values, lam):
     return result.coefficients, report, result
 
 
-def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
-    """Enlarge the sample under the constraint photos; write a compressed store."""
-    sample_group = open_group(params.sample)
-    check_compressed(sample_group, params.sample)
-    group = open_group(params.constraints)
-    check_radiance(group, params.constraints)
-    u = np.asarray(sample_group["U"][...], np.float64)
-    nv, nl, nc, rank = u.shape
-    s = np.asarray(sample_group["S"][...], np.float64)
-    coefficients = (np.asarray(sample_group["V"][...], np.float32) * s.astype(np.float32))
-    h, w = coefficients.shape[:2]
-    big_h, big_w = group[RADIANCE].shape[2:4]
+def _check_inputs(params: EnlargeParams, group, sample_group, sample: tuple[int, int],
+                  target: tuple[int, int]) -> None:
+    """Refuse photos of other channels or smaller than the sample, and too many levels."""
+    (h, w), (big_h, big_w) = sample, target
     if read_channels(group) != read_channels(sample_group):
         raise BTFError(f"{params.constraints}: channels {read_channels(group)} differ from the "
                        f"sample's {read_channels(sample_group)}")
@@ -390,6 +383,37 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                        f"{coarsest[1]} at the coarsest of --levels {params.levels}, smaller than "
                        f"a neighbourhood (--patch {params.patch}): use fewer levels or a smaller "
                        "patch")
+
+
+def _output_attrs(params: EnlargeParams, sample_group, shape: list[int], rank: int) -> dict:
+    """The enlarged store's attrs before synthesis: its source, transform and provenance."""
+    attrs = {
+        "source": "enlarge",
+        "source_btf_kind": sample_group.attrs.get("source_btf_kind"),
+        "source_shape": shape,
+        "transform": sample_group.attrs["transform"],
+        "svd": {"rank": rank, "method": "enlargement (paper 000, Algorithm 1), re-factorised"},
+        "provenance": provenance("enlarge", params),
+    }
+    for key in ("source_sampling", "source_material"):
+        if key in sample_group.attrs:
+            attrs[key] = sample_group.attrs[key]
+    return attrs
+
+
+def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
+    """Enlarge the sample under the constraint photos; write a compressed store."""
+    sample_group = open_group(params.sample)
+    check_compressed(sample_group, params.sample)
+    group = open_group(params.constraints)
+    check_radiance(group, params.constraints)
+    u = np.asarray(sample_group["U"][...], np.float64)
+    nv, nl, nc, rank = u.shape
+    s = np.asarray(sample_group["S"][...], np.float64)
+    coefficients = (np.asarray(sample_group["V"][...], np.float32) * s.astype(np.float32))
+    h, w = coefficients.shape[:2]
+    big_h, big_w = group[RADIANCE].shape[2:4]
+    _check_inputs(params, group, sample_group, (h, w), (big_h, big_w))
     transform = Transform.from_attrs(sample_group.attrs["transform"])
     constraints = _constraints(params, group, sample_group, coefficients, transform)
     raise_on_bad_photos(session.compute(*check_photos(constraints.guide)), params.constraints,
@@ -405,17 +429,7 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                 f"{len(constraints.layers)} constraint layer(s) ({g} values per texel, lambda "
                 f"{lam:g}){f' in tiles of {tile}' if tile else ''} -> {params.out}")
     start = time.perf_counter()
-    attrs = {
-        "source": "enlarge",
-        "source_btf_kind": sample_group.attrs.get("source_btf_kind"),
-        "source_shape": [nv, nl, big_h, big_w, nc],
-        "transform": sample_group.attrs["transform"],
-        "svd": {"rank": rank, "method": "enlargement (paper 000, Algorithm 1), re-factorised"},
-        "provenance": provenance("enlarge", params),
-    }
-    for key in ("source_sampling", "source_material"):
-        if key in sample_group.attrs:
-            attrs[key] = sample_group.attrs[key]
+    attrs = _output_attrs(params, sample_group, [nv, nl, big_h, big_w, nc], rank)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
@@ -464,3 +478,18 @@ def _keep_phases(out, result, basis, rank) -> None:
                       chunks=out["V"].chunks,
                       attrs={"long_name": f"coefficients S V^T after {name}"})[...] = (
                 (phase.reshape(-1, rank) @ basis).reshape(phase.shape))
+
+
+STAGE = Stage("enlarge", EnlargeParams, enlarge_stage,
+              "a large BTF from a small compressed sample and full-size photos (paper 000)",
+              "Synthesize the eigentextures of a BTF at the size of the constraint photos from "
+              "a compressed sample (its eigen-ABRDFs stay): Texture Optimization guided by the "
+              "photos (multi-level EM, PCA-reduced exact search), statistical synthesis on a "
+              "steerable pyramid, and a per-texel QP that makes the result reproduce the "
+              "photos, alternated until the change is below --tol. Each photo layer is matched "
+              "to the sample's nearest direction; the sample's place in the photos is found "
+              "by normalised cross-correlation unless --sample-origin gives it. The output is "
+              "a compressed store that btf reconstruct, quilt, roller and inspect take.",
+              makes_store=True,
+              whole=("Texture Optimization synthesizes the whole target; its eigentextures "
+                     "serve every layer"))

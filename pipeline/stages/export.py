@@ -23,6 +23,7 @@ from pipeline.images import write_exr, write_png
 from pipeline.layer_files import layer_name, write_manifest
 from pipeline.params import ParamError, option
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, location
 from tasks.svd import reconstruct_layers
@@ -155,3 +156,12 @@ def export(params: ExportParams, session: Session) -> Path:
                     f"{params.out_dir}")
         session.compute(*writes)
     return Path(params.out_dir)
+
+
+STAGE = Stage("export", ExportParams, export,
+              "write layers as EXR/PNG files, or a compressed store as a Bonn .btf file",
+              "Write the selected layers of a radiance or compressed store as EXR (exact "
+              "float32, or --half) or tone-mapped PNG, named by their directions, with a "
+              "manifest.csv that btf ingest reads back. An OUT ending in .btf gets a compressed "
+              "store as a Bonn DFMF file for renderers (btflib, btf-extractor, Mitsuba's BTF "
+              "plugin): each channel at its own rank, float32 (exact) or --half.")

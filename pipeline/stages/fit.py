@@ -24,6 +24,7 @@ from pipeline.errors import BTFError
 from pipeline.params import option
 from pipeline.provenance import provenance
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, location, open_group, read_directions
 from pipeline.stores.fitted import create_fitted_store
 from pipeline.stores.radiance import check_radiance
@@ -104,3 +105,12 @@ def fit(params: FitParams, session: Session) -> Path:
             "space": "linear RGB radiance, against the input"},
             "size_ratio": original / fitted})
     return Path(params.out)
+
+
+STAGE = Stage("fit", FitParams, fit,
+              "fit an ABTF in HLS: constant hue/saturation, lightness per rotation",
+              "HLS fitting (paper 003, 2.5): per texel, hue and saturation constant over the "
+              "lights and lightness fitted, for every light rotation, by six parameters over "
+              "elevation. Reports the fit error (RMSE and maximum, linear RGB) and the size "
+              "ratio; the fitted store rebuilds radiance lazily.", makes_store=True,
+              whole="fits every texel over all lights")

@@ -14,6 +14,7 @@ numbers however the work is split, the store is bit-identical on every scheduler
 from __future__ import annotations
 
 import dataclasses
+import math
 from functools import partial
 from pathlib import Path
 
@@ -22,11 +23,13 @@ import numpy as np
 from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
 from pipeline.params import ParamError, check_seed, option
+from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, Directions, location
 from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
 from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
@@ -237,3 +240,40 @@ def generate(params: GenerateParams, session: Session) -> Path:
                         f"already written in {tmp}")
         session.compute(store_aligned(sources, targets, progress=progress))
     return Path(params.out)
+
+
+
+def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
+    if params.albedo is not None:
+        return None  # the size comes from the photo
+    s = parse_sampling(params.sampling)
+    nv, nl, n = s.theta_view.size, s.theta_light.size, params.size**2
+    nc = 3
+    side = min(task_side(params.shard or params.chunk), params.size)
+    spatial = math.ceil(params.size / side) ** 2
+    light_blocks = math.ceil(nl / params.dir_chunk)
+    block = side * side * min(params.dir_chunk, nl) * nc * 4
+    per_core, source = rate("generate_texel_directions_per_core_second")
+    plan = StageEstimate("generate", "", bytes_written=nv * nl * n * nc * 4 + n * 6 * 4,
+                         tasks=nv * light_blocks * spatial + spatial, passes=1, input_reads=0,
+                         task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
+                         client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
+                         option="--chunk / --dir-chunk (smaller task blocks)")
+    return plan, Shape("btf", (nv, nl, params.size, params.size, nc), params.chunk,
+                       params.dir_chunk, unit=params.shard or params.chunk, truth=True)
+
+
+
+def _directions(params: GenerateParams, source) -> Directions:
+    """The directions of the store ``generate`` makes: its sampling's."""
+    s = parse_sampling(params.sampling)
+    return Directions(s.theta_view, s.phi_view, s.theta_light, s.phi_light)
+
+STAGE = Stage("generate", GenerateParams, generate,
+              "render a procedural BTF with ground truth into a store",
+              "Render a procedural material (or a photo with --albedo) under a direction "
+              "sampling, tile by tile, straight into a radiance store. The store also holds "
+              "the ground-truth height, albedo, roughness and specular fields. The same "
+              "arguments give a bit-identical store on every scheduler.", makes_store=True,
+              estimate=_estimate, whole="a measurement: the stages after it read all of it",
+              directions=_directions)

@@ -43,6 +43,7 @@ from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import Layout, create_radiance_store
 from tasks.colour import DECODINGS
@@ -257,3 +258,16 @@ def ingest(params: IngestParams, session: Session) -> Path:
         elif STAGING in group:  # else a killed run had finished with it
             _staged(source, group, tmp, progress, session)
     return Path(params.out)
+
+
+STAGE = Stage("ingest", IngestParams, ingest,
+              "read measured BTFs (folders, zip archives, BIG, Bonn .btf) into a store",
+              "Read a measured BTF into a store; the format comes from SRC. A folder of EXR or "
+              "PNG layers (directions from a manifest CSV file,theta_light,phi_light,theta_view,"
+              "phi_view, SRC/manifest.csv when present, or UTIA names tl{theta}_pl{phi}_tv"
+              "{theta}_pv{phi}.exr, also a folder per view), a Bonn UBO2003/ATRIUM .zip archive "
+              "of JPEG or RGBE images (read from the zip), or a UTIA .big file becomes a "
+              "radiance store, streamed a block of directions at a time. A Bonn UBO2014 .btf "
+              "(DFMF) file becomes a compressed store without expansion: its factors, exactly, "
+              "with its colour model. See docs/formats.md.", makes_store=True,
+              whole="a measurement: the stages after it read all of it")

@@ -22,11 +22,12 @@ from pipeline.errors import BTFError
 from pipeline.graphs.reductions import read_array, statistics
 from pipeline.params import option
 from pipeline.session import Session
-from pipeline.stages.pyramid import levels_of
+from pipeline.stage import Stage
 from pipeline.stores import KINDS, kind_of
 from pipeline.stores.base import DIRECTION_COORDS, open_group, read_directions
 from pipeline.stores.compressed import NAME as COMPRESSED
 from pipeline.stores.compressed import total_energy
+from pipeline.stores.levels import levels_of
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,3 +221,10 @@ def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
             tmp.write_text(text + "\n")
     print(text if params.json else format_report(report), file=sys.stdout, flush=True)
     return report
+
+
+STAGE = Stage("inspect", InspectParams, inspect,
+              "describe a store (metadata; --scan reads the data)",
+              "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "
+              "codecs, bytes in memory and on disk, direction sampling and provenance. --scan "
+              "reads the data chunk by chunk for min/max/mean and NaN/Inf/negative counts.")

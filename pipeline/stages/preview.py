@@ -14,6 +14,7 @@ from pipeline.atomic import atomic_output
 from pipeline.graphs.thumbnails import thumbnail
 from pipeline.params import ParamError, option
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import Directions
 from pipeline.stores.radiance import open_radiance
 from tasks.sampling import spread_pairs
@@ -72,3 +73,9 @@ def preview(params: PreviewParams, session: Session) -> Path:
     with atomic_output(params.out, directory=False, overwrite=params.overwrite) as tmp:
         fig.savefig(tmp, format="png")
     return Path(params.out)
+
+
+STAGE = Stage("preview", PreviewParams, preview,
+              "draw a contact sheet of a spread of directions",
+              "Draw a contact sheet of layers spread over the directions (farthest-point "
+              "sampling), labelled with their angles, all with one exposure.")

@@ -34,18 +34,17 @@ Levels are written to a hidden subgroup and renamed into place once complete; th
 from __future__ import annotations
 
 import dataclasses
-import uuid
-from pathlib import Path
 
 from pipeline import storage
-from pipeline.atomic import consolidate
+from pipeline.atomic import atomic_subtree, consolidate
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
+from pipeline.stage import Stage, same_directions
 from pipeline.stores.base import RADIANCE, open_group
+from pipeline.stores.levels import PYRAMID, levels_of, multiscales, variable_of
 from tasks.transform import Transform
 
-PYRAMID = "pyramid"
 MIN_SIDE = 16  # default levels stop before the smaller side would fall below this
 
 
@@ -72,89 +71,38 @@ class PyramidParams:
             raise ParamError("method", f"must be projected or mean-v, got {self.method!r}")
 
 
-def variable_of(group, path: str) -> str:
-    """The variable that has levels: ``radiance``, or ``V`` for a compressed store or tile set."""
-    kind = group.attrs.get("btf_kind")
-    if kind in ("tileset", "compressed-tileset") and group.attrs.get("placement") == "lattice":
-        raise BTFError(f"{path}: a roller tile set: its tiles lie on a sheared lattice, so "
-                       "level n of its surface is not made of level-n tiles; btf scene computes "
-                       "its levels on the fly")
-    if kind in ("compressed", "compressed-tileset"):
-        return "V"
-    if kind in ("abtf", "btf", "tileset") and RADIANCE in group:
-        return RADIANCE
-    raise BTFError(f"{path}: a {kind or 'non-btf'} store; btf pyramid takes a radiance, a "
-                   "compressed or a quilted tile-set store")
-
-
-def levels_of(group) -> list[dict]:
-    """The store's levels from its ``multiscales`` attribute: path, factor, shape."""
-    scales = group.attrs.get("multiscales") or []
-    if not scales:
-        return []
-    out = []
-    for d in scales[0]["datasets"]:
-        scale = next(t["scale"] for t in d["coordinateTransformations"] if t["type"] == "scale")
-        factor = int(max(scale))
-        try:
-            shape = list(group[d["path"]].shape)
-        except KeyError:  # metadata naming a level that is not there (a store edited by hand)
-            shape = None
-        out.append({"path": d["path"], "factor": factor,
-                    "level": factor.bit_length() - 1, "shape": shape})
-    return out
-
-
-def _axes(dims: tuple[str, ...]) -> list[dict]:
-    kinds = {"y": "space", "x": "space", "channel": "channel", "component": "other"}
-    return [{"name": d, "type": kinds.get(d, "other")} for d in dims]
-
-
-def _swap_levels(root: str, partial: str, old: str) -> None:
-    """Put the new levels (``partial``) in place of the old ones (moved to ``old``).
-
-    Locally both are renames, so the old levels stay whole until the new are in place. In
-    object storage there is no rename: the old levels are deleted, then the new ones copied
-    in on the server (a run killed in between leaves a store without levels, which ``btf
-    pyramid`` makes again).
-    """
-    levels = storage.join(root, PYRAMID)
-    if storage.is_url(root):
-        storage.remove(levels)
-        storage.copy_tree(storage.join(root, partial), levels)
-        storage.remove(storage.join(root, partial))
-        return
-    if Path(levels).exists():
-        Path(levels).rename(old)
-    Path(storage.join(root, partial)).rename(levels)
-
-
-def _dataset(path: str, dims: tuple[str, ...], factor: int) -> dict:
-    scale = [float(factor) if d in ("y", "x") else 1.0 for d in dims]
-    shift = [(factor - 1) / 2 if d in ("y", "x") else 0.0 for d in dims]
-    transforms = [{"type": "scale", "scale": scale}]
-    if factor > 1:  # a level-n texel's centre sits at the centre of its level-0 block
-        transforms.append({"type": "translation", "translation": shift})
-    return {"path": path, "coordinateTransformations": transforms}
-
-
 def pyramid(params: PyramidParams, session: Session) -> list[dict]:
     """Add the levels of ``params.store``; returns them (level 0 first)."""
-    import dask.array as da
     import zarr
-
-    from pipeline.graphs.blocks import aligned_chunks, store_aligned
-    from pipeline.stores.base import add_array
 
     group = open_group(params.store)
     name = variable_of(group, params.store)
-    base = group[name]
-    dims = tuple(base.metadata.dimension_names)
-    ay, ax = dims.index("y"), dims.index("x")
-    ny, nx = base.shape[ay], base.shape[ax]
+    dims = tuple(group[name].metadata.dimension_names)
     if PYRAMID in group and not params.overwrite:
         raise BTFError(f"{params.store}: already has levels ({PYRAMID}/); pass --overwrite to "
                        "replace them")
+    count = _level_count(params, group[name].shape, dims)
+    root = storage.parse(params.store)
+    with atomic_subtree(str(root), PYRAMID) as partial:
+        levels = zarr.open_group(storage.store(str(root)), path=partial, mode="w-", zarr_format=3)
+        _write_levels(group, name, levels, count, params.method, session)
+    group = zarr.open_group(storage.store(str(root)), mode="r+", use_consolidated=False)
+    method = ("block mean of level 0 in linear radiance" if name == RADIANCE
+              else "block mean of level 0's radiance, projected on U"
+              if params.method == "projected" else
+              "block mean of the eigentextures V: a log-domain (geometric) mean of radiance + eps")
+    group.attrs["multiscales"] = multiscales(name, dims, count, method)
+    consolidate(root)
+    found = levels_of(group)
+    ay, ax = dims.index("y"), dims.index("x")
+    session.log("pyramid: " + ", ".join(f"level {v['level']} {v['shape'][ay]} x "
+                                        f"{v['shape'][ax]}" for v in found))
+    return found
+
+
+def _level_count(params: PyramidParams, shape: tuple[int, ...], dims: tuple[str, ...]) -> int:
+    """The levels to make: ``--levels``, or halving until ``MIN_SIDE``; refused if impossible."""
+    ny, nx = shape[dims.index("y")], shape[dims.index("x")]
     most = max(0, (min(ny, nx) // MIN_SIDE).bit_length() - 1)
     tiles = "tile" in dims
     if tiles:  # levels halve every tile exactly (see the module)
@@ -176,54 +124,38 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
         raise BTFError(f"{params.store}: {what}{ny} x {nx} texels are too small for levels of "
                        f"detail (the smaller side halved would fall below {MIN_SIDE}); pass "
                        "--levels")
-    root = storage.parse(params.store)
-    for stale in storage.children(root):  # left by a killed run
-        if stale.startswith(f".{PYRAMID}."):
-            storage.remove(storage.join(root, stale))
-    partial = f".{PYRAMID}.partial-{uuid.uuid4().hex[:8]}"
-    try:
-        levels = zarr.open_group(storage.store(str(root)), path=partial, mode="w-", zarr_format=3)
-        previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
-        basis = _basis(group) if name == "V" and params.method == "projected" else None
-        for n in range(1, count + 1):
-            if basis is not None and tiles:
-                coarse = da.stack([_projected(basis, t, 2**n) for t in level0])
-            elif basis is not None:
-                coarse = _projected(basis, level0, 2**n)
-            else:
-                coarse = da.coarsen(_mean32, previous, {ay: 2, ax: 2}, trim_excess=True)
-            shape = coarse.shape
-            target = add_array(levels.require_group(str(n)), name, shape=shape, dims=dims,
-                               chunks=tuple(min(c, s) for c, s in zip(base.chunks, shape,
-                                                                      strict=True)),
-                               attrs=dict(base.attrs))
-            coarse = coarse.rechunk(aligned_chunks(target))
-            session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
-            session.compute(store_aligned([coarse], [target]))
-            previous = da.from_zarr(target, chunks=aligned_chunks(target))
-    except BaseException:
-        storage.remove(storage.join(root, partial))
-        raise
-    group = zarr.open_group(storage.store(str(root)), mode="r+", use_consolidated=False)
-    old = storage.join(root, f".{PYRAMID}.old-{uuid.uuid4().hex[:8]}")
-    _swap_levels(root, partial, old)
-    datasets = [_dataset(name, dims, 1)] + [_dataset(f"{PYRAMID}/{n}/{name}", dims, 2**n)
-                                            for n in range(1, count + 1)]
-    group.attrs["multiscales"] = [{
-        "version": "0.4", "name": name, "axes": _axes(dims), "datasets": datasets,
-        "type": "mean",
-        "metadata": {"method": "block mean of level 0 in linear radiance" if name == RADIANCE
-                     else "block mean of level 0's radiance, projected on U" if
-                     params.method == "projected" else
-                     "block mean of the eigentextures V: a log-domain (geometric) mean of "
-                     "radiance + eps",
-                     "edges": "blocks beyond the last whole 2^n x 2^n block are left out"}}]
-    consolidate(root)
-    storage.remove(old)
-    found = levels_of(group)
-    session.log("pyramid: " + ", ".join(f"level {v['level']} {v['shape'][ay]} x "
-                                        f"{v['shape'][ax]}" for v in found))
-    return found
+    return count
+
+
+def _write_levels(group, name: str, levels, count: int, method: str,
+                  session: Session) -> None:
+    """Levels 1 to ``count`` of variable ``name`` of ``group``, into the group ``levels``."""
+    import dask.array as da
+
+    from pipeline.graphs.blocks import aligned_chunks, store_aligned
+    from pipeline.stores.base import add_array
+
+    base = group[name]
+    dims = tuple(base.metadata.dimension_names)
+    ay, ax = dims.index("y"), dims.index("x")
+    previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
+    basis = _basis(group) if name == "V" and method == "projected" else None
+    for n in range(1, count + 1):
+        if basis is not None and "tile" in dims:
+            coarse = da.stack([_projected(basis, t, 2**n) for t in level0])
+        elif basis is not None:
+            coarse = _projected(basis, level0, 2**n)
+        else:
+            coarse = da.coarsen(_mean32, previous, {ay: 2, ax: 2}, trim_excess=True)
+        shape = coarse.shape
+        target = add_array(levels.require_group(str(n)), name, shape=shape, dims=dims,
+                           chunks=tuple(min(c, s) for c, s in zip(base.chunks, shape,
+                                                                  strict=True)),
+                           attrs=dict(base.attrs))
+        coarse = coarse.rechunk(aligned_chunks(target))
+        session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
+        session.compute(store_aligned([coarse], [target]))
+        previous = da.from_zarr(target, chunks=aligned_chunks(target))
 
 
 def _basis(group) -> dict:
@@ -262,3 +194,14 @@ def _mean32(block, axis=None):
     import numpy as np
 
     return np.mean(block, axis=axis, dtype=np.float64).astype(np.float32)
+
+
+STAGE = Stage("pyramid", PyramidParams, pyramid,
+              "add levels of detail (OME-NGFF multiscales) to a store",
+              "Add levels of detail to a radiance, compressed or quilted tile-set store (of its "
+              "tiles, whose sides must be multiples of 2^n): level n is the mean of "
+              "2^n x 2^n texel blocks of level 0 in linear radiance (for a compressed store, "
+              "projected back on U; --method mean-v averages V instead, a log-domain "
+              "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "
+              "OME-NGFF-style 'multiscales' attribute. btf inspect lists them.",
+              whole="levels are made for the whole store", directions=same_directions)

@@ -21,6 +21,7 @@ from pipeline.params import ParamError, check_region, option, parse_region
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.stage import Stage, selected_directions
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
 from pipeline.stores.compressed import open_compressed
 from pipeline.stores.radiance import Layout, create_radiance_store
@@ -96,7 +97,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                 f"{sel.attrs['rank_used']} -> {params.out}")
     needs = None
     if params.for_scene is not None:
-        from pipeline.stages.scene import needs_of, spec_for_output
+        from pipeline.scene_needs import needs_of, spec_for_output
 
         needs = needs_of(spec_for_output(params.for_scene, params.out), d, (ny, nx))
         session.log(f"reconstruct: only what {params.for_scene} needs: {len(needs.layers)} "
@@ -135,3 +136,11 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,
                                           keep=keep))
     return Path(params.out)
+
+
+STAGE = Stage("reconstruct", ReconstructParams, reconstruct,
+              "rebuild chosen layers, region and rank from a compressed store",
+              "Rebuild exactly the requested layers (--light, --view), texel region (--region) "
+              "and rank (--rank) as exp(U S V^T) - eps, reading only the U chunks and V tiles "
+              "they need, into a radiance store or EXR files (--format exr).",
+              for_scene=True, directions=selected_directions)

@@ -3,7 +3,8 @@
 The reference image of a radiance or compressed store is computed from the layers of the view
 closest to the normal: per-texel sums over every light (:mod:`tasks.reference`), reduced over
 blocks of lights by :func:`pipeline.graphs.reductions.light_sums`, then the maps. ``btf quilt``
-and ``btf roller --image reference`` plan on the same image (:func:`compute_reference`).
+and ``btf roller --image reference`` plan on the same image
+(:func:`pipeline.graphs.reference.compute_reference`).
 """
 
 from __future__ import annotations
@@ -14,55 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_output
-from pipeline.errors import BTFError
-from pipeline.graphs.reductions import light_sums
+from pipeline.graphs.reference import WEIGHTS_HELP, check_weights, compute_reference, parse_weights
 from pipeline.images import write_exr
-from pipeline.params import ParamError, option
+from pipeline.params import option
 from pipeline.session import Session
-from pipeline.stores import open_layers
-from pipeline.stores.base import RADIANCE, Directions
-from tasks.reference import ReferenceMaps, reference_maps
-from tasks.sampling import direction_vectors
-
-WEIGHTS_HELP = "weights D,H,R of the diffuse, height and reflectance maps in the reference image"
-
-
-def check_weights(text: str) -> None:
-    """Raise :class:`ParamError` for ``weights`` that :func:`parse_weights` refuses."""
-    try:
-        parse_weights(text)
-    except ValueError as exc:
-        raise ParamError("weights", str(exc)) from None
-
-
-def parse_weights(text: str) -> tuple[float, float, float]:
-    """``"1,0.5,0.5"`` as three non-negative floats, not all zero."""
-    try:
-        values = tuple(float(t) for t in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or min(values) < 0 or sum(values) <= 0:
-        raise ValueError(f"expected three non-negative numbers D,H,R, not all 0, got {text!r}")
-    return values
-
-
-def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
-                      view: int | None, session: Session) -> tuple[ReferenceMaps, int]:
-    """The reference maps of a store, and the view they were computed from."""
-    ds = open_layers(path)
-    d = Directions.of(ds)
-    if view is None:
-        view = int(np.argmin(d.theta_view))
-    elif not 0 <= view < d.theta_view.size:
-        raise BTFError(f"{path}: --view {view} is out of range (the store has "
-                       f"{d.theta_view.size} views)")
-    rad = ds[RADIANCE].data[view]
-    session.log(f"reference: {len(rad.chunks[1]) * len(rad.chunks[2])} spatial blocks x "
-                f"{len(rad.chunks[0])} light blocks of view {view} of {path}")
-    (sums,) = session.compute(light_sums(rad, direction_vectors(d.theta_light, d.phi_light)))
-    if not np.isfinite(sums).all():
-        raise BTFError(f"{path}: variable 'radiance' has NaN or Inf values in view {view}")
-    return reference_maps(sums, weights=weights), view
+from pipeline.stage import Stage
+from tasks.reference import ReferenceMaps
 
 
 def write_reference(maps: ReferenceMaps, path: str | Path) -> None:
@@ -99,3 +57,11 @@ def reference(params: ReferenceParams, session: Session) -> Path:
         write_reference(maps, tmp)
     session.log(f"reference: maps of view {view} -> {params.out}")
     return Path(params.out)
+
+
+STAGE = Stage("reference", ReferenceParams, reference,
+              "write the reference image that guides quilting (paper 003, 2.2)",
+              "Compute, from all layers of the view closest to the normal, the diffuse map, "
+              "a normal map from the strongest response per texel, the height map integrated "
+              "from it (Frankot-Chellappa), a reflectance map from two normal estimates with "
+              "different exponents, and their weighted combination; write them as one EXR.")

@@ -19,6 +19,7 @@ from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import read_channels, read_directions
 from pipeline.stores.surface import create_surface_store
 from pipeline.stores.tileset import open_tileset, stored_seed
@@ -86,3 +87,10 @@ def render(params: RenderParams, session: Session) -> Path:
             write_png(tmp, image[..., 0] if image.shape[-1] == 1 else image)
     return Path(params.out)
 
+
+STAGE = Stage("render", RenderParams, render,
+              "render one layer of a surface of any size from a tile set",
+              "Render one layer (--light, --view) of an unbounded surface covered by a tile "
+              "set, over a region of any size (--size, --origin): each tile is chosen by a hash "
+              "of its lattice position and --seed so corners always match, and only that layer "
+              "of the tile set is read. EXR, tone-mapped PNG, or .zarr written block by block.")

@@ -31,10 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import __version__, storage
-from pipeline.atomic import atomic_output
+from pipeline.atomic import write_whole
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
+from pipeline.stage import Stage
 from pipeline.stores.base import open_group
 from tasks.evaluation import (
     abrdf_errors,
@@ -126,22 +127,6 @@ def _sidecar(out: str) -> str:
     return storage.join(storage.parent(location), sidecar)
 
 
-def _write(out: str, data: bytes, overwrite: bool) -> None:
-    """A file written whole.
-
-    Locally through a sibling and a rename; in object storage as one ``PUT`` (an object
-    appears complete or not at all).
-    """
-    location = storage.parse(out, what="output")
-    if not storage.is_url(location):
-        with atomic_output(out, directory=False, overwrite=overwrite) as tmp:
-            Path(tmp).write_bytes(data)
-        return
-    if storage.exists(location) and not overwrite:
-        raise BTFError(f"{out}: already exists; pass --overwrite to replace it")
-    storage.write(location, data)
-
-
 def _history(session: Session, out: str) -> list[dict]:
     """The run's stages; a skipped one keeps the time and memory of the run that made it.
 
@@ -226,35 +211,28 @@ def _compression(path: str, params: ReportParams) -> Section:
         (Table(("figure", "value"), tuple(rows)),), tuple(pictures))
 
 
-def _enlargement(path: str, params: ReportParams) -> Section:
-    group, u, s, transform = _factors(path)
-    info = dict(group.attrs.get("enlargement", {}))
-    parameters = dict(group.attrs.get("provenance", {})).get("parameters", {})
-    paragraphs = [f"Synthesized from the compressed sample {parameters.get('sample')} under "
-                  f"the photos {parameters.get('constraints')} (paper 000)."]
-    if params.truth is None:
-        return Section(f"Enlargement: {path}", (*paragraphs,
-                       "No ground truth given (--truth): no error figures."))
-    v = group["V"]
-    ny, nx, k = v.shape
-    truth = open_group(params.truth)["radiance"]
+def _truth(truth_path: str, path: str, texels: tuple[int, int], u_shape: tuple[int, ...]):
+    """``--truth``'s radiance, refused unless it has the enlarged store's texels and layers."""
+    (ny, nx), truth = texels, open_group(truth_path)["radiance"]
     if tuple(truth.shape[2:4]) != (ny, nx):
-        raise BTFError(f"--truth {params.truth}: {truth.shape[2]} x {truth.shape[3]} texels, "
+        raise BTFError(f"--truth {truth_path}: {truth.shape[2]} x {truth.shape[3]} texels, "
                        f"but {path} has {ny} x {nx}")
     layers = truth.shape[0] * truth.shape[1] * truth.shape[4]
-    if layers != u.shape[0] * u.shape[1] * u.shape[2]:
-        raise BTFError(f"--truth {params.truth}: {layers} textures (views x lights x "
-                       f"channels), but {path} has {u.shape[0] * u.shape[1] * u.shape[2]}: "
+    if layers != u_shape[0] * u_shape[1] * u_shape[2]:
+        raise BTFError(f"--truth {truth_path}: {layers} textures (views x lights x "
+                       f"channels), but {path} has {u_shape[0] * u_shape[1] * u_shape[2]}: "
                        "give the store the sample was measured from")
-    _, us, ss, _ = _factors(parameters["sample"])
-    vs = np.asarray(open_group(parameters["sample"])["V"][...], np.float64)
-    sample = vs * ss
+    return truth
+
+
+def _errors_outside(truth, v, s, flat_u, flat_us, sample, sample_keys, keys_of, origin,
+                    transform) -> tuple[dict[str, float], int]:
+    """Mean ABRDF RMSE (eq. 11) outside the sample, and the texels counted.
+
+    For the enlargement, its oracle and the two baselines, band by band of texels.
+    """
+    ny, nx = v.shape[:2]
     sh, sw = sample.shape[:2]
-    origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
-    photos = open_group(parameters["constraints"])["radiance"]
-    keys_of = lambda ys: _values(transform, _rows(photos, ys), u.shape[2])  # noqa: E731
-    sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
-    flat_u, flat_us = u.reshape(-1, k), us.reshape(-1, us.shape[-1])
     sums = {"oracle (nearest sample ABRDF)": 0.0, "enlargement": 0.0, "tiling": 0.0,
             "lookup": 0.0}
     count, index = 0, None
@@ -276,7 +254,32 @@ def _enlargement(path: str, params: ReportParams) -> Section:
                                  "lookup": (flat_us, looked)}.items():
             sums[name] += abrdf_errors(basis, c, transform, rows, mask).sum()
         count += int(mask.sum())
-    errors = {n: sums[n] / max(count, 1) for n in sums}
+    return {n: sums[n] / max(count, 1) for n in sums}, count
+
+
+def _enlargement(path: str, params: ReportParams) -> Section:
+    group, u, s, transform = _factors(path)
+    info = dict(group.attrs.get("enlargement", {}))
+    parameters = dict(group.attrs.get("provenance", {})).get("parameters", {})
+    paragraphs = [f"Synthesized from the compressed sample {parameters.get('sample')} under "
+                  f"the photos {parameters.get('constraints')} (paper 000)."]
+    if params.truth is None:
+        return Section(f"Enlargement: {path}", (*paragraphs,
+                       "No ground truth given (--truth): no error figures."))
+    v = group["V"]
+    ny, nx, k = v.shape
+    truth = _truth(params.truth, path, (ny, nx), u.shape)
+    _, us, ss, _ = _factors(parameters["sample"])
+    vs = np.asarray(open_group(parameters["sample"])["V"][...], np.float64)
+    sample = vs * ss
+    sh, sw = sample.shape[:2]
+    origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
+    photos = open_group(parameters["constraints"])["radiance"]
+    keys_of = lambda ys: _values(transform, _rows(photos, ys), u.shape[2])  # noqa: E731
+    sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
+    errors, count = _errors_outside(truth, v, s, u.reshape(-1, k),
+                                    us.reshape(-1, us.shape[-1]), sample, sample_keys,
+                                    keys_of, origin, transform)
     oracle = errors["oracle (nearest sample ABRDF)"]
     pictures, looks = [], {}
     w = min(params.window, ny, nx)
@@ -357,8 +360,19 @@ def report(params: ReportParams, session: Session) -> Path:
     page = render(params.title, f"Made by btf {__version__} on "
                   f"{time.strftime('%Y-%m-%d %H:%M')} in {time.perf_counter() - start:.1f} s.",
                   sections)
-    _write(params.out, page.encode("utf-8"), params.overwrite)
+    write_whole(params.out, page.encode("utf-8"), params.overwrite)
     if history:
-        _write(_sidecar(params.out), json.dumps({"history": history}, indent=1).encode(), True)
+        write_whole(_sidecar(params.out), json.dumps({"history": history}, indent=1).encode(),
+                    True)
     session.log(f"report: {len(sections)} section(s) -> {params.out}")
     return Path(params.out)
+
+
+STAGE = Stage("report", ReportParams, report,
+              "write one self-contained HTML page of a run's results",
+              "Write one HTML page (pictures embedded, no script, no network) of what a run "
+              "made and how well: each stage of the btf run it ends with (time, peak memory, "
+              "the command that reproduces it); compression rank, size ratio and error; an "
+              "enlargement against ground truth and the tiling and per-texel lookup "
+              "baselines, side by side for a few lights; a tile set's border figures; and any "
+              "PNG pictures (a rendered surface, a scene's images).")

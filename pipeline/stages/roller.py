@@ -21,10 +21,11 @@ import numpy as np
 
 from pipeline.errors import BTFError
 from pipeline.graphs.prescriptions import write_tileset
+from pipeline.graphs.reference import compute_reference
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
-from pipeline.stages.reference import compute_reference
+from pipeline.stage import Stage, same_directions
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.tileset import TileSet
@@ -115,7 +116,7 @@ def describe(lattice: Lattice) -> str:
 
 def roller(params: RollerStageParams, session: Session) -> Path | None:
     """Detect the lattice and, unless ``--detect-only``, write a roller tile set."""
-    from pipeline.stages.scene import tileset_needs
+    from pipeline.scene_needs import tileset_needs
 
     # a bad scene spec stops before the analysis
     needs = tileset_needs(params.for_scene, params.store, params.out, session, label="roller")
@@ -174,3 +175,16 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
                     representative=plan.representative.astype(np.int64))
     return write_tileset(tiles, params.out, source=params.store, session=session,
                          label="roller", overwrite=params.overwrite, needs=needs)
+
+
+STAGE = Stage("roller", RollerStageParams, roller,
+              "detect the periodicity lattice and build double toroidal tiles (paper 004)",
+              "Detect the two periodicity vectors u, v (any direction) of the perpendicularly "
+              "lit layer from its Fourier spectrum and autocorrelation (--detect-only prints "
+              "them; --json as one object). Otherwise cut a tile spanned by whole periods "
+              "along the cheapest paths through the overlap error (scipy's Dijkstra) so it "
+              "repeats seamlessly on the lattice, optionally N tiles with identical borders "
+              "(--tiles), and apply it to every layer (or to the eigentextures of a "
+              "compressed store). btf render lays the tiles on surfaces of any size.",
+              makes_store=True,
+              for_scene=True, directions=same_directions)
