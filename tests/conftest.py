@@ -64,6 +64,15 @@ def small_btf(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def samples(tmp_path_factory) -> dict[str, Path]:
+    """72 x 72 samples to quilt (fabric, stone, tiles), 4 x 2 ABTF lights, chunks of 32."""
+    folder = tmp_path_factory.mktemp("quilt")
+    return {m: generate_store(folder / f"{m}.zarr", "--material", m, "--size", "72",
+                              "--sampling", "abtf:4,2", "--seed", "2", "--chunk", "32")
+            for m in ("fabric", "stone", "tiles")}
+
+
+@pytest.fixture(scope="session")
 def local_cluster():
     """A dask.distributed LocalCluster of two single-threaded worker processes (its address)."""
     from distributed import LocalCluster

@@ -2,15 +2,44 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
+
 from pipeline.cli import main
+
+# The processes scheduler (a fresh interpreter per worker, seconds each) as a slow parameter:
+# a cluster's worker processes stand for it in the default set.
+SLOW_PROCESSES = pytest.param("processes", marks=pytest.mark.slow)
 
 
 def generate_store(path: Path, *args: str) -> Path:
     code = main(["generate", str(path), "--quiet", *args])
     assert code == 0
     return path
+
+
+def quilt(src: Path, out: Path, *args: str):
+    """``btf quilt SRC OUT ARGS --quiet`` in this process; the tile set, opened."""
+    import zarr
+
+    assert main(["quilt", str(src), str(out), "--quiet", *map(str, args)]) == 0
+    return zarr.open_group(out, mode="r")
+
+
+def free_port() -> int:
+    """A free TCP port on loopback, for a test's server (one helper for every test)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def no_partial_outputs(path: Path) -> bool:
@@ -82,3 +111,78 @@ def small_demo(folder: Path, size: int = 128) -> Path:
     path = folder / "demo.yaml"
     path.write_text(text)
     return path
+
+
+@contextlib.contextmanager
+def dask_cluster(folder: Path, *, workers: int = 1, processes: int = 2, protocol: str = "tcp",
+                 tls: tuple[str, ...] = (), security=None, env: dict | None = None,
+                 no_nanny: bool = False) -> Iterator[tuple[str, list[subprocess.Popen]]]:
+    """A dask scheduler and ``workers`` ``dask worker`` commands as local processes: the
+    address and the worker commands' processes. Every cluster test starts its cluster here.
+
+    The commands are docker-compose.yml's, on loopback: the scheduler on a free port (its
+    dashboard on any), each worker command with ``processes`` single-threaded processes and
+    its own folder under ``folder`` (as on separate machines). ``protocol`` and ``tls`` (the
+    dask options for certificates) make a TLS cluster; ``security`` is the client's, to wait
+    for the workers. Everything started is stopped at the end (as by Ctrl-C, then killed if
+    it lingers).
+    """
+    import socket
+
+    from distributed import Client
+
+    port = free_port()
+    address = f"{protocol}://127.0.0.1:{port}"
+    bin_ = Path(sys.executable).parent
+    log = (folder / "cluster.log").open("w")
+    scheduler = compose_command("scheduler", values={
+        "--host": "127.0.0.1", "--port": str(port), "--dashboard-address": "127.0.0.1:0"})
+    if protocol != "tcp":
+        scheduler += ["--protocol", protocol]
+    procs = [subprocess.Popen([bin_ / scheduler[0], *scheduler[1:], *tls], stdout=log,
+                              stderr=log, env=env)]
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        worker = compose_command("worker", words={"tcp://scheduler:8786": address},
+                                 values={"--nworkers": str(processes), "--nthreads": "1"})
+        extra = [*tls, *(["--no-nanny"] if no_nanny else [])]
+        started = []
+        for i in range(workers):
+            home = folder / f"worker-{i}"
+            home.mkdir(exist_ok=True)
+            started.append(subprocess.Popen([bin_ / worker[0], *worker[1:], *extra], cwd=home,
+                                            stdout=log, stderr=log, env=env))
+        procs += started
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with Client(address, security=security, timeout="10s",
+                            set_as_default=False) as client:  # the tests choose their own
+                    client.wait_for_workers(workers * processes, timeout=60)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+        yield address, started
+    finally:
+        # Ctrl-C, workers before the scheduler they say goodbye to: 0.3 s (SIGTERM: 8 s)
+        for group in (procs[1:], procs[:1]):
+            for proc in group:
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGINT)
+            for proc in group:
+                try:
+                    proc.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        log.close()

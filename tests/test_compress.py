@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import pipeline.graphs.tile_passes as tile_passes
+from helpers import SLOW_PROCESSES
 from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
@@ -468,7 +469,7 @@ def test_verify_measures_the_log_domain_error(sketch, tmp_path, btf):
         attrs["error"]["log_relative_frobenius_measured"], rel=1e-3)
 
 
-@pytest.mark.parametrize("scheduler", ["threads", "processes",
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 @pytest.mark.parametrize(("mode", "passes"), [(("--passes", "1"), 2),
                                               (("--sketch", "rows"), 5)])

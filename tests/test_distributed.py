@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ import zarr
 from helpers import (
     compose_command,
     compose_services,
+    dask_cluster,
     generate_store,
     no_partial_outputs,
     small_demo,
@@ -29,63 +29,13 @@ from helpers import (
 BIN = Path(sys.executable).parent
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait_for_workers(address: str, n: int, timeout: float = 60) -> None:
-    from distributed import Client
-
-    with Client(address, timeout="20s") as client:
-        client.wait_for_workers(n, timeout=timeout)
-
-
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    """One cluster for the module's tests (stopping one takes ~8 s)."""
-    tmp_path = tmp_path_factory.mktemp("cluster")
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    elsewhere = tmp_path / "worker-home"
-    elsewhere.mkdir()
-    logs = (tmp_path / "scheduler.log").open("w"), (tmp_path / "worker.log").open("w")
-    # docker-compose.yml's commands, on loopback, with the dashboard on any free local port
-    scheduler = compose_command("scheduler", values={"--host": "127.0.0.1", "--port": str(port),
-                                                     "--dashboard-address": "127.0.0.1:0"})
-    procs = [subprocess.Popen([BIN / scheduler[0], *scheduler[1:]], stdout=logs[0],
-                              stderr=logs[0])]
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
-        # the compose file's replicas as worker processes (at most 2: CI has 2 cores), one
-        # thread each
-        replicas = min(2, compose_services()["worker"]["deploy"]["replicas"])
-        worker = compose_command("worker", words={"tcp://scheduler:8786": address},
-                                 values={"--nworkers": str(replicas), "--nthreads": "1"})
-        procs.append(subprocess.Popen([BIN / worker[0], *worker[1:]], cwd=elsewhere,
-                                      stdout=logs[1], stderr=logs[1]))
-        _wait_for_workers(address, replicas)
+    """One cluster for the module's tests (stopping one takes ~8 s): docker-compose.yml's
+    worker replicas as processes (at most 2: CI has 2 cores), one thread each."""
+    replicas = min(2, compose_services()["worker"]["deploy"]["replicas"])
+    with dask_cluster(tmp_path_factory.mktemp("cluster"), processes=replicas) as (address, _):
         yield address
-    finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in reversed(procs):
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        for log in logs:
-            log.close()
 
 
 def _btf(*args, **kwargs) -> subprocess.CompletedProcess:
@@ -102,7 +52,9 @@ def _shows_progress(stderr: str) -> bool:
 
 
 @pytest.mark.distributed
-@pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
+# the progress variant in the slow set: the next tests show progress on the cluster too
+@pytest.mark.parametrize("quiet", [pytest.param(False, marks=pytest.mark.slow), True],
+                         ids=["progress", "quiet"])
 def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
     # docker-compose.yml's runner command with the demo config, scaled down (local stores,
     # which this host's workers share; its own config, on S3, runs in tests/test_s3.py)
@@ -128,6 +80,7 @@ def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quie
         assert np.array_equal(a[name][:], b[name][:]), name
 
 
+@pytest.mark.slow  # the default set quilts on the cluster in the demo run above
 @pytest.mark.distributed
 def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster):
     src = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "48",
@@ -183,6 +136,7 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+@pytest.mark.slow
 @pytest.mark.distributed
 def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
     src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "256",

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import generate_store, no_partial_outputs
+from helpers import SLOW_PROCESSES, generate_store, no_partial_outputs
 from pipeline.images import write_exr, write_png
 from pipeline.session import RuntimeOptions, Session
 from pipeline.stages.generate import GenerateParams, generate
@@ -41,7 +41,9 @@ def test_generated_store_follows_the_contract(small_abtf):
         assert ds[name].dims[:2] == ("y", "x") and np.isfinite(ds[name].values).all()
 
 
-@pytest.mark.parametrize("scheduler", ["synchronous", "processes"])
+# processes in the slow set; test_a_local_cluster_gives_the_identical_store runs worker
+# processes in the default one
+@pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES])
 def test_same_arguments_give_identical_stores_on_every_scheduler(tmp_path, scheduler,
                                                                  small_tasks):
     reference = generate_store(tmp_path / "threads" / "s.zarr", *SMALL, "--scheduler", "threads")

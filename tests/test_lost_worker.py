@@ -20,60 +20,18 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import compose_command, generate_store
+from helpers import dask_cluster, generate_store
 
 BIN = Path(sys.executable).parent
 pytestmark = [pytest.mark.slow, pytest.mark.distributed]
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def two_workers(tmp_path):
-    """``(address, [worker processes])`` of a fresh cluster."""
-    from distributed import Client
-
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    log = (tmp_path / "cluster.log").open("w")
-    scheduler = compose_command("scheduler", values={"--host": "127.0.0.1", "--port": str(port),
-                                                     "--dashboard-address": "127.0.0.1:0"})
-    procs = [subprocess.Popen([BIN / scheduler[0], *scheduler[1:]], stdout=log, stderr=log)]
-    worker = compose_command("worker", words={"tcp://scheduler:8786": address},
-                             values={"--nworkers": "1", "--nthreads": "1"})
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                with Client(address, timeout="2s"):
-                    break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.3)
-        workers = [subprocess.Popen([BIN / worker[0], *worker[1:], "--no-nanny"], stdout=log,
-                                    stderr=log, cwd=tmp_path) for _ in range(2)]
-        procs += workers
-        with Client(address, timeout="20s") as client:
-            client.wait_for_workers(2, timeout=60)
-        yield address, workers
-    finally:
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        log.close()
+    """``(address, [worker processes])`` of a fresh cluster: two workers without nannies, so
+    that killing one loses it."""
+    with dask_cluster(tmp_path, workers=2, processes=1, no_nanny=True) as cluster:
+        yield cluster
 
 
 def _chunks(out: Path) -> int:

@@ -1,4 +1,4 @@
-"""Quilting (paper 003): reference maps, seamless tile sets, prescriptions, render, HLS fit."""
+"""Quilting (paper 003): seamless tile sets, prescriptions, and rendering them."""
 
 from __future__ import annotations
 
@@ -11,14 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from helpers import generate_store
-from pipeline.errors import BTFError
+from helpers import generate_store, quilt
 from pipeline.graphs.surface import lazy_layer
-from pipeline.stores.base import RADIANCE, Directions
-from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
+from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import open_radiance
 from tasks.canvas import TERMS
 from tasks.corner_tiles import plan_tiles
-from tasks.materials import Material
 from tasks.prescription import apply, check, to_csr
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.svd import reconstruct_layers
@@ -29,21 +27,8 @@ PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
 ANY_SEAM = {"max_seam": 1e9}
 
 
-def _sample(tmp_path_factory, material, size=72, sampling="abtf:4,2"):
-    path = tmp_path_factory.mktemp("quilt") / f"{material}.zarr"
-    return generate_store(path, "--material", material, "--size", str(size), "--sampling",
-                          sampling, "--seed", "2", "--chunk", "32")
-
-
-@pytest.fixture(scope="module")
-def samples(tmp_path_factory):
-    return {m: _sample(tmp_path_factory, m) for m in ("fabric", "stone", "tiles")}
-
-
 def _quilt(btf, src, out, *args):
-    result = btf("quilt", src, out, *PARAMS, "--quiet", *args)
-    assert result.code == 0, result.err
-    return zarr.open_group(out, mode="r")
+    return quilt(src, out, *PARAMS, *args)
 
 
 def neighbour_difference(img: np.ndarray, axis: int) -> float:
@@ -339,104 +324,6 @@ def test_the_same_seed_gives_the_same_tile_set_and_another_seed_another(tmp_path
     assert not np.array_equal(a[RADIANCE][:], c[RADIANCE][:])
 
 
-def test_rendering_is_consistent_where_regions_overlap(tmp_path, btf, samples):
-    _quilt(btf, samples["fabric"], tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
-    a = lazy_layer(tmp_path / "q.zarr", view=0, light=3, size=(100, 130), origin=(-40, 10),
-                   seed=9, chunk=32).compute()
-    b = lazy_layer(tmp_path / "q.zarr", view=0, light=3, size=(90, 70), origin=(0, 50),
-                   seed=9, chunk=48).compute()
-    assert np.array_equal(a[40:100, 40:110], b[:60, :70])
-    other = lazy_layer(tmp_path / "q.zarr", view=0, light=3, size=(100, 130),
-                       origin=(-40, 10), seed=10, chunk=32).compute()
-    assert not np.array_equal(a, other)
-
-
-def test_rendering_follows_the_stored_corner_types_of_each_tile(tmp_path, btf, samples):
-    path = tmp_path / "q.zarr"
-    _quilt(btf, samples["fabric"], path, "--corners", "2", "--size", "24,24")
-    before = lazy_layer(path, view=0, light=1, size=(80, 90), origin=(-7, 5)).compute()
-    group = zarr.open_group(path, mode="r+")
-    perm = np.random.default_rng(1).permutation(16)
-    group[RADIANCE][...] = group[RADIANCE][...][perm]
-    group["corners"][...] = group["corners"][...][perm]
-    after = lazy_layer(path, view=0, light=1, size=(80, 90), origin=(-7, 5)).compute()
-    assert np.array_equal(before, after)
-    group["corners"][3] = group["corners"][4]
-    with pytest.raises(BTFError, match="'corners' does not hold every combination"):
-        lazy_layer(path, view=0, light=1, size=(8, 8))
-
-
-@pytest.mark.parametrize("origin", [(0, 0), (-13, -4), (95, -301)])
-def test_a_rendered_texel_is_its_cells_tile_at_its_offset(origin):
-    from tasks.placement import cell_tiles, gather
-
-    tiles = np.random.default_rng(0).random((16, 7, 5, 3)).astype(np.float32)
-    y0, x0 = origin
-    out = gather(tiles, y0, x0, 23, 19, seed=3, corners=2)
-    for y, x in itertools.product(range(23), range(19)):
-        cy, cx = (y0 + y) // 7, (x0 + x) // 5
-        tile = cell_tiles(cy, cx, 1, 1, seed=3, corners=2)[0, 0]
-        assert np.array_equal(out[y, x], tiles[tile, (y0 + y) % 7, (x0 + x) % 5])
-
-
-def test_rendering_one_layer_reads_no_other_layer(tmp_path, btf, samples, monkeypatch):
-    from test_compress import ReadCounter
-
-    _quilt(btf, samples["tiles"], tmp_path / "q.zarr", "--size", "24,24")
-    counter = ReadCounter(monkeypatch)
-    out = tmp_path / "surface.zarr"
-    assert btf("render", tmp_path / "q.zarr", out, "--light", "5", "--size", "700,900",
-               "--chunk", "256", "--quiet").code == 0
-    layers = {key.split("/radiance/c/")[1].split("/")[2] for key in counter.chunks(RADIANCE)
-              if "q.zarr" in key}
-    assert layers == {"5"}  # chunk keys: tile/view/light/...
-    surface = zarr.open_group(out, mode="r")
-    assert surface.attrs["btf_kind"] == "surface" and surface.attrs["light"] == 5
-    expected = lazy_layer(tmp_path / "q.zarr", view=0, light=5, size=(700, 900)).compute()
-    assert np.array_equal(surface[RADIANCE][:], expected)
-    report = btf("inspect", out)
-    assert report.code == 0 and "surface: 700 x 900 texels of light 5, view 0" in report.out
-    again = btf("render", tmp_path / "q.zarr", out, "--light", "2", "--size", "70,90",
-                "--overwrite", "--quiet")
-    assert again.code == 0 and zarr.open_group(out)[RADIANCE].shape == (70, 90, 3)
-
-
-def test_reference_maps_follow_the_ground_truth(tmp_path, btf):
-    path = generate_store(tmp_path / "leather.zarr", "--material", "leather", "--size", "96",
-                          "--sampling", "abtf:12,6", "--seed", "1")
-    from pipeline.graphs.reference import compute_reference
-    from pipeline.session import RuntimeOptions, Session
-
-    with Session(RuntimeOptions(quiet=True)) as session:
-        maps, view = compute_reference(path, weights=(1, 0.5, 0.5), view=None, session=session)
-    truth = open_radiance(path)
-    height = truth["height"].values
-    albedo = truth["albedo"].values
-
-    def corr(a, b):
-        return np.corrcoef(a.ravel(), b.ravel())[0, 1]
-
-    assert view == 0
-    assert corr(maps.height, height) > 0.7
-    assert corr(maps.diffuse.mean(-1), albedo.mean(-1)) > 0.8
-    gy, gx = np.gradient(height)
-    assert corr(maps.normal[..., 0], -gx) > 0.6 and corr(maps.normal[..., 1], -gy) > 0.6
-    assert maps.reference.min() >= 0 and maps.reference.max() <= 1
-    result = btf("reference", path, tmp_path / "ref.exr", "--weights", "1,1,0", "--quiet")
-    assert result.code == 0
-    import OpenEXR
-
-    with OpenEXR.File(str(tmp_path / "ref.exr"), separate_channels=True) as f:
-        planes = {name: np.array(c.pixels) for name, c in f.channels().items()}
-    assert set(planes) == {"diffuse.R", "diffuse.G", "diffuse.B", "height.Y", "reflectance.Y",
-                           "normal.X", "normal.Y", "normal.Z", "reference.R", "reference.G",
-                           "reference.B"}
-    assert planes["height.Y"].shape == (96, 96)
-    # weights 1,1,0: the reference is the mean of the diffuse and height maps
-    assert np.allclose(planes["reference.G"], 0.5 * (planes["diffuse.G"] + planes["height.Y"]),
-                       atol=1e-6)
-
-
 def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples,
                                                                  monkeypatch):
     # rank 8: every tile below is within about 2% of the measured layer (rank 6: 5%)
@@ -520,108 +407,6 @@ def test_a_tile_set_too_large_to_plan_is_refused_before_planning(tmp_path, btf, 
     assert not (tmp_path / "q.zarr").exists()
 
 
-def test_render_refuses_what_is_not_a_tile_set(tmp_path, btf, samples):
-    result = btf("render", samples["stone"], tmp_path / "x.exr", "--light", "0", "--size",
-                 "10,10")
-    assert result.code == 1 and "not a tile-set store" in result.err
-
-
-def _lambertian_abtf(path, rotations=6, elevations=8, size=24):
-    """A purely diffuse ABTF: albedo times cos(theta) (hue and saturation exactly constant)."""
-    from tasks.sampling import parse_sampling
-
-    s = parse_sampling(f"abtf:{rotations},{elevations}")
-    d = Directions(s.theta_view, s.phi_view, s.theta_light, s.phi_light)
-    group = create_radiance_store(path, directions=d, ny=size, nx=size,
-                                  channels=("R", "G", "B"), layout=Layout(chunk=8),
-                                  attrs={"btf_kind": "abtf"})
-    albedo = Material("wood", seed=1).fields(0, 0, size, size).albedo
-    shade = np.cos(np.radians(s.theta_light))[:, None, None, None]
-    group[RADIANCE][0] = (albedo[None] * shade).astype(np.float32)
-    return path
-
-
-def test_the_hls_fit_of_a_diffuse_material_is_close_and_rebuilds_from_its_parameters(
-        tmp_path, btf):
-    from pipeline.stores.fitted import open_fitted
-    from tasks.hls import rebuild
-
-    src = _lambertian_abtf(tmp_path / "d.zarr")
-    assert btf("fit", src, tmp_path / "fit.zarr", "--quiet").code == 0
-    ds = open_fitted(tmp_path / "fit.zarr")
-    err = ds.attrs["fit_error"]
-    original = open_radiance(src)[RADIANCE].values
-    assert err["rmse"] < 1e-3 * original.mean() and err["max"] < 1e-2 * original.max()
-    rebuilt = ds[RADIANCE].values
-    assert rebuilt.shape == original.shape
-    assert np.sqrt(np.mean((rebuilt - original) ** 2)) == pytest.approx(err["rmse"], rel=1e-3)
-    grid = np.asarray(ds.attrs["light_grid"])
-    direct = rebuild(ds["hue"].values[0], ds["saturation"].values[0],
-                     ds["lightness"].values[0], grid, np.asarray(ds.attrs["elevations"]))
-    assert np.allclose(rebuilt[0], direct, atol=1e-6)
-    assert ds.attrs["size_ratio"] == pytest.approx(48 * 3 / (2 + 6 * 6))
-
-
-def test_the_hls_fit_of_a_generated_material_reports_its_error(tmp_path, btf):
-    import json
-
-    from pipeline.stores.fitted import open_fitted
-
-    src = generate_store(tmp_path / "l.zarr", "--material", "leather", "--size", "32",
-                         "--sampling", "abtf:4,8")
-    assert btf("fit", src, tmp_path / "fit.zarr", "--quiet").code == 0
-    fit = json.loads(btf("inspect", tmp_path / "fit.zarr", "--json").out)["fit"]
-    assert fit["rotations"] == 4 and fit["elevations"] == 8
-    original = open_radiance(src)[RADIANCE].values.astype(np.float64)
-    rebuilt = open_fitted(tmp_path / "fit.zarr")[RADIANCE].values
-    difference = rebuilt - original
-    assert np.sqrt(np.mean(difference**2)) == pytest.approx(fit["error"]["rmse"], rel=1e-4)
-    assert np.abs(difference).max() == pytest.approx(fit["error"]["max"], rel=1e-4)
-    # six parameters over elevation do much better than each texel's mean over the lights
-    flat = original - original.mean(axis=1, keepdims=True)
-    assert fit["error"]["rmse"] < 0.3 * np.sqrt(np.mean(flat**2))
-
-
-def test_fit_refuses_radiance_with_nan(tmp_path, btf):
-    src = generate_store(tmp_path / "n.zarr", "--material", "fabric", "--size", "32",
-                         "--sampling", "abtf:6,3", "--chunk", "16")
-    zarr.open_array(src, path=RADIANCE, mode="r+")[0, 4, 20, 3] = np.nan
-    result = btf("fit", src, tmp_path / "fit.zarr", "--quiet")
-    assert result.code == 1
-    assert "variable 'radiance' has 3 NaN or Inf values in view 0, y 16:32, x 0:16" in result.err
-    assert not (tmp_path / "fit.zarr").exists()
-
-
-def test_fit_refuses_lights_that_are_not_a_grid(tmp_path, btf):
-    src = generate_store(tmp_path / "h.zarr", "--material", "stone", "--size", "16",
-                         "--sampling", "hemi:5")
-    result = btf("fit", src, tmp_path / "fit.zarr", "--quiet")
-    assert result.code == 1 and "not a grid of" in result.err
-    with pytest.raises(BTFError):
-        from pipeline.stores.fitted import open_fitted
-
-        open_fitted(src)
-
-
-def test_light_sums_of_blocks_combine_to_the_sums_over_all_lights():
-    from tasks.reference import combine_light_sums, light_sums
-    from tasks.sampling import direction_vectors, parse_sampling
-
-    s = parse_sampling("abtf:6,3")
-    lights = direction_vectors(s.theta_light, s.phi_light)
-    layers = np.random.default_rng(2).gamma(0.5, 1.0, (len(lights), 9, 11, 3)).astype(np.float32)
-    whole = light_sums(layers, lights)
-    for cuts in ([5, 9], [1, 2, 17]):
-        parts = np.stack([light_sums(layers[a:b], lights[a:b])
-                          for a, b in zip([0, *cuts], [*cuts, len(lights)], strict=True)])
-        # equal up to the float32 rounding of the luminance each block is weighted by
-        assert np.allclose(combine_light_sums(parts), whole, rtol=1e-6, atol=1e-6)
-        # associative: combining partial combinations gives the same
-        twice = combine_light_sums(np.stack([combine_light_sums(parts[:2]),
-                                             combine_light_sums(parts[2:])]))
-        assert np.allclose(twice, whole, rtol=1e-6, atol=1e-6)
-
-
 def test_the_block_size_follows_the_detected_period():
     from benchmarks.lattices import random_lattice_texture, stochastic_texture
     from tasks.quilt_layout import choose_block
@@ -688,25 +473,44 @@ def _worst_seed(texture: str, block: int | None, corners: int, seeds, refusals: 
     return result
 
 
-@pytest.mark.parametrize("texture,block,corners", [
+BOUND_CASES = [
     ("brick", 48, 1),  # the bug report's setting
     ("brick", None, 1),
     ("brick", 48, 2),
     ("fabric", None, 1),  # a lattice with an 11.3-texel period: tiles of whole periods
-])
-@settings(max_examples=2, deadline=None, derandomize=False)
-@given(seed=SEEDS)
-def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners, seed):
+]
+
+
+def _check_bound(texture, block, corners, seed):
     """The bug report: one brick seed in six left a mortar line along the wrap, others a band
-    where the rows of bricks break. Every border is measured on its own, for seeds the test
-    did not pick: seams across it and the structure along it (tasks/seams.py) at most 1.3x
-    the tile's inside, measured on the texture (V = 1) or a mosaic of tiles (V = 2)."""
+    where the rows of bricks break. Every border is measured on its own: seams across it and
+    the structure along it (tasks/seams.py) at most 1.3x the tile's inside, measured on the
+    texture (V = 1) or a mosaic of tiles (V = 2)."""
     r = _worst_seed(texture, block, corners, [seed], refusals=1 if corners > 1 else 0)
     if r["failed"]:
         return  # refused with the message (about 1 seed in 20 of brick's tile sets, see
         # BENCHMARKS.md): no output, so none out of bounds; the slow test bounds how often
     assert r["seam"]["worst"] <= 1.3 and r["structure"]["worst"] <= 1.3, r["seeds"]
     assert r["sharpness"]["worst"] >= 0.8, r["seeds"]
+
+
+@pytest.mark.parametrize("texture,block,corners", [
+    pytest.param(*case, marks=pytest.mark.slow) if case[2] > 1 else case for case in BOUND_CASES])
+def test_a_seed_keeps_every_border_within_the_bound(texture, block, corners):
+    """One seed per case, a date rather than a seed the planner was tuned on. Planning time
+    varies by seed from seconds to a minute (issue 35), so the default set runs one seed of
+    the single-corner cases (5 s each); tile sets (V = 2: 33 s for this seed) and seeds the
+    test did not pick are in the slow set."""
+    _check_bound(texture, block, corners, 20261126)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("texture,block,corners", BOUND_CASES)
+@settings(max_examples=2, deadline=None, derandomize=False)
+@given(seed=SEEDS)
+def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners, seed):
+    """Seeds the test did not pick, new ones every run (hypothesis)."""
+    _check_bound(texture, block, corners, seed)
 
 
 @pytest.mark.slow

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import zarr
 
+from helpers import dask_cluster
 from pipeline import storage
 
 BIN = Path(sys.executable).parent
@@ -118,6 +119,7 @@ def _start(args, env=None):
                             stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
 
 
+@pytest.mark.slow  # kill -9 and resume on a local disk: tests/test_resume.py, default set
 def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp_path, s3):
     url, whole = s3.url("killed/wood.zarr"), s3.url("killed/whole.zarr")
     args = ["generate", url, "--material", "wood", "--size", "96", "--sampling", "abtf:6,4",
@@ -216,36 +218,12 @@ def test_bad_object_storage_stops_with_the_url_and_the_cause(btf, s3, monkeypatc
 
 
 @pytest.fixture
-def s3_cluster(tmp_path, s3, request):
+def s3_cluster(tmp_path, s3):
     """A dask scheduler and two single-threaded workers whose folders share nothing: each
     worker process starts in a folder of its own and reaches the stores through S3 only."""
-    from test_distributed import _free_port, _wait_for_workers
-
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = {**os.environ, **s3.environment}
-    log = (tmp_path / "cluster.log").open("w")
-    request.addfinalizer(log.close)
-    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port",
-                               str(port), "--dashboard-address", "127.0.0.1:0"],
-                              stdout=log, stderr=log, env=env)]
-    try:
-        for i in range(2):
-            home = tmp_path / f"worker-{i}"
-            home.mkdir()
-            procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", "1",
-                                           "--nthreads", "1"], cwd=home, stdout=log,
-                                          stderr=log, env=env))
-        _wait_for_workers(address, 2)
+    with dask_cluster(tmp_path, workers=2, processes=1,
+                      env={**os.environ, **s3.environment}) as (address, _):
         yield address
-    finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in reversed(procs):
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
 
 
 @pytest.mark.distributed

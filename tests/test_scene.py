@@ -42,6 +42,17 @@ def stores(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def with_levels(stores, tmp_path_factory):
+    """The small full BTF with two levels of detail (btf pyramid), made once."""
+    from pipeline.cli import main
+
+    p = tmp_path_factory.mktemp("levels") / "p.zarr"
+    shutil.copytree(stores / "m.zarr", p)
+    assert main(["pyramid", str(p), "--levels", "2", "-q"]) == 0
+    return p
+
+
 def _angles(store: Path, view: int, light: int) -> list[float]:
     g = zarr.open_group(store, mode="r")
     return [float(g["theta_light"][light]), float(g["phi_light"][light]),
@@ -313,11 +324,9 @@ def test_surface_source_and_image_formats(stores, tmp_path, btf):
     ("source: {m}\ndirections: all\ninterpolation: cubic\n", ":3: interpolation: expected one"),
     ("directions: all\n", ":1: source: is required"),
 ])
-def test_bad_specs_name_the_key_and_line_and_write_nothing(stores, tmp_path, btf, text, where):
-    p = tmp_path / "p.zarr"
-    if not p.exists():
-        shutil.copytree(stores / "m.zarr", p)
-        assert btf("pyramid", p, "--levels", "2", "-q").code == 0
+def test_bad_specs_name_the_key_and_line_and_write_nothing(stores, with_levels, tmp_path, btf,
+                                                           text, where):
+    p = with_levels
     spec = _write(tmp_path / "bad.yaml", text.format(m=stores / "m.zarr", p=p,
                                                      c=stores / "m_svd.zarr",
                                                      q=stores / "q.zarr"))
@@ -328,6 +337,7 @@ def test_bad_specs_name_the_key_and_line_and_write_nothing(stores, tmp_path, btf
     assert no_partial_outputs(tmp_path / "o.zarr")
 
 
+@pytest.mark.slow  # stores of up to 256^2 texels, as the specs' headers make them
 def test_example_scenes_run(tmp_path, btf, monkeypatch):
     """Every spec in configs/scenes/ runs on the stores its header says how to make."""
     from pipeline.cli import main
@@ -359,7 +369,7 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
                dir_chunk: 3, seed: 4}
   - compress: {store: m.zarr, out: c.zarr, rank: 8}
   - reconstruct: {store: c.zarr, out: r.zarr, chunk: 16, dir_chunk: 3}
-  - quilt: {store: m.zarr, out: q.zarr, size: [48, 48], corners: 2}
+  - quilt: {store: m.zarr, out: q.zarr, size: [48, 48], corners: 1}
 """
     _write(tmp_path / "r.yaml", stages + """scene:
   out: s.zarr
@@ -410,7 +420,7 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
     assert btf("run", "q.yaml", "-q").code == 0
     q = zarr.open_group("q.zarr", mode="r")
     assert len(q.attrs["computed_for_scene"]["layers"]) == 9
-    assert btf("quilt", "m.zarr", "qfull.zarr", "--size", "48,48", "--corners", "2",
+    assert btf("quilt", "m.zarr", "qfull.zarr", "--size", "48,48", "--corners", "1",
                "-q").code == 0
     spec = _write(tmp_path / "qd.yaml", "source: qfull.zarr\ndirections: [[20, 10, 30, 40]]\n"
                                         "size: [40, 60]\n")

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
-from test_distributed import _free_port
+
+from helpers import dask_cluster
 
 BIN = Path(sys.executable).parent
 CONFIG = "stages:\n  - generate: {out: %s, material: wood, size: 32, sampling: 'abtf:4,2'}\n"
@@ -35,44 +35,13 @@ def tls_cluster(tmp_path_factory):
     other.issue_cert("intruder").private_key_and_cert_chain_pem.write_to_path(
         str(folder / "intruder.pem"))
     other.cert_pem.write_to_path(str(folder / "other-ca.pem"))
-    port = _free_port()
-    tls = ["--tls-ca-file", str(folder / "ca.pem"), "--tls-cert", str(folder / "node.pem")]
-    log = (folder / "cluster.log").open("w")
-    procs = [subprocess.Popen([BIN / "dask", "scheduler", "--protocol", "tls", "--host",
-                               "127.0.0.1", "--port", str(port), "--dashboard-address",
-                               "127.0.0.1:0", *tls], stdout=log, stderr=log)]
-    home = folder / "worker-home"
-    home.mkdir()
-    address = f"tls://127.0.0.1:{port}"
-    try:
-        procs.append(subprocess.Popen([BIN / "dask", "worker", address, "--nworkers", "2",
-                                       "--nthreads", "1", *tls], cwd=home, stdout=log,
-                                      stderr=log))
-        from distributed import Client
-        from distributed.security import Security
+    tls = ("--tls-ca-file", str(folder / "ca.pem"), "--tls-cert", str(folder / "node.pem"))
+    from distributed.security import Security
 
-        security = Security(tls_ca_file=str(folder / "ca.pem"),
-                            tls_client_cert=str(folder / "client.pem"), require_encryption=True)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with Client(address, security=security, timeout="5s") as client:
-                    client.wait_for_workers(2, timeout=60)
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.5)
+    security = Security(tls_ca_file=str(folder / "ca.pem"),
+                        tls_client_cert=str(folder / "client.pem"), require_encryption=True)
+    with dask_cluster(folder, protocol="tls", tls=tls, security=security) as (address, _):
         yield address, folder
-    finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in reversed(procs):
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        log.close()
 
 
 def _btf(*args, env=None, cwd=None):

@@ -1,0 +1,39 @@
+"""``btf crop``: a region and some layers of a radiance store as a new store."""
+
+from __future__ import annotations
+
+import numpy as np
+import zarr
+
+from helpers import no_partial_outputs
+
+
+def test_crop_keeps_the_values_the_truth_and_says_where_it_came_from(small_abtf, btf,
+                                                                      tmp_path):
+    m = zarr.open_group(small_abtf, mode="r")
+    assert btf("crop", small_abtf, tmp_path / "s.zarr", "--region", "5:37,11:30",
+               "--quiet").code == 0
+    s = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    ys, xs = slice(5, 37), slice(11, 30)  # odd sides, across shards
+    assert np.array_equal(s["radiance"][...], m["radiance"][:, :, ys, xs])
+    assert np.array_equal(s["albedo"][...], m["albedo"][ys, xs])
+    assert s.attrs["cropped_from"]["y"] == [ys.start, ys.stop]
+    assert s.attrs["btf_kind"] == "abtf" and "crop" in s.attrs["provenance"]["command"]
+    top = int(np.argmin(m["theta_light"][...]))
+    assert btf("crop", small_abtf, tmp_path / "c.zarr", "--light", f"{top},{top + 1}",
+               "--quiet").code == 0
+    c = zarr.open_group(tmp_path / "c.zarr", mode="r")
+    assert c["radiance"].shape == (1, 2, 48, 48, 3)
+    assert np.array_equal(c["radiance"][0, 0], m["radiance"][0, top])
+    assert np.array_equal(c["radiance"][0, 1], m["radiance"][0, top + 1])
+    assert c["theta_light"][0] == m["theta_light"][top]
+
+
+def test_crop_refuses_regions_and_lights_out_of_range(small_abtf, btf, tmp_path):
+    beyond = btf("crop", small_abtf, tmp_path / "x.zarr", "--region", "0:10,40:50", "--quiet")
+    assert beyond.code == 1 and "reaches beyond the 48 x 48 texels" in beyond.err
+    assert no_partial_outputs(tmp_path / "x.zarr")
+    bad = btf("crop", small_abtf, tmp_path / "x.zarr", "--light", "99", "--quiet")
+    assert bad.code == 1 and "--light 99 is out of range" in bad.err
+    assert btf("crop", small_abtf, tmp_path / "x.zarr", "--region", "5:2,0:3").code == 2
+    assert no_partial_outputs(tmp_path / "x.zarr")
