@@ -33,6 +33,17 @@ def quilt(src: Path, out: Path, *args: str):
     return zarr.open_group(out, mode="r")
 
 
+def btf_process(*args, env: dict | None = None, cwd: Path | None = None,
+                timeout: float = 300) -> subprocess.CompletedProcess:
+    """``btf ARGS`` as a separate process (output captured as text), with ``env`` added to
+    this process's environment: the one way the tests run btf as a user's shell would."""
+    import os
+
+    return subprocess.run([Path(sys.executable).parent / "btf", *map(str, args)],
+                          capture_output=True, text=True, env={**os.environ, **(env or {})},
+                          cwd=cwd, timeout=timeout)
+
+
 def free_port() -> int:
     """A free TCP port on loopback, for a test's server (one helper for every test)."""
     import socket

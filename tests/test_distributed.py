@@ -18,6 +18,7 @@ import pytest
 import zarr
 
 from helpers import (
+    btf_process,
     compose_command,
     compose_services,
     dask_cluster,
@@ -38,13 +39,12 @@ def cluster(tmp_path_factory):
         yield address
 
 
+PROGRESS = {"DASK_BTF__PROGRESS_AFTER": "0"}  # a progress bar on every compute
+
+
 def _btf(*args, **kwargs) -> subprocess.CompletedProcess:
     """``btf ARGS`` as a process, with a progress bar on every compute unless --quiet."""
-    return subprocess.run([BIN / "btf", *map(str, args)], capture_output=True, text=True,
-                          timeout=300, env=LOUD, **kwargs)
-
-
-LOUD = {**os.environ, "DASK_BTF__PROGRESS_AFTER": "0"}
+    return btf_process(*args, env=PROGRESS, **kwargs)
 
 
 def _shows_progress(stderr: str) -> bool:
@@ -86,21 +86,18 @@ def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster
     src = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "48",
                          "--sampling", "abtf:4,2", "--seed", "3")
     compressed = tmp_path / "c.zarr"
-    done = subprocess.run([BIN / "btf", "compress", src, compressed, "--rank", "4", "--quiet"],
-                          capture_output=True, text=True, timeout=300)
+    done = btf_process("compress", src, compressed, "--rank", "4", "--quiet")
     assert done.returncode == 0, done.stderr
     for store, values in ((src, "radiance"), (compressed, "V")):
         outs = []
         # the cluster has two threads, the local run three: other task groupings, same bits
         for scheduler in ((cluster,), ("threads", "--workers", "3")):
             out = tmp_path / f"{Path(store).stem}-{len(outs)}.zarr"
-            done = subprocess.run(
-                # tiles of two steps on a 48^2 sample: a test of the bits, not of the seams
-                [BIN / "btf", "quilt", store, out, "--block", "16", "--overlap", "4",
-                 "--candidates", "4", "--corners", "2", "--size", "24,24", "--seed", "5",
-                 "--max-seam", "10", "--scheduler", *scheduler, "--quiet"],
-                capture_output=True, text=True,
-                timeout=300)
+            # tiles of two steps on a 48^2 sample: a test of the bits, not of the seams
+            done = btf_process("quilt", store, out, "--block", "16", "--overlap", "4",
+                               "--candidates", "4", "--corners", "2", "--size", "24,24",
+                               "--seed", "5", "--max-seam", "10", "--scheduler", *scheduler,
+                               "--quiet")
             assert done.returncode == 0, done.stderr
             outs.append(zarr.open_group(out, mode="r"))
         for name in (values, "prescription_index", "prescription_weight"):
@@ -147,7 +144,7 @@ def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
     # inherit that and never see the interrupt, so its default action is restored.
     with subprocess.Popen([BIN / "btf", "compress", src, out, "--rank", "8", "--power-iters",
                            "9", "--scheduler", cluster], stderr=subprocess.PIPE, text=True,
-                          env=LOUD, preexec_fn=_default_sigint) as proc:
+                          env={**os.environ, **PROGRESS}, preexec_fn=_default_sigint) as proc:
         seen = ""
         while "pass 1/10" not in seen:  # interrupt once the first pass runs on the workers
             line = proc.stderr.readline()

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import dask_cluster
+from helpers import btf_process, dask_cluster
 from pipeline import storage
 
 BIN = Path(sys.executable).parent
@@ -134,16 +134,13 @@ def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp
     proc.communicate()  # and its pipes closed
     with pytest.raises(FileNotFoundError):  # nothing half-written opens at OUT
         zarr.open_group(storage.store(url), mode="r")
-    refused = subprocess.run([BIN / "btf", *args], capture_output=True, text=True,
-                             env={**os.environ, **env})
+    refused = btf_process(*args, env=env)
     assert refused.returncode == 1 and "another btf run is writing this output" in refused.stderr
     time.sleep(8.5)  # the killed run's lock expires
-    again = subprocess.run([BIN / "btf", *args[:-1]], capture_output=True, text=True,
-                           env={**os.environ, **env})
+    again = btf_process(*args[:-1], env=env)
     assert again.returncode == 0, again.stderr
     assert "kept" in again.stderr or "already" in again.stderr, again.stderr
-    done = subprocess.run([BIN / "btf", "generate", whole, *args[2:]], capture_output=True,
-                          text=True)
+    done = btf_process("generate", whole, *args[2:])
     assert done.returncode == 0, done.stderr
     _same(url, whole)
 
@@ -231,9 +228,8 @@ def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s
     config = Path(__file__).resolve().parents[1] / "configs" / "cluster.yaml"
     runner = tmp_path / "runner"
     runner.mkdir()
-    done = subprocess.run([BIN / "btf", "run", config, "--scheduler", s3_cluster, "--set",
-                           "generate.size=64", "--quiet"], capture_output=True, text=True,
-                          cwd=runner, env={**os.environ, **s3.environment}, timeout=600)
+    done = btf_process("run", config, "--scheduler", s3_cluster, "--set", "generate.size=64",
+                       "--quiet", cwd=runner, env=s3.environment, timeout=600)
     assert done.returncode == 0, done.stderr
     assert list(runner.iterdir()) == []  # the runner wrote nothing locally either
     page = storage.read(s3.url("cluster/report.html")).decode()

@@ -6,15 +6,10 @@ scheduler and workers, one for the client); everything listens on 127.0.0.1 and 
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 
-from helpers import dask_cluster
+from helpers import btf_process, dask_cluster
 
-BIN = Path(sys.executable).parent
 CONFIG = "stages:\n  - generate: {out: %s, material: wood, size: 32, sampling: 'abtf:4,2'}\n"
 
 pytestmark = pytest.mark.distributed
@@ -44,24 +39,19 @@ def tls_cluster(tmp_path_factory):
         yield address, folder
 
 
-def _btf(*args, env=None, cwd=None):
-    import os
-
-    return subprocess.run([BIN / "btf", *map(str, args)], capture_output=True, text=True,
-                          env={**os.environ, **(env or {})}, cwd=cwd, timeout=300)
 
 
 def test_btf_run_over_tls_with_certificates_from_flags_or_dask_config(tls_cluster, tmp_path):
     address, folder = tls_cluster
     config = tmp_path / "run.yaml"
     config.write_text(CONFIG % (tmp_path / "a.zarr"))
-    done = _btf("run", config, "--scheduler", address, "--tls-ca-file", folder / "ca.pem",
-                "--tls-cert", folder / "client.pem", "--quiet")
+    done = btf_process("run", config, "--scheduler", address, "--tls-ca-file", folder / "ca.pem",
+                       "--tls-cert", folder / "client.pem", "--quiet")
     assert done.returncode == 0, done.stderr
     config.write_text(CONFIG % (tmp_path / "b.zarr"))
     env = {"DASK_DISTRIBUTED__COMM__TLS__CA_FILE": str(folder / "ca.pem"),
            "DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT": str(folder / "client.pem")}
-    done = _btf("run", config, "--scheduler", address, "--quiet", env=env)
+    done = btf_process("run", config, "--scheduler", address, "--quiet", env=env)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "a.zarr" / "zarr.json").is_file()
     assert (tmp_path / "b.zarr" / "zarr.json").is_file()
@@ -71,11 +61,13 @@ def test_a_client_without_the_cluster_s_certificates_is_refused(tls_cluster, tmp
     address, folder = tls_cluster
     config = tmp_path / "run.yaml"
     config.write_text(CONFIG % (tmp_path / "c.zarr"))
-    missing = _btf("run", config, "--scheduler", address, "--quiet")
+    missing = btf_process("run", config, "--scheduler", address, "--quiet")
     assert missing.returncode == 1 and "needs --tls-ca-file and --tls-cert" in missing.stderr
-    intruder = _btf("run", config, "--scheduler", address, "--tls-ca-file",
-                    folder / "other-ca.pem", "--tls-cert", folder / "intruder.pem", "--quiet")
+    intruder = btf_process("run", config, "--scheduler", address, "--tls-ca-file",
+                           folder / "other-ca.pem", "--tls-cert", folder / "intruder.pem",
+                           "--quiet")
     assert intruder.returncode == 1 and "cannot reach the dask scheduler" in intruder.stderr
-    plain = _btf("run", config, "--scheduler", address.replace("tls://", "tcp://"), "--quiet")
+    plain = btf_process("run", config, "--scheduler", address.replace("tls://", "tcp://"),
+                        "--quiet")
     assert plain.returncode == 1
     assert not (tmp_path / "c.zarr").exists()
