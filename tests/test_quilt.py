@@ -27,7 +27,7 @@ PARAMS = ("--block", "16", "--overlap", "4", "--candidates", "4")
 ANY_SEAM = {"max_seam": 1e9}
 
 
-def _quilt(btf, src, out, *args):
+def _quilt(src, out, *args):
     return quilt(src, out, *PARAMS, *args)
 
 
@@ -137,7 +137,7 @@ def test_a_quilted_texture_wraps_seamlessly_in_every_layer(tmp_path, btf, sample
     refs = [(neighbour_difference(img, 0), neighbour_difference(img, 1)) for img in images]
     rough = []
     for seed in range(4):
-        group = _quilt(btf, sample, tmp_path / f"q{seed}.zarr", "--size", "48,48",
+        group = _quilt(sample, tmp_path / f"q{seed}.zarr", "--size", "48,48",
                        "--seed", str(seed))
         tiles = group[RADIANCE][0, 0]
         for t, (ref_v, ref_h) in zip(tiles, refs, strict=True):
@@ -160,7 +160,7 @@ def _naive_seams(images, refs) -> list[float]:
 def test_corner_compatible_tiles_meet_seamlessly_in_every_2x2_arrangement(tmp_path, btf,
                                                                           samples):
     sample = samples["stone"]
-    group = _quilt(btf, sample, tmp_path / "q.zarr", "--corners", "2", "--size", "36,36")
+    group = _quilt(sample, tmp_path / "q.zarr", "--corners", "2", "--size", "36,36")
     tiles = group[RADIANCE][:, 0]  # (tile, light, y, x, channel)
     corners = group["corners"][:]
     assert len(tiles) == 16 and sorted(map(tuple, corners)) == sorted(
@@ -256,7 +256,7 @@ def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, sa
     monkeypatch.setattr("pipeline.graphs.prescriptions.APPLY_BUDGET",
                         3 * 4 * 3 * (72 * 72 + 24 * 24))
     sample = samples["fabric"]
-    group = _quilt(btf, sample, tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
+    group = _quilt(sample, tmp_path / "q.zarr", "--corners", "2", "--size", "24,24")
     layers = open_radiance(sample)[RADIANCE].values
     n = layers.shape[2] * layers.shape[3]
     for t in (0, 5, 15):
@@ -315,10 +315,10 @@ def test_prescription_rows_sum_to_one_and_index_valid_sample_pixels(block_overla
 def test_the_same_seed_gives_the_same_tile_set_and_another_seed_another(tmp_path, btf,
                                                                        samples):
     sample = samples["stone"]
-    a = _quilt(btf, sample, tmp_path / "a.zarr", "--seed", "4", "--size", "36,36")
-    b = _quilt(btf, sample, tmp_path / "b.zarr", "--seed", "4", "--size", "36,36",
+    a = _quilt(sample, tmp_path / "a.zarr", "--seed", "4", "--size", "36,36")
+    b = _quilt(sample, tmp_path / "b.zarr", "--seed", "4", "--size", "36,36",
                "--scheduler", "processes")
-    c = _quilt(btf, sample, tmp_path / "c.zarr", "--seed", "5", "--size", "36,36")
+    c = _quilt(sample, tmp_path / "c.zarr", "--seed", "5", "--size", "36,36")
     assert np.array_equal(a[RADIANCE][:], b[RADIANCE][:])
     assert np.array_equal(a["prescription_index"][:], b["prescription_index"][:])
     assert not np.array_equal(a[RADIANCE][:], c[RADIANCE][:])
@@ -331,7 +331,7 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
                "--quiet").code == 0
     # V read one chunk row at a time
     monkeypatch.setattr("pipeline.graphs.prescriptions.BAND_BUDGET", 1)
-    group = _quilt(btf, tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
+    group = _quilt(tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
                    "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 5 and 5
     assert group.attrs["btf_kind"] == "compressed-tileset"
     v = zarr.open_array(tmp_path / "c.zarr", path="V")
