@@ -102,12 +102,13 @@ def to_json(result: dict) -> str:
     return json.dumps(result, indent=2, default=str)
 
 
-def run_until(argv: list, log: Path, *, mark: str, kill_at: float | None = None
-              ) -> tuple[bool, float, float]:
+def run_until(argv: list, log: Path, *, mark: str, kill_at: float | None = None,
+              kill_when=None) -> tuple[bool, float, float]:
     """Run ``argv`` (stderr to ``log``), timing from when ``mark`` shows in its log.
 
-    With ``kill_at``, SIGKILL it that many seconds after ``mark`` showed. Returns whether it
-    was killed (False: it finished first), when ``mark`` showed and when it ended (seconds from
+    With ``kill_at``, SIGKILL it that many seconds after ``mark`` showed; with ``kill_when``
+    (a function of nothing), SIGKILL it as soon as that returns true. Returns whether it was
+    killed (False: it finished first), when ``mark`` showed and when it ended (seconds from
     the start). A run that fails raises ``RuntimeError`` with its log.
     """
     import signal
@@ -120,7 +121,8 @@ def run_until(argv: list, log: Path, *, mark: str, kill_at: float | None = None
             now = time.perf_counter() - start
             if seen is None and mark in Path(log).read_text():
                 seen = now
-            if seen is not None and kill_at is not None and now >= seen + kill_at:
+            if (seen is not None and kill_at is not None and now >= seen + kill_at) \
+                    or (kill_when is not None and kill_when()):
                 proc.send_signal(signal.SIGKILL)
                 proc.wait()
                 return True, seen, time.perf_counter() - start

@@ -25,9 +25,9 @@ pytestmark = pytest.mark.slow
 KILLS = 3  # random kill points per stage
 
 
-def _btf(args: list, log: Path, *, mark: str, kill_at: float | None = None
+def _btf(args: list, log: Path, *, mark: str, kill_at: float | None = None, kill_when=None
          ) -> tuple[bool, float, float]:
-    return run_until([BIN / "btf", *args], log, mark=mark, kill_at=kill_at)
+    return run_until([BIN / "btf", *args], log, mark=mark, kill_at=kill_at, kill_when=kill_when)
 
 
 def _partial(out: Path) -> Path | None:
@@ -42,6 +42,14 @@ def _files(root: Path) -> dict[str, int]:
             if p.is_file() and p.name != "zarr.json" and DONE not in p.parts}
 
 
+def _finished_units(out: Path) -> list[Path]:
+    """The done markers of the partial output of ``out`` (none if there is no partial)."""
+    partial = _partial(out)
+    if partial is None or not (partial / DONE).is_dir():
+        return []
+    return [p for p in (partial / DONE).iterdir() if p.name != CREATED]
+
+
 def _same(a: Path, b: Path, arrays: tuple[str, ...]) -> None:
     ga, gb = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
     for name in arrays:
@@ -50,22 +58,32 @@ def _same(a: Path, b: Path, arrays: tuple[str, ...]) -> None:
 
 def _kill_and_resume(tmp_path: Path, args, arrays: tuple[str, ...], *, mark: str,
                      resumed_says: str, seed: int) -> None:
-    """Kill at seeded random moments of the work after ``mark``, rerun, compare."""
+    """Kill at seeded random moments of the work after ``mark``, rerun, compare.
+
+    If no random kill landed after a unit of work was finished (a loaded machine shifts the
+    moments), one more run is killed as soon as its first unit is marked done, so the resume
+    path is always exercised.
+    """
     ref = tmp_path / "ref.zarr"
     _, seen, end = _btf(args(ref), tmp_path / "ref.log", mark=mark)
     work = end - seen
     rng = np.random.default_rng(seed)
+    moments = sorted(rng.uniform(0.2, 0.9, KILLS) * work)
     resumed = 0
-    for i, at in enumerate(sorted(rng.uniform(0.2, 0.9, KILLS) * work)):
+    for i in range(KILLS + 1):
         out = tmp_path / f"run{i}.zarr"
-        _btf(args(out), tmp_path / f"killed{i}.log", mark=mark, kill_at=at)
+        if i < KILLS:
+            kill = {"kill_at": moments[i]}
+        elif not resumed:
+            kill = {"kill_when": lambda out=out: bool(_finished_units(out))}
+        else:
+            break
+        _btf(args(out), tmp_path / f"killed{i}.log", mark=mark, **kill)
         if out.exists():  # killed after the output was in place (or not killed at all)
             _same(ref, out, arrays)
             continue
-        partial = _partial(out)
-        done = [p for p in (partial / DONE).iterdir() if p.name != CREATED] \
-            if partial is not None and (partial / DONE).is_dir() else []
-        before = _files(partial) if done else {}
+        done = _finished_units(out)
+        before = _files(_partial(out)) if done else {}
         log = tmp_path / f"rerun{i}.log"
         _btf(args(out), log, mark=mark)
         _same(ref, out, arrays)
