@@ -66,6 +66,7 @@ def option(
     record: bool = True,
     numbers_as_text: bool = False,
     key: str | None = None,
+    repeatable: bool = False,
 ) -> Any:
     """A dataclass field of stage parameters.
 
@@ -92,9 +93,13 @@ def option(
     key
         The option's name on the command line and in configs, where the field's name cannot
         be it (``lambda``, a Python keyword); errors about it must name the key.
+    repeatable
+        A list option that may be given more than once on the command line; the lists join
+        in order (``--light 2 --light 3,4`` is ``--light 2,3,4``).
     """
     meta = {"help": help, "positional": positional, "choices": choices, "metavar": metavar,
-            "path": path, "record": record, "numbers_as_text": numbers_as_text, "key": key}
+            "path": path, "record": record, "numbers_as_text": numbers_as_text, "key": key,
+            "repeatable": repeatable}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -250,6 +255,8 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         if f.default not in (MISSING, None, False) and not meta["positional"]:
             shown = ",".join(map(str, f.default)) if isinstance(f.default, tuple) else f.default
             help_text += f" (default: {shown})"
+        if meta.get("repeatable"):
+            help_text += "; comma-separated, or the option repeated"
         kwargs: dict[str, Any] = {"help": help_text}
         if meta["choices"]:
             kwargs["choices"] = meta["choices"]
@@ -265,6 +272,8 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             kwargs["action"] = "store_true"
         elif typing.get_origin(base) is tuple:
             kwargs["type"] = int_list
+            if meta.get("repeatable"):
+                kwargs["action"] = _JoinLists
         else:
             kwargs["type"] = base
         if meta["positional"]:
@@ -277,6 +286,16 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             else:
                 kwargs["default"] = f.default
             parser.add_argument("--" + key_of(f).replace("_", "-"), dest=f.name, **kwargs)
+
+
+class _JoinLists(argparse.Action):
+    """Join the lists of an option given more than once (the first use replaces the default)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = getattr(namespace, f"_{self.dest}_given", False)
+        before = getattr(namespace, self.dest) if seen else ()
+        setattr(namespace, self.dest, tuple(before) + tuple(values))
+        setattr(namespace, f"_{self.dest}_given", True)
 
 
 def from_namespace(cls: type, namespace: argparse.Namespace) -> Any:

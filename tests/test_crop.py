@@ -27,6 +27,11 @@ def test_crop_keeps_the_values_the_truth_and_says_where_it_came_from(small_abtf,
     assert np.array_equal(c["radiance"][0, 0], m["radiance"][0, top])
     assert np.array_equal(c["radiance"][0, 1], m["radiance"][0, top + 1])
     assert c["theta_light"][0] == m["theta_light"][top]
+    # a list option given twice joins its lists, as a comma would
+    assert btf("crop", small_abtf, tmp_path / "d.zarr", "--light", top, "--light", top + 1,
+               "--quiet").code == 0
+    d = zarr.open_group(tmp_path / "d.zarr", mode="r")
+    assert np.array_equal(d["radiance"][...], c["radiance"][...])
 
 
 def test_crop_refuses_regions_and_lights_out_of_range(small_abtf, btf, tmp_path):

@@ -36,9 +36,9 @@ class CropParams:
                       path="out")
     region: str | None = option(None, metavar="Y0:Y1,X0:X1",
                                 help="texel region, ends exclusive (default: all texels)")
-    light: tuple[int, ...] | None = option(None, metavar="I,..",
+    light: tuple[int, ...] | None = option(None, metavar="I,..", repeatable=True,
                                            help="light indices to keep (default: all)")
-    view: tuple[int, ...] | None = option(None, metavar="J,..",
+    view: tuple[int, ...] | None = option(None, metavar="J,..", repeatable=True,
                                           help="view indices to keep (default: all)")
     chunk: int | None = option(None, help="texels per side of a stored chunk (default: the "
                                           "input's)")

@@ -44,9 +44,9 @@ class ExportParams:
     out_dir: str = option(help="folder to write the layers and manifest.csv to, or a .btf "
                                "file: a compressed store as a Bonn DFMF file for renderers",
                           positional=True, path="out")
-    light: tuple[int, ...] | None = option(None, metavar="I,..",
+    light: tuple[int, ...] | None = option(None, metavar="I,..", repeatable=True,
                                            help="light indices to export (default: all)")
-    view: tuple[int, ...] | None = option(None, metavar="J,..",
+    view: tuple[int, ...] | None = option(None, metavar="J,..", repeatable=True,
                                           help="view indices to export (default: all)")
     format: str = option("exr", choices=("exr", "png"),
                          help="exr: radiance values; png: tone-mapped 8-bit sRGB previews")

@@ -35,9 +35,9 @@ class ReconstructParams:
                         path="in", metavar="COMPRESSED")
     out: str = option(help="output radiance store, or folder of EXR files with --format exr",
                       positional=True, path="out")
-    light: tuple[int, ...] | None = option(None, metavar="I,..",
+    light: tuple[int, ...] | None = option(None, metavar="I,..", repeatable=True,
                                            help="light indices (default: all)")
-    view: tuple[int, ...] | None = option(None, metavar="J,..",
+    view: tuple[int, ...] | None = option(None, metavar="J,..", repeatable=True,
                                           help="view indices (default: all)")
     region: str | None = option(None, metavar="Y0:Y1,X0:X1",
                                 help="texel region, ends exclusive (default: everything)")
