@@ -274,9 +274,68 @@ def store_transform(header: DfmfHeader) -> dict:
             "dfmf_colour_model": header.colour_model}
 
 
+def _joint_u(params, src: str, header: DfmfHeader) -> tuple[np.ndarray, bool]:
+    """The file's per-channel ``U`` as one (:func:`tasks.dfmf.joint_u`), errors naming the file."""
+    try:
+        return joint_u(header, [channel_u(src, b) for b in header.channels])
+    except DfmfError as exc:
+        raise BTFError(f"{params.src}: {exc}") from None
+
+
+def _log_file(session: Session, header: DfmfHeader, out: str) -> None:
+    """Log the file's sampling, size, channels, components and colour model."""
+    ks = [b.k for b in header.channels]
+    session.log(f"ingest: Bonn DFMF file, {len(header.theta_view)} views x "
+                f"{len(header.theta_light)} lights, {header.height} x "
+                f"{header.width} texels, channels {','.join(header.channel_names)} with "
+                f"{'+'.join(map(str, ks))} components ({header.channels[0].dtype.name}), "
+                f"colour model {header.colour_model} -> {out}")
+
+
+def _ingest_attrs(params, header: DfmfHeader, directions: Directions) -> dict:
+    """The store's attrs before the SVD: source, shape, transform, file metadata, provenance."""
+    views, lights = len(header.theta_view), len(header.theta_light)
+    return {"btf_kind": "compressed", "source": "ingest",
+            "source_btf_kind": directions.kind,
+            "source_shape": [views, lights, header.height, header.width,
+                             len(header.channels)],
+            "transform": store_transform(header), "dfmf": header.metadata(),
+            "source_sampling": known_sampling(directions.theta_view, directions.phi_view,
+                                              directions.theta_light, directions.phi_light)
+            or "dfmf file",
+            "provenance": provenance("ingest", params)}
+
+
+def _file_gram(src: str, header: DfmfHeader, regions, ones: bool,
+               session: Session) -> np.ndarray:
+    """The Gram matrix of the file's ``S V``, one read of the file.
+
+    Again on a resumed run: summed over tiles in a fixed tree, it gives the same ``V`` bit
+    for bit, and the client gets one matrix.
+    """
+    import dask
+
+    grams = [dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
+             for ys, xs in regions]
+    while len(grams) > 1:
+        grams = [dask.delayed(np.add, pure=True)(*grams[i : i + 2])
+                 if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
+    (g,) = session.compute(grams[0])
+    return g
+
+
+def _svd_attrs(u: np.ndarray, g: np.ndarray, s: np.ndarray, ks: list[int]) -> dict:
+    """The ``svd`` and ``error`` attrs: the rank, and the norm the dropped components had."""
+    total = float(np.trace(u.T @ u @ g))  # ||U (SV)^T||_F^2 of the file's values
+    return {"svd": {"rank": len(s), "method": "exact SVD of the file's per-channel factors "
+                    "(QR of U, Gram matrix of S V)", "file_components": ks},
+            "error": {"frobenius_norm": float(np.sqrt(max(total, 0.0))),
+                      "dropped_relative_frobenius": float(np.sqrt(
+                          max(total - float(np.sum(s**2)), 0.0) / max(total, 1e-300)))}}
+
+
 def ingest_dfmf(params, session: Session) -> Path:
     """``btf ingest FILE.btf OUT``: a DFMF file as a compressed store, without expansion."""
-    import dask
     import dask.array as da
     from dask.array.core import normalize_chunks, slices_from_chunks
 
@@ -287,48 +346,22 @@ def ingest_dfmf(params, session: Session) -> Path:
     header = read_header(src)
     views, lights = len(header.theta_view), len(header.theta_light)
     nc = len(header.channels)
-    tv, pv = degrees(header.theta_view, header.phi_view)
-    tl, pl = degrees(header.theta_light, header.phi_light)
-    directions = Directions(tv, pv, tl, pl)
-    try:
-        u, ones = joint_u(header, [channel_u(src, b) for b in header.channels])
-    except DfmfError as exc:
-        raise BTFError(f"{params.src}: {exc}") from None
+    directions = Directions(*degrees(header.theta_view, header.phi_view),
+                            *degrees(header.theta_light, header.phi_light))
+    u, ones = _joint_u(params, src, header)
     # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
     channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
-    ks = [b.k for b in header.channels]
-    session.log(f"ingest: Bonn DFMF file, {views} views x {lights} lights, {header.height} x "
-                f"{header.width} texels, channels {','.join(header.channel_names)} with "
-                f"{'+'.join(map(str, ks))} components ({header.channels[0].dtype.name}), "
-                f"colour model {header.colour_model} -> {params.out}")
+    _log_file(session, header, params.out)
     chunk = min(params.chunk, header.height, header.width)
     tiles = normalize_chunks((chunk, chunk), (header.height, header.width))
-    regions = slices_from_chunks(tiles)
-    attrs = {"btf_kind": "compressed", "source": "ingest",
-             "source_btf_kind": directions.kind,
-             "source_shape": [views, lights, header.height, header.width, nc],
-             "transform": store_transform(header), "dfmf": header.metadata(),
-             "source_sampling": known_sampling(tv, pv, tl, pl) or "dfmf file",
-             "provenance": provenance("ingest", params)}
+    attrs = _ingest_attrs(params, header, directions)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
         progress = Progress(tmp)
-        # the Gram matrix of S V, one read of the file (again on a resumed run: summed in a
-        # fixed order, it gives the same V bit for bit)
-        grams = [dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
-                 for ys, xs in regions]
-        while len(grams) > 1:  # a fixed tree of sums: the client gets one matrix
-            grams = [dask.delayed(np.add, pure=True)(*grams[i : i + 2])
-                     if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
-        (g,) = session.compute(grams[0])
+        g = _file_gram(src, header, slices_from_chunks(tiles), ones, session)
         new_u, s, vmap = svd_map(u, g)
         rank = len(s)
-        total = float(np.trace(u.T @ u @ g))  # ||U (SV)^T||_F^2 of the file's values
-        attrs["svd"] = {"rank": rank, "method": "exact SVD of the file's per-channel factors "
-                        "(QR of U, Gram matrix of S V)", "file_components": ks}
-        attrs["error"] = {"frobenius_norm": float(np.sqrt(max(total, 0.0))),
-                          "dropped_relative_frobenius": float(np.sqrt(
-                              max(total - float(np.sum(s**2)), 0.0) / max(total, 1e-300)))}
+        attrs.update(_svd_attrs(u, g, s, [b.k for b in header.channels]))
 
         def create():
             group = create_compressed_store(

@@ -196,6 +196,58 @@ def _sampling(cur: _Cursor) -> tuple[np.ndarray, ...]:
     return va[:, 0], va[:, 1], la[:, 0], la[:, 1]
 
 
+def _signature(head: bytes) -> bool:
+    """Check the file's signature; whether a rotations block follows the image size.
+
+    Bonn's other formats are refused by name.
+    """
+    if not head.startswith(DFMF):
+        for sig, name in OTHER_SIGNATURES.items():
+            if head.startswith(sig):
+                raise DfmfError(f"a Bonn {name} file ({sig.decode()}): btf reads the DFMF "
+                                "variant (!DFMF08FC) of Bonn's formats only")
+        raise DfmfError(f"not a DFMF file: it starts with {head[:10]!r}, not {DFMF.decode()!r}")
+    return head[len(DFMF) : len(DFMF) + 1] == b"R"
+
+
+def _colour_model(cur: _Cursor, channel_names: tuple[str, ...]) -> tuple:
+    """The component count, colour model, colour mean and colour matrix (flat), checked."""
+    components, model = cur.unpack("Ii", "the component count and colour model")
+    mean = cur.unpack("3f", "the colour mean")
+    matrix = cur.unpack("9f", "the colour matrix")
+    if model not in DFMF_MODELS:
+        raise DfmfError(f"unknown colour model {model} (btf reads "
+                        f"{', '.join(map(str, DFMF_MODELS))}: btflib's models but LAB, "
+                        "spectral and spectral-linear)")
+    if model not in (0, 12) and len(channel_names) != 3:
+        raise DfmfError(f"colour model {model} needs 3 channels, the metadata names "
+                        f"{len(channel_names)} ({', '.join(channel_names)})")
+    return components, model, mean, matrix
+
+
+def _channel_block(cur: _Cursor, name: str, rows: int, columns: int, components: int,
+                   size: int) -> ChannelBlock:
+    """One channel's head, checked against the sampling and image size; the cursor skips it."""
+    scalar, k, r, cols = _CHANNEL_HEAD.unpack(cur.take(_CHANNEL_HEAD.size,
+                                                       f"the header of channel {name}"))
+    if scalar not in SCALARS:
+        raise DfmfError(f"channel {name}: scalar size {scalar} at byte {cur.offset - 13} "
+                        "(2, 4 or 8 expected)")
+    if (r, cols) != (rows, columns):
+        raise DfmfError(f"channel {name}: {r} rows x {cols} columns, but the sampling "
+                        f"and image size give {rows} (views x lights) x {columns} texels")
+    if k == 0 or k > components:
+        raise DfmfError(f"channel {name}: {k} components (the file's count is "
+                        f"{components})")
+    block = ChannelBlock(scalar, k, r, cols, cur.offset, cur.offset + k * scalar,
+                         cur.offset + (k + rows * k) * scalar)
+    if block.end > size:
+        raise DfmfError(f"truncated: channel {name}'s factors end at byte {block.end}, "
+                        f"but the file has {size} bytes")
+    cur.offset = block.end
+    return block
+
+
 def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
     """The header of a DFMF file of ``size`` bytes, read through ``read(offset, n)``.
 
@@ -208,16 +260,8 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
         after the last channel.
     """
     cur = _Cursor(read, size)
-    head = read(0, min(size, 12))
-    if not head.startswith(DFMF):
-        for sig, name in OTHER_SIGNATURES.items():
-            if head.startswith(sig):
-                raise DfmfError(f"a Bonn {name} file ({sig.decode()}): btf reads the DFMF "
-                                "variant (!DFMF08FC) of Bonn's formats only")
-        raise DfmfError(f"not a DFMF file: it starts with {head[:10]!r}, not {DFMF.decode()!r}")
-    cur.offset = len(DFMF)
-    rotations_block = head[len(DFMF) : len(DFMF) + 1] == b"R"
-    cur.offset += rotations_block
+    rotations_block = _signature(read(0, min(size, 12)))
+    cur.offset = len(DFMF) + rotations_block
     meta = _metadata(cur)
     theta_view, phi_view, theta_light, phi_light = _sampling(cur)
     width, height = cur.unpack("II", "the image size")
@@ -227,37 +271,10 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
     if rotations_block:
         (rotations,) = cur.unpack("I", "the rotation count")
         cur.take(36 * rotations, f"{rotations} rotation matrices")
-    components, model = cur.unpack("Ii", "the component count and colour model")
-    mean = cur.unpack("3f", "the colour mean")
-    matrix = cur.unpack("9f", "the colour matrix")
-    if model not in DFMF_MODELS:
-        raise DfmfError(f"unknown colour model {model} (btf reads "
-                        f"{', '.join(map(str, DFMF_MODELS))}: btflib's models but LAB, "
-                        "spectral and spectral-linear)")
-    if model not in (0, 12) and len(meta["channel_names"]) != 3:
-        raise DfmfError(f"colour model {model} needs 3 channels, the metadata names "
-                        f"{len(meta['channel_names'])} ({', '.join(meta['channel_names'])})")
+    components, model, mean, matrix = _colour_model(cur, meta["channel_names"])
     rows, columns = len(theta_view) * len(theta_light), width * height
-    blocks = []
-    for name in meta["channel_names"]:
-        scalar, k, r, cols = _CHANNEL_HEAD.unpack(cur.take(_CHANNEL_HEAD.size,
-                                                           f"the header of channel {name}"))
-        if scalar not in SCALARS:
-            raise DfmfError(f"channel {name}: scalar size {scalar} at byte {cur.offset - 13} "
-                            "(2, 4 or 8 expected)")
-        if (r, cols) != (rows, columns):
-            raise DfmfError(f"channel {name}: {r} rows x {cols} columns, but the sampling "
-                            f"and image size give {rows} (views x lights) x {columns} texels")
-        if k == 0 or k > components:
-            raise DfmfError(f"channel {name}: {k} components (the file's count is "
-                            f"{components})")
-        block = ChannelBlock(scalar, k, r, cols, cur.offset, cur.offset + k * scalar,
-                             cur.offset + (k + rows * k) * scalar)
-        if block.end > size:
-            raise DfmfError(f"truncated: channel {name}'s factors end at byte {block.end}, "
-                            f"but the file has {size} bytes")
-        blocks.append(block)
-        cur.offset = block.end
+    blocks = [_channel_block(cur, name, rows, columns, components, size)
+              for name in meta["channel_names"]]
     if cur.offset != size:
         raise DfmfError(f"{size - cur.offset} bytes follow the last channel's factors (at byte "
                         f"{cur.offset}): not a DFMF file as Bonn's readers write it")

@@ -341,10 +341,9 @@ def border_check(image: np.ndarray, plan: RollerPlan, exemplar) -> tuple[float, 
     return cell_figures(exemplar, surface, cells, reach=PATCH / 2, sources=sources)
 
 
-def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
-          ) -> RollerPlan:
-    """The tile set of ``periods`` ``(a, b)`` (see the module)."""
-    shape = img.shape[:2]
+def _tile_vectors(u, v, periods: tuple[int, int]
+                  ) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+    """The tile vectors ``U = a u``, ``V = b v`` rounded, ordered positively, and ``(a, b)``."""
     a, b = periods
     U = tuple(int(c) for c in np.rint(a * np.asarray(u)))
     V = tuple(int(c) for c in np.rint(b * np.asarray(v)))
@@ -353,7 +352,13 @@ def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
     if U[0] * V[1] - U[1] * V[0] < 0:
         U, V = V, U
         a, b = b, a
-    shifts = _lattice_shifts(u, v)
+    return U, V, (a, b)
+
+
+def _optimal_vertex(img: np.ndarray, U, V, params: RollerParams
+                    ) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
+    """The admissible origin ``r*`` of least overlap error, and the errors ``psi_u, psi_v``."""
+    shape = img.shape[:2]
     ys, xs = _admissible(shape, U, V, params)
     if len(ys) == 0 or len(xs) == 0:
         raise ValueError(f"the sample ({shape[0]} x {shape[1]}) is too small for a tile "
@@ -363,36 +368,44 @@ def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
                                    size=5)
     sub = score[ys.start : ys.stop, xs.start : xs.stop]
     oy, ox = np.unravel_index(int(np.argmin(sub)), sub.shape)
-    origin = (ys.start + int(oy), xs.start + int(ox))
+    return (ys.start + int(oy), xs.start + int(ox)), psi_u, psi_v
 
-    _, _, width_u, width_v = _margins(U, V, params)
+
+def _optimal_cuts(psi_u: np.ndarray, psi_v: np.ndarray, origin, U, V, band: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``U`` cut (along ``V``) and the ``V`` cut (along ``U``) through the overlap errors."""
     det = U[0] * V[1] - U[1] * V[0]
     across_u = np.array([V[1], -V[0]], float) * (det / abs(det)) / math.hypot(*V)
     across_v = np.array([-U[1], U[0]], float) * (det / abs(det)) / math.hypot(*U)
     # unit normals pointing into the tile from its U-cut edge (t axis) and V-cut edge (s axis)
-    cut_u = _cut(psi_u, origin, V, across_u, max(1, round(math.hypot(*V))), params.band)
-    cut_v = _cut(psi_v, origin, U, across_v, max(1, round(math.hypot(*U))), params.band)
+    cut_u = _cut(psi_u, origin, V, across_u, max(1, round(math.hypot(*V))), band)
+    cut_v = _cut(psi_v, origin, U, across_v, max(1, round(math.hypot(*U))), band)
+    return cut_u, cut_v
 
-    h, w, s = hermite(U, V)
-    yy, xx = np.mgrid[0:h, 0:w]
-    stored = np.stack([yy, xx], -1).reshape(-1, 2)
-    cell, frac = lattice_coordinates(stored, U, V)
-    base = stored - cell @ np.array([U, V])  # the texel of the rhomboid, relative to origin
-    mu, ou, alpha = _feather(frac[:, 0], cut_u, frac[:, 1], width_u, params.sigma)
-    mv, ov, beta = _feather(frac[:, 1], cut_v, frac[:, 0], width_v, params.sigma)
-    Ua, Va = np.array(U), np.array(V)
+
+def _blend_terms(frac: np.ndarray, cut_u: np.ndarray, cut_v: np.ndarray, width_u: float,
+                 width_v: float, sigma: float) -> tuple[np.ndarray, np.ndarray, list]:
+    """The main shifts ``mu, mv`` of every texel and its four blend terms across the cuts.
+
+    A term is ``(shift along U, shift along V, weight)``.
+    """
+    mu, ou, alpha = _feather(frac[:, 0], cut_u, frac[:, 1], width_u, sigma)
+    mv, ov, beta = _feather(frac[:, 1], cut_v, frac[:, 0], width_v, sigma)
     terms = [(mu, mv, (1 - alpha) * (1 - beta)), (ou, mv, alpha * (1 - beta)),
              (mu, ov, (1 - alpha) * beta), (ou, ov, alpha * beta)]
-    representative = (base + mu[:, None] * Ua + mv[:, None] * Va).reshape(h, w, 2)
-    edge = _edge_distance(representative, U, V, (h, w, s))
+    return mu, mv, terms
 
-    offsets = [(0, 0)]
-    if params.tiles > 1:
-        offsets += _similar_shifts(img, origin, base, mu, mv, Ua, Va, shape, U, V, params,
-                                   shifts)
-    gamma = np.clip((edge - params.border) / params.ramp, 0.0, 1.0)
-    index = np.full((params.tiles, h * w, TERMS), -1, np.int32)
-    weight = np.zeros((params.tiles, h * w, TERMS), np.float32)
+
+def _prescriptions(terms: list, gamma: np.ndarray, offsets, origin, base: np.ndarray, Ua, Va,
+                   shape: tuple[int, int], tiles: int, texels: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Index and weight of every tile's texels: tile 0's terms, and others' interiors blended.
+
+    Tile ``k > 0`` takes ``1 - gamma`` of tile 0's terms and ``gamma`` of its own, moved by
+    its offset; duplicates are summed (:func:`_compact`).
+    """
+    index = np.full((tiles, texels, TERMS), -1, np.int32)
+    weight = np.zeros((tiles, texels, TERMS), np.float32)
     for k, off in enumerate(offsets):
         parts = [(terms, 1.0 - gamma if k else np.ones_like(gamma), (0, 0))]
         if k:
@@ -408,6 +421,36 @@ def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
         unused = weight[k] == 0
         index[k][unused] = -1
     _compact(index, weight, shape[0] * shape[1])
+    return index, weight
+
+
+def _plan(img: np.ndarray, u, v, periods: tuple[int, int], params: RollerParams
+          ) -> RollerPlan:
+    """The tile set of ``periods`` ``(a, b)`` (see the module)."""
+    shape = img.shape[:2]
+    U, V, (a, b) = _tile_vectors(u, v, periods)
+    shifts = _lattice_shifts(u, v)
+    origin, psi_u, psi_v = _optimal_vertex(img, U, V, params)
+    _, _, width_u, width_v = _margins(U, V, params)
+    cut_u, cut_v = _optimal_cuts(psi_u, psi_v, origin, U, V, params.band)
+
+    h, w, s = hermite(U, V)
+    yy, xx = np.mgrid[0:h, 0:w]
+    stored = np.stack([yy, xx], -1).reshape(-1, 2)
+    cell, frac = lattice_coordinates(stored, U, V)
+    base = stored - cell @ np.array([U, V])  # the texel of the rhomboid, relative to origin
+    mu, mv, terms = _blend_terms(frac, cut_u, cut_v, width_u, width_v, params.sigma)
+    Ua, Va = np.array(U), np.array(V)
+    representative = (base + mu[:, None] * Ua + mv[:, None] * Va).reshape(h, w, 2)
+    edge = _edge_distance(representative, U, V, (h, w, s))
+
+    offsets = [(0, 0)]
+    if params.tiles > 1:
+        offsets += _similar_shifts(img, origin, base, mu, mv, Ua, Va, shape, U, V, params,
+                                   shifts)
+    gamma = np.clip((edge - params.border) / params.ramp, 0.0, 1.0)
+    index, weight = _prescriptions(terms, gamma, offsets, origin, base, Ua, Va, shape,
+                                   params.tiles, h * w)
     return RollerPlan(U=U, V=V, hnf=(h, w, s), origin=origin, offsets=offsets, cut_u=cut_u,
                       cut_v=cut_v, index=index, weight=weight, representative=representative,
                       periods=(a, b))

@@ -270,13 +270,9 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     """
     import time
 
-    import dask
-
     from pipeline.resume import Progress
     from pipeline.stores.base import location
     from tasks.constrained_blend import ConstraintProjector
-    from tasks.enlargement import statistics_channels
-    from tasks.statistical_synthesis import sample_statistics
     from tasks.texture_optimization import SampleLevel, leading_components
 
     to = params.texture
@@ -285,11 +281,8 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     projector = ConstraintProjector.of(rows)
     noise = 0.0 if params.exact else projector.rms_residual(sample, sample_values)
     big_h, big_w = guide.shape
-    rank = sample.shape[-1]
     halo = HALO * to.patch
-    side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
-    statistics = None if params.statistics is None else sample_statistics(
-        sample, side, params=params.statistics, channels=statistics_channels(sample, params))
+    statistics = _tile_statistics(sample, guide.shape, tile, halo, params)
     report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
     coarse, coarse_shape, here = None, None, location(path)
     progress = Progress(path)
@@ -300,29 +293,18 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
                              rotation, guide_weight, to, rng)
         name = "_coefficients" if level == 0 else f"_level{level}"
-        whole = max(shape) <= tile  # a level that fits in one tile is one task
-        regions = [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
-        finish = None if level else (projector, noise, params, statistics)
+        whole, regions = _level_regions(shape, tile)
         blend = level == 0 and not whole  # the finest level's tiles are blended
-        _level_arrays(out, name, shape, rank, tile, len(regions) if blend else 0, halo)
-        shared = session.share(source)
-        tasks = [(f"level{level}-tile{k}", dask.delayed(level_task)(
-                     here, "_grown" if blend else name, region, shape=shape, factor=factor,
-                     coarse=coarse, coarse_shape=coarse_shape, source=shared, guide=guide,
-                     params=to, halo=0 if whole else halo, finish=finish,
-                     slot=k if blend else None))
-                 for k, region in enumerate(regions)]
-        done = sum(progress.done(name) for name, _ in tasks)
-        session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
-                    f"task(s)" + (f", {done} finished by the interrupted run" if done else ""))
-        reports = progress.run(session.compute, tasks)
+        _level_arrays(out, name, shape, sample.shape[-1], tile, len(regions) if blend else 0,
+                      halo)
+        tasks = _level_tasks(
+            here, name, regions, level=level, blend=blend, shape=shape, factor=factor,
+            coarse=coarse, coarse_shape=coarse_shape, source=session.share(source),
+            guide=guide, params=to, halo=0 if whole else halo,
+            finish=None if level else (projector, noise, params, statistics))
+        reports = _run_level(tasks, progress, session, factor=factor, shape=shape)
         if blend:
-            boxes = grown_boxes(regions, halo, shape)
-            progress.run(session.compute, [
-                (f"blend{k}", dask.delayed(blend_task)(here, "_grown", name, region, boxes,
-                                                       shape=shape, halo=halo))
-                for k, region in enumerate(regions)])
-            del out["_grown"]
+            _blend_level(out, here, name, regions, progress, session, shape=shape, halo=halo)
         report["levels"].append({"factor": factor, "tasks": len(tasks),
                                  "energy": [r["energy"] for r in reports]})
         report["seconds"][f"level_1/{factor}"] = time.perf_counter() - start
@@ -331,6 +313,62 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         coarse, coarse_shape = name, shape
     return {**report, **_finest_report(reports), "sample_constraint_residual_rms": noise,
             "constraint_rank": projector.rank}
+
+
+def _level_regions(shape: tuple[int, int], tile: int
+                   ) -> tuple[bool, list[tuple[int, int, int, int]]]:
+    """Whether a level fits in one tile (then it is one task), and its tasks' regions."""
+    whole = max(shape) <= tile
+    return whole, [(0, shape[0], 0, shape[1])] if whole else tiles(shape, tile)
+
+
+def _tile_statistics(sample: np.ndarray, shape: tuple[int, int], tile: int, halo: int,
+                     params):
+    """The sample's statistics for tiles of ``tile`` texels plus halo, or None without them."""
+    from tasks.enlargement import statistics_channels
+    from tasks.statistical_synthesis import sample_statistics
+
+    big_h, big_w = shape
+    side = (min(big_h, tile + 2 * halo), min(big_w, tile + 2 * halo))
+    return None if params.statistics is None else sample_statistics(
+        sample, side, params=params.statistics, channels=statistics_channels(sample, params))
+
+
+def _level_tasks(here: str, name: str, regions, *, level: int, blend: bool, shape, factor: int,
+                 coarse: str | None, coarse_shape, source, guide: Guide, params, halo: int,
+                 finish) -> list:
+    """One named :func:`level_task` per tile of a level, for :class:`pipeline.resume.Progress`.
+
+    With ``blend`` the tiles write their grown results to ``_grown``, one slot each.
+    """
+    import dask
+
+    return [(f"level{level}-tile{k}", dask.delayed(level_task)(
+                here, "_grown" if blend else name, region, shape=shape, factor=factor,
+                coarse=coarse, coarse_shape=coarse_shape, source=source, guide=guide,
+                params=params, halo=halo, finish=finish, slot=k if blend else None))
+            for k, region in enumerate(regions)]
+
+
+def _run_level(tasks: list, progress, session, *, factor: int, shape) -> list:
+    """Log a level and compute its tasks not finished yet; returns every task's report."""
+    done = sum(progress.done(name) for name, _ in tasks)
+    session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
+                f"task(s)" + (f", {done} finished by the interrupted run" if done else ""))
+    return progress.run(session.compute, tasks)
+
+
+def _blend_level(out, here: str, name: str, regions, progress, session, *, shape,
+                 halo: int) -> None:
+    """Blend the grown tiles of ``_grown`` into ``name`` (:func:`blend_task`), then drop them."""
+    import dask
+
+    boxes = grown_boxes(regions, halo, shape)
+    progress.run(session.compute, [
+        (f"blend{k}", dask.delayed(blend_task)(here, "_grown", name, region, boxes,
+                                               shape=shape, halo=halo))
+        for k, region in enumerate(regions)])
+    del out["_grown"]
 
 
 def _level_arrays(out, name: str, shape: tuple[int, int], rank: int, tile: int, grown: int,

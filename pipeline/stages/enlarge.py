@@ -401,12 +401,79 @@ def _output_attrs(params: EnlargeParams, sample_group, shape: list[int], rank: i
     return attrs
 
 
-def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
-    """Enlarge the sample under the constraint photos; write a compressed store."""
+def _open_inputs(params: EnlargeParams):
+    """The sample's compressed group and the photos' radiance group, checked."""
     sample_group = open_group(params.sample)
     check_compressed(sample_group, params.sample)
     group = open_group(params.constraints)
     check_radiance(group, params.constraints)
+    return sample_group, group
+
+
+def _guide_weight(params: EnlargeParams, m: int, g: int) -> float:
+    """Lambda: ``--lambda``, or :data:`LAMBDA_SCALE` x rows (``m``) / constraint values."""
+    return params.lambda_ if params.lambda_ is not None else LAMBDA_SCALE * m / g
+
+
+def _tile(params: EnlargeParams, big_h: int, big_w: int) -> int:
+    """``--tile``, or 0 (whole, in memory) up to :data:`WHOLE_TEXELS`, else the default tile."""
+    return params.tile if params.tile is not None else (
+        0 if big_h * big_w <= WHOLE_TEXELS else DEFAULT_TILE)
+
+
+def _create_output(tmp, sample_group, attrs: dict, big_h: int, big_w: int, rank: int,
+                   tile: int):
+    """The output compressed store, or the one a killed tiled run left (its tiles are kept)."""
+    return Progress(tmp).skeleton(lambda: create_compressed_store(
+        tmp, directions=read_directions(sample_group),
+        channels=read_channels(sample_group), ny=big_h, nx=big_w, rank=rank,
+        chunk=tile or sample_group["V"].chunks[0], dir_chunk=sample_group["U"].chunks[1],
+        attrs=attrs))
+
+
+def _enlarge_tiled(params: EnlargeParams, session: Session, out, tmp, constraints: _Constraints,
+                   coefficients, sample_values, lam: float, u: np.ndarray, tile: int):
+    """Synthesize in tiles as dask graphs and write ``V``; returns the report, ``U`` and ``S``.
+
+    ``u`` is the sample's ``U`` as ``(rows, rank)``.
+    """
+    report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
+                        sample_values, params=params.enlargement(),
+                        guide_weight=float(np.sqrt(lam)), seed=params.seed,
+                        tile=tile, session=session)
+    new_u, new_s = write_factors(out, tmp, u, tile=tile, session=session)
+    return report, new_u, new_s
+
+
+def _enlarge_whole(params: EnlargeParams, session: Session, out, constraints: _Constraints,
+                   coefficients, sample_values, lam: float, u: np.ndarray):
+    """Synthesize in memory and write ``V`` (and phases); returns the report, ``U`` and ``S``.
+
+    ``u`` is the sample's ``U`` as ``(rows, rank)``.
+    """
+    rank = u.shape[-1]
+    big_h, big_w = constraints.guide.shape
+    result_coefficients, report, result = _whole(params, session, constraints,
+                                                 coefficients, sample_values, lam)
+    new_u, new_s, new_v, basis = refactor(u, result_coefficients.reshape(-1, rank))
+    out["V"][...] = new_v.reshape(big_h, big_w, rank).astype(np.float32)
+    if params.keep_phases:
+        _keep_phases(out, result, basis, rank)
+    return report, new_u, new_s
+
+
+def _log_times(session: Session, report: dict) -> None:
+    """Log the phases' seconds and the constraint residual against the sample's own."""
+    session.log("enlarge: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
+                                        for k, v in report["seconds"].items())
+                + f"; constraint residual (RMS, log domain) "
+                f"{report['constraint_residual_rms']:.3g} (the sample's own: "
+                f"{report['sample_constraint_residual_rms']:.3g})")
+
+
+def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
+    """Enlarge the sample under the constraint photos; write a compressed store."""
+    sample_group, group = _open_inputs(params)
     u = np.asarray(sample_group["U"][...], np.float64)
     nv, nl, nc, rank = u.shape
     s = np.asarray(sample_group["S"][...], np.float64)
@@ -422,9 +489,8 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     sample_values = constraints.guide.region(1, y0, y0 + h, x0, x0 + w)
     m = nv * nl * nc
     g = len(constraints.guide.offsets)
-    lam = params.lambda_ if params.lambda_ is not None else LAMBDA_SCALE * m / g
-    tile = params.tile if params.tile is not None else (
-        0 if big_h * big_w <= WHOLE_TEXELS else DEFAULT_TILE)
+    lam = _guide_weight(params, m, g)
+    tile = _tile(params, big_h, big_w)
     session.log(f"enlarge: {h} x {w} sample at rank {rank} -> {big_h} x {big_w} under "
                 f"{len(constraints.layers)} constraint layer(s) ({g} values per texel, lambda "
                 f"{lam:g}){f' in tiles of {tile}' if tile else ''} -> {params.out}")
@@ -434,26 +500,15 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                        resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
         # a killed tiled run's finished tiles are kept (see synthesize)
-        out = Progress(tmp).skeleton(lambda: create_compressed_store(
-            tmp, directions=read_directions(sample_group),
-            channels=read_channels(sample_group), ny=big_h, nx=big_w, rank=rank,
-            chunk=tile or sample_group["V"].chunks[0], dir_chunk=sample_group["U"].chunks[1],
-            attrs=attrs))
+        out = _create_output(tmp, sample_group, attrs, big_h, big_w, rank, tile)
         if tile:
-            report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
-                                sample_values, params=params.enlargement(),
-                                guide_weight=float(np.sqrt(lam)), seed=params.seed,
-                                tile=tile, session=session)
-            new_u, new_s = write_factors(out, tmp, u.reshape(m, rank), tile=tile,
-                                         session=session)
+            report, new_u, new_s = _enlarge_tiled(params, session, out, tmp, constraints,
+                                                  coefficients, sample_values, lam,
+                                                  u.reshape(m, rank), tile)
         else:
-            result_coefficients, report, result = _whole(params, session, constraints,
-                                                         coefficients, sample_values, lam)
-            new_u, new_s, new_v, basis = refactor(u.reshape(m, rank),
-                                                  result_coefficients.reshape(-1, rank))
-            out["V"][...] = new_v.reshape(big_h, big_w, rank).astype(np.float32)
-            if params.keep_phases:
-                _keep_phases(out, result, basis, rank)
+            report, new_u, new_s = _enlarge_whole(params, session, out, constraints,
+                                                  coefficients, sample_values, lam,
+                                                  u.reshape(m, rank))
         out["U"][...] = new_u.reshape(nv, nl, nc, rank).astype(np.float32)
         out["S"][...] = new_s.astype(np.float32)
         report["seconds"]["total"] = time.perf_counter() - start
@@ -461,11 +516,7 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
             "sample": params.sample, "constraints": params.constraints, "sample_shape": [h, w],
             "placement": placement, "constraint_layers": constraints.layers, "lambda": lam,
             "parameters": dataclasses.asdict(params.enlargement()), **report}
-    session.log("enlarge: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
-                                        for k, v in report["seconds"].items())
-                + f"; constraint residual (RMS, log domain) "
-                f"{report['constraint_residual_rms']:.3g} (the sample's own: "
-                f"{report['sample_constraint_residual_rms']:.3g})")
+    _log_times(session, report)
     return Path(params.out)
 
 

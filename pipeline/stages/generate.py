@@ -168,27 +168,30 @@ def _photo(params: GenerateParams) -> tuple[Fields, dict]:
     return image_fields(pixels, relief=relief), {"albedo_image": str(path), "relief": relief}
 
 
-def generate(params: GenerateParams, session: Session) -> Path:
-    """Render the store described by ``params``; returns its path."""
-    import dask.array as da
+def _choose_material(params: GenerateParams
+                     ) -> tuple[Fields | None, Material | None, dict, int, int]:
+    """The photo or procedural material of ``params``, its attrs record and its size.
 
-    sampling = parse_sampling(params.sampling)
-    photo = None
+    Returns ``(photo, material, material_info, ny, nx)``: exactly one of ``photo`` and
+    ``material`` is set.
+    """
     if params.albedo is not None:
         photo, material_info = _photo(params)
         ny, nx = photo.height.shape
-    else:
-        material = Material(params.material, seed=params.seed, scale=params.scale)
-        ny = nx = params.size
-        material_info = {"name": material.name, "seed": material.seed,
-                         "scale": material.effective_scale, "relief": material.relief}
-        if material.name == "tiles":
-            material_info["period"] = round(material.effective_scale)
-    model = ShadingModel(relief=material_info["relief"])
-    halo = model.halo(float(sampling.theta_view.max()), float(sampling.theta_light.max()))
-    directions = Directions(sampling.theta_view, sampling.phi_view, sampling.theta_light,
-                            sampling.phi_light)
-    attrs = {
+        return photo, None, material_info, ny, nx
+    material = Material(params.material, seed=params.seed, scale=params.scale)
+    ny = nx = params.size
+    material_info = {"name": material.name, "seed": material.seed,
+                     "scale": material.effective_scale, "relief": material.relief}
+    if material.name == "tiles":
+        material_info["period"] = round(material.effective_scale)
+    return None, material, material_info, ny, nx
+
+
+def _attrs(params: GenerateParams, directions: Directions, material_info: dict,
+           model: ShadingModel, halo: int) -> dict:
+    """The store's attrs: kind, sampling, material, shading and provenance."""
+    return {
         "btf_kind": directions.kind,
         "source": "generate",
         "sampling": params.sampling,
@@ -196,43 +199,71 @@ def generate(params: GenerateParams, session: Session) -> Path:
         "shading": {**dataclasses.asdict(model), "reference": model.reference, "halo": halo},
         "provenance": provenance("generate", params),
     }
+
+
+def _write_photo_truth(group, photo: Fields) -> None:
+    """Write a photo's fields to the truth arrays (they fit in memory: written once)."""
+    for name, values in zip(TRUTH_DIMS, (photo.height, photo.albedo, photo.roughness,
+                                         photo.specular), strict=True):
+        group[name][...] = values
+
+
+def _graph(group, tmp, sampling, source: Material | None, *, halo: int,
+           model: ShadingModel) -> tuple[list, list]:
+    """The dask arrays to store and their target arrays: radiance, and a material's truth.
+
+    ``source`` is the procedural material, or ``None`` for a photo, whose fields are read
+    back per block from the truth arrays of the store at ``tmp``.
+    """
+    import dask.array as da
+
+    truth = [group[name] for name in TRUTH_DIMS]
+    vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
+    if source is None:  # read back per block
+        windows = field_windows(location(tmp), ych, xch, halo)
+    else:
+        windows = field_windows(source, ych, xch, halo)
+    views = da.from_array(np.stack([sampling.theta_view, sampling.phi_view], -1),
+                          chunks=(vch, 2))
+    lights = da.from_array(np.stack([sampling.theta_light, sampling.phi_light], -1),
+                           chunks=(lch, 2))
+    radiance = da.blockwise(
+        _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld",
+        new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
+        concatenate=True, align_arrays=False, dtype=np.float32,
+        meta=np.empty((0,) * 5, np.float32), halo=halo, model=model,
+    )
+    sources, targets = [radiance], [group[RADIANCE]]
+    if source is not None:
+        fields = windows.map_blocks(_crop, chunks=(ych, xch, (6,)), dtype=np.float32,
+                                    halo=halo)
+        sources += [fields[..., 0], fields[..., 1:4], fields[..., 4], fields[..., 5]]
+        targets += truth
+    return sources, targets
+
+
+def generate(params: GenerateParams, session: Session) -> Path:
+    """Render the store described by ``params``; returns its path."""
+    sampling = parse_sampling(params.sampling)
+    photo, material, material_info, ny, nx = _choose_material(params)
+    model = ShadingModel(relief=material_info["relief"])
+    halo = model.halo(float(sampling.theta_view.max()), float(sampling.theta_light.max()))
+    directions = Directions(sampling.theta_view, sampling.phi_view, sampling.theta_light,
+                            sampling.phi_light)
+    attrs = _attrs(params, directions, material_info, model, halo)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
         def create():
             made = create_radiance_store(tmp, directions=directions, ny=ny, nx=nx,
                                          channels=CHANNELS, layout=params.layout(),
                                          attrs=attrs, truth=True)
-            if photo is not None:  # a photo's fields fit in memory: written once
-                for name, values in zip(TRUTH_DIMS, (photo.height, photo.albedo,
-                                                     photo.roughness, photo.specular),
-                                        strict=True):
-                    made[name][...] = values
+            if photo is not None:
+                _write_photo_truth(made, photo)
             return made
 
         progress = Progress(tmp)
         group = progress.skeleton(create)
-        truth = [group[name] for name in TRUTH_DIMS]
-        vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
-        if photo is not None:  # read back per block
-            windows = field_windows(location(tmp), ych, xch, halo)
-        else:
-            windows = field_windows(material, ych, xch, halo)
-        views = da.from_array(np.stack([sampling.theta_view, sampling.phi_view], -1),
-                              chunks=(vch, 2))
-        lights = da.from_array(np.stack([sampling.theta_light, sampling.phi_light], -1),
-                               chunks=(lch, 2))
-        radiance = da.blockwise(
-            _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld",
-            new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
-            concatenate=True, align_arrays=False, dtype=np.float32,
-            meta=np.empty((0,) * 5, np.float32), halo=halo, model=model,
-        )
-        sources, targets = [radiance], [group[RADIANCE]]
-        if photo is None:
-            fields = windows.map_blocks(_crop, chunks=(ych, xch, (6,)), dtype=np.float32,
-                                        halo=halo)
-            sources += [fields[..., 0], fields[..., 1:4], fields[..., 4], fields[..., 5]]
-            targets += truth
+        sources, targets = _graph(group, tmp, sampling, material, halo=halo, model=model)
         session.log(f"generate: {len(sampling.theta_view)} x {len(sampling.theta_light)} "
                     f"layers of {ny} x {nx} texels -> {params.out}")
         if progress.count():
@@ -240,7 +271,6 @@ def generate(params: GenerateParams, session: Session) -> Path:
                         f"already written in {tmp}")
         session.compute(store_aligned(sources, targets, progress=progress))
     return Path(params.out)
-
 
 
 def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:

@@ -130,15 +130,76 @@ def _check_keys(spec: SceneSpec, kind: str, group) -> None:
                                      f"{spec.source} holds")
 
 
+def _radiance_reads(kind: str, source, layers, req) -> dict:
+    """The chunks of a radiance or surface array a request reads, and all of them."""
+    from pipeline.graphs import scene as graphs
+
+    ys, xs = req.read_window()
+    if kind == "surface":
+        return {RADIANCE: [graphs.chunks_touched(
+            source.shape, source.chunks, (ys, xs, slice(None))),
+            graphs.total_chunks(source.shape, source.chunks)]}
+    spatial = graphs.chunks_touched(source.shape[2:], source.chunks[2:],
+                                    (ys, xs, slice(None)))
+    return {source.path: [
+        graphs.layer_chunks(layers, source.chunks[1]) * spatial,
+        graphs.total_chunks(source.shape, source.chunks)]}
+
+
+def _radiance(spec: SceneSpec, group, kind: str, path: str, layers, request,
+              session: Session):
+    """The graph of a radiance or surface store (its level, if stored) and its reads."""
+    import dask.array as da
+    import zarr
+
+    from pipeline.graphs import scene as graphs
+
+    rad = group[RADIANCE]
+    ny, nx = rad.shape[-3:-1]
+    stored = _pyramid_level(spec, group, RADIANCE, session) if kind == "radiance" else None
+    if kind == "surface" and spec.level:
+        session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
+    req = request(level_window(spec, ny, nx, spec.level, session), stored is not None)
+    _restricted_region(group, spec, req)
+    source = zarr.open_array(storage.store(path), path=stored or RADIANCE, mode="r")
+    data = da.from_zarr(source)
+    if kind == "surface":
+        data = data[None, None]
+    out = graphs.radiance_graph(data, req)
+    return out, _radiance_reads(kind, source, layers, req)
+
+
+def _compressed(spec: SceneSpec, group, path: str, layers, request, session: Session):
+    """The graph of a compressed store at the scene's rank (its level, if stored); its reads."""
+    import dask.array as da
+    import zarr
+
+    from pipeline.graphs import scene as graphs
+
+    rank = spec.rank or group["S"].shape[0]
+    ny, nx = group["V"].shape[:2]
+    stored = _pyramid_level(spec, group, "V", session)
+    req = request(level_window(spec, ny, nx, spec.level, session), stored is not None,
+                  rank=rank)
+    u = group["U"]
+    u_rows, u_read = graphs.read_u_rows(u, layers, rank)
+    s = np.asarray(group["S"][:rank])
+    v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
+    out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
+                                  Transform.from_attrs(group.attrs["transform"]), req)
+    ys, xs = req.read_window()
+    return out, {
+        v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
+                 graphs.total_chunks(v.shape, v.chunks)],
+        "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
+
+
 def build(spec: SceneSpec, session: Session):
     """The scene's lazy ``(direction, y, x, channel)`` array and what it reads.
 
     Returns ``(array, directions, info)``: ``info`` holds the source's kind, the channels,
     the window, the layers, weights and the chunks read out of all (``reads``).
     """
-    import dask.array as da
-    import zarr
-
     from pipeline.graphs import scene as graphs
     from pipeline.stores.base import read_channels, read_directions
 
@@ -156,46 +217,9 @@ def build(spec: SceneSpec, session: Session):
                               stored_level=stored, chunk=spec.chunk, **extra)
 
     if kind in ("radiance", "surface"):
-        rad = group[RADIANCE]
-        ny, nx = rad.shape[-3:-1]
-        stored = _pyramid_level(spec, group, RADIANCE, session) if kind == "radiance" else None
-        if kind == "surface" and spec.level:
-            session.log(f"scene: level {spec.level} of a surface store is computed on the fly")
-        req = request(level_window(spec, ny, nx, spec.level, session), stored is not None)
-        _restricted_region(group, spec, req)
-        source = zarr.open_array(storage.store(path), path=stored or RADIANCE, mode="r")
-        data = da.from_zarr(source)
-        if kind == "surface":
-            data = data[None, None]
-        out = graphs.radiance_graph(data, req)
-        ys, xs = req.read_window()
-        if kind == "surface":
-            info["reads"] = {RADIANCE: [graphs.chunks_touched(
-                source.shape, source.chunks, (ys, xs, slice(None))),
-                graphs.total_chunks(source.shape, source.chunks)]}
-        else:
-            spatial = graphs.chunks_touched(source.shape[2:], source.chunks[2:],
-                                            (ys, xs, slice(None)))
-            info["reads"] = {source.path: [
-                graphs.layer_chunks(layers, source.chunks[1]) * spatial,
-                graphs.total_chunks(source.shape, source.chunks)]}
+        out, info["reads"] = _radiance(spec, group, kind, path, layers, request, session)
     elif kind == "compressed":
-        rank = spec.rank or group["S"].shape[0]
-        ny, nx = group["V"].shape[:2]
-        stored = _pyramid_level(spec, group, "V", session)
-        req = request(level_window(spec, ny, nx, spec.level, session), stored is not None,
-                      rank=rank)
-        u = group["U"]
-        u_rows, u_read = graphs.read_u_rows(u, layers, rank)
-        s = np.asarray(group["S"][:rank])
-        v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
-        out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
-                                      Transform.from_attrs(group.attrs["transform"]), req)
-        ys, xs = req.read_window()
-        info["reads"] = {
-            v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
-                     graphs.total_chunks(v.shape, v.chunks)],
-            "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
+        out, info["reads"] = _compressed(spec, group, path, layers, request, session)
     else:
         out, info["reads"] = _tileset(spec, group, path, layers, request, session)
     return out, directions, info
