@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -42,6 +44,21 @@ def btf_process(*args, env: dict | None = None, cwd: Path | None = None,
     return subprocess.run([Path(sys.executable).parent / "btf", *map(str, args)],
                           capture_output=True, text=True, env={**os.environ, **(env or {})},
                           cwd=cwd, timeout=timeout)
+
+
+BROWSER_FLAGS = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader"]  # WebGL2 on the CPU (SwiftShader)
+
+
+def chromium() -> str:
+    """Debian's chromium; skips the test where there is none, fails if BTF_REQUIRE_BROWSER."""
+    found = shutil.which("chromium") or shutil.which("chromium-browser")
+    if found is None:
+        if os.environ.get("BTF_REQUIRE_BROWSER"):
+            pytest.fail("BTF_REQUIRE_BROWSER is set but there is no chromium (.ci/run installs "
+                        "it)")
+        pytest.skip("no chromium here (Debian's package; .ci/run installs it)")
+    return found
 
 
 def free_port() -> int:

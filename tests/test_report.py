@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 
 import numpy as np
@@ -63,20 +61,13 @@ def test_eq_11_is_the_mean_of_each_texel_s_rms_radiance_error():
         expected, rel=1e-6)
 
 
-def _chromium() -> str | None:
-    found = shutil.which("chromium") or shutil.which("chromium-browser")
-    if found is None and os.environ.get("BTF_REQUIRE_BROWSER"):
-        pytest.fail("BTF_REQUIRE_BROWSER is set but there is no chromium (.ci/run installs it)")
-    return found
-
-
 @pytest.mark.slow
 def test_the_demo_report_renders_in_a_real_browser_with_every_picture_loaded(btf, tmp_path,
                                                                             monkeypatch):
-    chromium = _chromium()
-    if chromium is None:
-        pytest.skip("no chromium here (Debian's package; .ci/run installs it)")
+    from helpers import chromium as find_chromium
     from helpers import small_demo
+
+    chromium = find_chromium()
 
     monkeypatch.chdir(tmp_path)
     assert btf("run", small_demo(tmp_path), "--quiet").code == 0

@@ -20,7 +20,7 @@ from pipeline.stage import Stage
 
 ORDER = ("generate", "ingest", "export", "preview", "crop", "compress", "reconstruct", "enlarge",
          "reference", "quilt", "roller", "render", "fit", "pyramid", "report", "scene",
-         "inspect")
+         "view", "inspect")
 
 
 def _declarations() -> dict[str, Stage]:

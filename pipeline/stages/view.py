@@ -1,0 +1,198 @@
+"""``btf view``: one self-contained HTML page that relights a compressed BTF in the browser.
+
+The page holds the eigentextures ``V`` (half floats, four components a texture layer) and the
+rows ``U diag(S)`` of every measured (view, light) pair; its WebGL2 shader computes each
+texel's values as one dot product of length ``k`` per channel, decodes them with the store's
+transform and tone-maps them as the report does (:func:`tasks.tonemap.tonemap`). Between
+measured directions it blends measured pairs (:mod:`tasks.viewer`). A store too large for the
+page is shown at a level of detail (``--level``: block means of ``V``, exact for the values)
+or a region (``--region``).
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import json
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import write_whole
+from pipeline.errors import BTFError
+from pipeline.params import ParamError, check_region, option, parse_region
+from pipeline.session import Session
+from pipeline.stage import Stage
+from pipeline.stores.base import open_group, read_channels, read_directions
+from pipeline.stores.compressed import check_compressed
+from tasks.svd import reconstruct_layers
+from tasks.tonemap import exposure
+from tasks.transform import Transform
+from tasks.viewer import disk, pack_eigentextures, triangulate
+
+MIB = 1 << 20
+DEFAULT_RANK = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewParams:
+    """Parameters of ``btf view``."""
+
+    store: str = option(help="compressed store (made by btf compress or btf ingest)",
+                        positional=True, path="in", metavar="COMPRESSED")
+    out: str = option(help="HTML file to write", positional=True, path="out", metavar="OUT.html")
+    rank: int | None = option(None, metavar="R",
+                              help="components shown (default: 16, or the store's rank if lower)")
+    level: int = option(0, help="level of detail: texels are block means of 2^level per side")
+    region: str | None = option(None, metavar="Y0:Y1,X0:X1",
+                                help="texel region of level 0, ends exclusive (default: all)")
+    budget: float = option(25.0, metavar="MB", help="largest page to write, in MB")
+    exposure: float | None = option(None, help="initial exposure scale (default: automatic)")
+    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
+
+    def __post_init__(self):
+        check_region(self.region)
+        if self.rank is not None and self.rank < 1:
+            raise ParamError("rank", f"must be at least 1, got {self.rank}")
+        if not 0 <= self.level <= 12:
+            raise ParamError("level", f"must be between 0 and 12, got {self.level}")
+        if not self.budget > 0:
+            raise ParamError("budget", f"must be positive, got {self.budget}")
+
+
+def _window(params: ViewParams, ny: int, nx: int) -> tuple[slice, slice]:
+    """The texel region of level 0 shown, whole blocks of the level only."""
+    ys, xs = parse_region(params.region) if params.region else (slice(0, ny), slice(0, nx))
+    if ys.stop > ny or xs.stop > nx:
+        raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
+                       f"{ny} x {nx} texels")
+    f = 1 << params.level
+    hy, hx = (ys.stop - ys.start) // f, (xs.stop - xs.start) // f
+    if hy < 1 or hx < 1:
+        raise BTFError(f"{params.store}: level {params.level} leaves no texel of the "
+                       f"{ys.stop - ys.start} x {xs.stop - xs.start} region")
+    return slice(ys.start, ys.start + hy * f), slice(xs.start, xs.start + hx * f)
+
+
+def _eigentextures(params: ViewParams, group, rank: int, session: Session) -> np.ndarray:
+    """``V`` of the region at the level, ``(y, x, rank)`` float32, read block by block."""
+    import dask.array as da
+    import zarr
+
+    from pipeline import storage
+    from pipeline.stores.base import location
+
+    ny, nx = group["V"].shape[:2]
+    ys, xs = _window(params, ny, nx)
+    v = da.from_zarr(zarr.open_array(storage.store(location(params.store)), path="V",
+                                     mode="r"))[ys, xs, :rank]
+    if params.level:
+        f = 1 << params.level
+        v = da.coarsen(np.mean, v.astype(np.float64), {0: f, 1: f}).astype(np.float32)
+    (out,) = session.compute(v)
+    return np.asarray(out, np.float32)
+
+
+def _page_size(v: np.ndarray, us: np.ndarray) -> int:
+    """Bytes of the page's data: base64 of the half-float ``V`` and float32 ``U diag(S)``."""
+    layers = -(-v.shape[-1] // 4)
+    raw = v.shape[0] * v.shape[1] * layers * 4 * 2 + us.size * 4
+    return raw * 4 // 3
+
+
+def _initial_pair(d) -> tuple[int, int]:
+    """The view nearest the normal and the light nearest the normal."""
+    return int(np.argmin(d.theta_view)), int(np.argmin(d.theta_light))
+
+
+def _b64(a: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
+
+
+def _page(data: dict, blobs: dict[str, np.ndarray]) -> str:
+    """The HTML of the page: the template with the data and the binary blobs inlined."""
+    template = resources.files("pipeline").joinpath("templates/view.html").read_text()
+    scripts = "\n".join(f'<script type="application/octet-stream" id="blob-{name}">'
+                        f"{_b64(a)}</script>" for name, a in blobs.items())
+    return template.replace("/*DATA*/null", json.dumps(data)).replace("<!--BLOBS-->", scripts)
+
+
+def view(params: ViewParams, session: Session) -> Path:
+    """Write the relighting page of a compressed store."""
+    group = open_group(params.store)
+    if group.attrs.get("btf_kind") != "compressed":
+        raise BTFError(f"{params.store}: btf view shows a compressed store; this is a "
+                       f"{group.attrs.get('btf_kind', 'non-BTF')} store (compress it first: "
+                       f"btf compress {params.store} OUT.zarr --rank "
+                       f"{params.rank or DEFAULT_RANK})")
+    check_compressed(group, params.store)
+    stored = group["S"].shape[0]
+    if params.rank is not None and params.rank > stored:
+        raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
+                       f"rank {stored}")
+    k = params.rank or min(DEFAULT_RANK, stored)
+    d = read_directions(group)
+    channels = list(read_channels(group))
+    transform = Transform.from_attrs(group.attrs["transform"])
+    if len(channels) not in (1, 3) or (transform.channels and len(channels) != 3):
+        raise BTFError(f"{params.store}: the viewer shows 1 or 3 channels, the store has "
+                       f"{len(channels)} ({', '.join(channels)})")
+    if d.lights == 1:
+        raise BTFError(f"{params.store}: 1 light direction cannot be triangulated: there is "
+                       "nothing to relight (the viewer blends at least three lights)")
+    try:
+        view_tris = triangulate(d.theta_view, d.phi_view, "view")
+        light_tris = triangulate(d.theta_light, d.phi_light, "light")
+    except ValueError as exc:
+        raise BTFError(f"{params.store}: {exc}") from None
+    s = np.asarray(group["S"][:k], np.float32)
+    us = np.asarray(group["U"][..., :k], np.float32) * s
+    v = _eigentextures(params, group, k, session)
+    size = _page_size(v, us)
+    if size > params.budget * MIB:
+        raise BTFError(f"{params.store}: the page would hold {size / MIB:.1f} MB of data, over "
+                       f"--budget {params.budget:g} MB; show a level of detail (--level "
+                       f"{params.level + 1}) or a region (--region Y0:Y1,X0:X1), or raise "
+                       "--budget")
+    iv, il = _initial_pair(d)
+    scale = params.exposure or exposure(
+        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v, transform=transform))
+    ny, nx = group["V"].shape[:2]
+    ys, xs = _window(params, ny, nx)
+    note = ""
+    if params.level or params.region:
+        note = (f"texels {ys.start}:{ys.stop}, {xs.start}:{xs.stop} of {ny} x {nx}"
+                + (f" at level {params.level} (block means of {1 << params.level}^2)"
+                   if params.level else ""))
+    data = {
+        "name": Path(str(params.store).rstrip("/")).name, "note": note,
+        "width": int(v.shape[1]), "height": int(v.shape[0]), "rank": k,
+        "channels": len(channels), "transform": transform.name, "eps": transform.eps,
+        "exposure": float(scale),
+        "views": np.stack([d.theta_view, d.phi_view], -1).tolist(),
+        "lights": np.stack([d.theta_light, d.phi_light], -1).tolist(),
+        "viewDisk": disk(d.theta_view, d.phi_view).tolist(),
+        "lightDisk": disk(d.theta_light, d.phi_light).tolist(),
+        "viewTriangles": view_tris.tolist(), "lightTriangles": light_tris.tolist(),
+        "initial": {"view": [float(d.theta_view[iv]), float(d.phi_view[iv])],
+                    "light": [float(d.theta_light[il]), float(d.phi_light[il])]},
+    }
+    html = _page(data, {"V": pack_eigentextures(v), "US": us})
+    session.log(f"view: {d.views} x {d.lights} directions, {v.shape[0]} x {v.shape[1]} texels "
+                f"at rank {k} -> {params.out} ({len(html) / MIB:.1f} MB)"
+                + (f"; {note}" if note else ""))
+    write_whole(params.out, html.encode("utf-8"), params.overwrite)
+    return Path(params.out)
+
+
+STAGE = Stage("view", ViewParams, view,
+              "write an HTML page that relights a compressed store in the browser",
+              "Write one self-contained HTML file (WebGL2, no network) showing the material "
+              "under a light and from a view that you drag over the hemisphere, with an "
+              "exposure control. Measured directions are drawn on the hemispheres; between "
+              "them the page blends measured pairs (barycentric weights over a Delaunay "
+              "triangulation). The initial light, view and exposure come from the URL: "
+              "OUT.html#light=THETA,PHI&view=THETA,PHI&exposure=E (degrees). A store larger "
+              "than --budget is refused: show a level of detail (--level) or a region "
+              "(--region).")
