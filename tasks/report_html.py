@@ -31,13 +31,14 @@ class Table:
 
 @dataclass(frozen=True)
 class Section:
-    """A part of the page: a title, paragraphs, tables, pictures side by side, commands."""
+    """A part of the page: a title, paragraphs, links, tables, pictures, commands."""
 
     title: str
     paragraphs: tuple[str, ...] = ()
     tables: tuple[Table, ...] = ()
     pictures: tuple[Picture, ...] = ()
     commands: tuple[str, ...] = field(default=())
+    links: tuple[tuple[str, str], ...] = ()  # (text, address), after the paragraphs
 
 
 NUMBER = re.compile(r"^-?[\d.,]+( ?(x|%|s|MiB|GiB))?$")  # right-aligned cells
@@ -83,6 +84,8 @@ def render(title: str, intro: str, sections: list[Section]) -> str:
     for s in sections:
         parts.append(f"<h2>{html.escape(s.title)}</h2>")
         parts += [f"<p>{html.escape(t)}</p>" for t in s.paragraphs]
+        parts += [f'<p><a href="{html.escape(href)}">{html.escape(text)}</a></p>'
+                  for text, href in s.links]
         parts += [_table(t) for t in s.tables]
         if s.pictures:
             parts.append('<div class="pictures">' + "".join(map(_picture, s.pictures))

@@ -49,12 +49,13 @@ def test_demo_runs_the_mission_writes_its_report_and_skips_what_is_up_to_date(bt
     assert first.code == 0, first.err
     out = workdir / "out" / "demo"
     for name in ("wood.zarr", "sample.zarr", "photo.zarr", "sample_svd.zarr", "enlarged.zarr",
-                 "tiles.zarr", "surface.png", "report.html"):
+                 "tiles.zarr", "surface.png", "report.html", "view.html"):
         assert (out / name).exists(), name
     assert len(list((out / "scene").glob("*.png"))) == 3
     page = (out / "report.html").read_text()
     for text in ("The run", "Compression: ", "Enlargement: ", "Tile set: ", "Pictures",
-                 "btf enlarge out/demo/sample_svd.zarr out/demo/photo.zarr"):
+                 "btf enlarge out/demo/sample_svd.zarr out/demo/photo.zarr", "Relight it",
+                 '<a href="view.html">'):
         assert text in page, text
     again = btf("run", demo)
     assert again.code == 0 and again.err.count("up to date, skipped") == 6, again.err

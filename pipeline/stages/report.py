@@ -70,6 +70,8 @@ class ReportParams:
                                help="a tile set made by btf quilt")
     pictures: str | None = option(None, metavar="PNG,..",
                                   help="PNG files, or folders of them, to show (comma-separated)")
+    viewer: str | None = option(None, path="in", metavar="PAGE.html",
+                                help="a relighting page (btf view) to link to")
     lights: int = option(3, help="light directions shown side by side (spread over them)")
     window: int = option(256, help="largest side of the pictures' window, in texels")
     title: str = option("btf report", help="title of the page")
@@ -339,6 +341,19 @@ def _pictures(items: str) -> Section:
     return Section("Pictures", (), (), tuple(pictures))
 
 
+def _viewer(page: str, out: str) -> Section:
+    """A link to a relighting page, relative to the report where both are local files."""
+    import os
+
+    href = page
+    if not storage.is_url(page) and not storage.is_url(out):
+        href = os.path.relpath(Path(page).resolve(), Path(out).resolve().parent)
+    return Section("Relight it", (
+        "The page below shows the material under a light and from a view that you drag over "
+        "the hemisphere (WebGL2, one file, no network; made by btf view). It is linked, not "
+        "embedded: this page holds no script.",), links=((f"open {Path(page).name}", href),))
+
+
 def report(params: ReportParams, session: Session) -> Path:
     """Write the page (see the module)."""
     import json
@@ -357,6 +372,8 @@ def report(params: ReportParams, session: Session) -> Path:
         sections.append(_tiles(params.tiles))
     if params.pictures:
         sections.append(_pictures(params.pictures))
+    if params.viewer:
+        sections.append(_viewer(params.viewer, params.out))
     page = render(params.title, f"Made by btf {__version__} on "
                   f"{time.strftime('%Y-%m-%d %H:%M')} in {time.perf_counter() - start:.1f} s.",
                   sections)
