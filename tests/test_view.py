@@ -93,8 +93,10 @@ def test_bad_inputs_are_one_clear_error_and_nothing_is_written(compressed, btf, 
     assert over.code == 1 and "--rank 13 is larger than the store's rank 12" in over.err
     big = btf("view", compressed, out, "--budget", "0.01")
     assert big.code == 1 and "over --budget 0.01 MB" in big.err and "--level 1" in big.err
-    radiance = btf("view", compressed.parent / "r.zarr", out)
-    assert radiance.code == 1 and "compress it first" in radiance.err
+    other = tmp_path / "other.zarr"
+    zarr.open_group(other, mode="w").attrs["btf_kind"] = "surface"
+    kind = btf("view", other, out)
+    assert kind.code == 1 and "this is a surface store" in kind.err
     one = tmp_path / "one.zarr"
     assert btf("crop", compressed.parent / "r.zarr", tmp_path / "one_r.zarr", "--light", "0",
                "-q").code == 0
@@ -102,6 +104,24 @@ def test_bad_inputs_are_one_clear_error_and_nothing_is_written(compressed, btf, 
     single = btf("view", one, out)
     assert single.code == 1 and "1 light direction cannot be triangulated" in single.err
     assert no_partial_outputs(out) and not out.exists()
+
+
+def _blobs(page) -> dict[str, str]:
+    text = page.read_text()
+    return {name: text.split(f'id="blob-{name}">')[1].split("</script>")[0] for name in ("V", "US")}
+
+
+def test_a_radiance_store_is_compressed_on_the_way_as_btf_compress_would(compressed, btf,
+                                                                         tmp_path):
+    radiance = compressed.parent / "r.zarr"
+    assert btf("compress", radiance, tmp_path / "c8.zarr", "--rank", "8", "-q").code == 0
+    assert btf("view", tmp_path / "c8.zarr", tmp_path / "a.html", "-q").code == 0
+    r = btf("view", radiance, tmp_path / "b.html", "--rank", "8")
+    assert r.code == 0 and "compressing it at rank 8 first" in r.err, r.err
+    assert _blobs(tmp_path / "a.html") == _blobs(tmp_path / "b.html")
+    assert '"name": "r.zarr"' in (tmp_path / "b.html").read_text()
+    big = btf("view", radiance, tmp_path / "c.html", "--budget", "0.01")
+    assert big.code == 1 and "over --budget" in big.err and "compressing" not in big.err
 
 
 def test_a_level_and_a_region_are_shown_and_said(compressed, btf, tmp_path):
@@ -198,3 +218,19 @@ def test_the_url_sets_the_directions_and_dragging_the_light_changes_the_image(br
     assert np.abs(_canvas(tab).astype(int) - before.astype(int)).max() > 10
     assert "light=" in tab.evaluate("location.hash")
     tab.close()
+
+
+@pytest.mark.slow
+def test_btf_bench_view_reports_its_table(tmp_path):
+    chromium()
+    pytest.importorskip("playwright.sync_api")
+    from benchmarks.cli import main as bench
+
+    out = tmp_path / "view.json"
+    assert bench(["view", "--size", "64", "--repeat", "1", "--frames", "4", "--json",
+                  str(out)]) == 0
+    import json
+
+    r = json.loads(out.read_text())
+    assert len(r["frame_ms"]) == 4 and all(ms > 0 for ms in r["frame_ms"])
+    assert 0 < r["first_frame_ms"][0] and r["page_mb"] < 1 and r["numpy_layer_ms"] > 0

@@ -6,7 +6,8 @@ texel's values as one dot product of length ``k`` per channel, decodes them with
 transform and tone-maps them as the report does (:func:`tasks.tonemap.tonemap`). Between
 measured directions it blends measured pairs (:mod:`tasks.viewer`). A store too large for the
 page is shown at a level of detail (``--level``: block means of ``V``, exact for the values)
-or a region (``--region``).
+or a region (``--region``). A radiance store is compressed at ``--rank`` on the way, into a
+temporary store that is removed with the page written.
 """
 
 from __future__ import annotations
@@ -39,11 +40,12 @@ DEFAULT_RANK = 16
 class ViewParams:
     """Parameters of ``btf view``."""
 
-    store: str = option(help="compressed store (made by btf compress or btf ingest)",
-                        positional=True, path="in", metavar="COMPRESSED")
+    store: str = option(help="compressed store (btf compress, btf ingest), or a radiance store "
+                             "to compress at --rank on the way", positional=True, path="in")
     out: str = option(help="HTML file to write", positional=True, path="out", metavar="OUT.html")
     rank: int | None = option(None, metavar="R",
-                              help="components shown (default: 16, or the store's rank if lower)")
+                              help="components shown (default: 16, or a compressed store's rank if "
+                                   "lower)")
     level: int = option(0, help="level of detail: texels are block means of 2^level per side")
     region: str | None = option(None, metavar="Y0:Y1,X0:X1",
                                 help="texel region of level 0, ends exclusive (default: all)")
@@ -75,7 +77,8 @@ def _window(params: ViewParams, ny: int, nx: int) -> tuple[slice, slice]:
     return slice(ys.start, ys.start + hy * f), slice(xs.start, xs.start + hx * f)
 
 
-def _eigentextures(params: ViewParams, group, rank: int, session: Session) -> np.ndarray:
+def _eigentextures(params: ViewParams, store: str, rank: int, ys: slice, xs: slice,
+                   session: Session) -> np.ndarray:
     """``V`` of the region at the level, ``(y, x, rank)`` float32, read block by block."""
     import dask.array as da
     import zarr
@@ -83,9 +86,7 @@ def _eigentextures(params: ViewParams, group, rank: int, session: Session) -> np
     from pipeline import storage
     from pipeline.stores.base import location
 
-    ny, nx = group["V"].shape[:2]
-    ys, xs = _window(params, ny, nx)
-    v = da.from_zarr(zarr.open_array(storage.store(location(params.store)), path="V",
+    v = da.from_zarr(zarr.open_array(storage.store(location(store)), path="V",
                                      mode="r"))[ys, xs, :rank]
     if params.level:
         f = 1 << params.level
@@ -94,10 +95,10 @@ def _eigentextures(params: ViewParams, group, rank: int, session: Session) -> np
     return np.asarray(out, np.float32)
 
 
-def _page_size(v: np.ndarray, us: np.ndarray) -> int:
+def _page_size(v_shape: tuple[int, int, int], us_size: int) -> int:
     """Bytes of the page's data: base64 of the half-float ``V`` and float32 ``U diag(S)``."""
-    layers = -(-v.shape[-1] // 4)
-    raw = v.shape[0] * v.shape[1] * layers * 4 * 2 + us.size * 4
+    ny, nx, k = v_shape
+    raw = ny * nx * -(-k // 4) * 4 * 2 + us_size * 4
     return raw * 4 // 3
 
 
@@ -119,14 +120,52 @@ def _page(data: dict, blobs: dict[str, np.ndarray]) -> str:
 
 
 def view(params: ViewParams, session: Session) -> Path:
-    """Write the relighting page of a compressed store."""
+    """Write the relighting page of a compressed store (a radiance store is compressed first)."""
     group = open_group(params.store)
-    if group.attrs.get("btf_kind") != "compressed":
-        raise BTFError(f"{params.store}: btf view shows a compressed store; this is a "
-                       f"{group.attrs.get('btf_kind', 'non-BTF')} store (compress it first: "
-                       f"btf compress {params.store} OUT.zarr --rank "
-                       f"{params.rank or DEFAULT_RANK})")
-    check_compressed(group, params.store)
+    kind = group.attrs.get("btf_kind")
+    if kind == "compressed":
+        return _write_page(params, params.store, group, session)
+    if kind not in ("btf", "abtf"):
+        raise BTFError(f"{params.store}: btf view shows a compressed or a radiance store; this "
+                       f"is a {kind or 'non-BTF'} store")
+    return _compressed_on_the_way(params, group, session)
+
+
+def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
+    """Compress a radiance store at the page's rank into a temporary store, then the page."""
+    import tempfile
+
+    from pipeline.stages import STAGES  # by name, as btf run composes stages
+
+    rad = group["radiance"]
+    nv, nl, ny, nx, nc = rad.shape
+    k = params.rank or DEFAULT_RANK
+    ys, xs = _window(params, ny, nx)
+    f = 1 << params.level
+    size = _page_size(((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), nv * nl * nc * k)
+    _check_budget(params, size)  # before the compression, not after it
+    with tempfile.TemporaryDirectory(prefix="btf-view-") as tmp:
+        compressed = str(Path(tmp) / "compressed.zarr")
+        session.log(f"view: {params.store} is a radiance store: compressing it at rank {k} "
+                    f"first (btf compress {params.store} OUT.zarr --rank {k} keeps it)")
+        compress = STAGES["compress"]
+        compress.run(compress.params(store=params.store, out=compressed, rank=k), session)
+        return _write_page(dataclasses.replace(params, rank=k), compressed,
+                           open_group(compressed), session, name=params.store)
+
+
+def _check_budget(params: ViewParams, size: int) -> None:
+    if size > params.budget * MIB:
+        raise BTFError(f"{params.store}: the page would hold {size / MIB:.1f} MB of data, over "
+                       f"--budget {params.budget:g} MB; show a level of detail (--level "
+                       f"{params.level + 1}) or a region (--region Y0:Y1,X0:X1), or raise "
+                       "--budget")
+
+
+def _write_page(params: ViewParams, store: str, group, session: Session, *,
+                name: str | None = None) -> Path:
+    """The page of the compressed store ``store`` (``name``: the store the user gave)."""
+    check_compressed(group, store)
     stored = group["S"].shape[0]
     if params.rank is not None and params.rank > stored:
         raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
@@ -146,27 +185,24 @@ def view(params: ViewParams, session: Session) -> Path:
         light_tris = triangulate(d.theta_light, d.phi_light, "light")
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
+    ny, nx = group["V"].shape[:2]
+    ys, xs = _window(params, ny, nx)
+    f = 1 << params.level
+    u_shape = group["U"].shape
+    _check_budget(params, _page_size(((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k),
+                                     int(np.prod(u_shape[:-1])) * k))
     s = np.asarray(group["S"][:k], np.float32)
     us = np.asarray(group["U"][..., :k], np.float32) * s
-    v = _eigentextures(params, group, k, session)
-    size = _page_size(v, us)
-    if size > params.budget * MIB:
-        raise BTFError(f"{params.store}: the page would hold {size / MIB:.1f} MB of data, over "
-                       f"--budget {params.budget:g} MB; show a level of detail (--level "
-                       f"{params.level + 1}) or a region (--region Y0:Y1,X0:X1), or raise "
-                       "--budget")
+    v = _eigentextures(params, store, k, ys, xs, session)
     iv, il = _initial_pair(d)
     scale = params.exposure or exposure(
         reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v, transform=transform))
-    ny, nx = group["V"].shape[:2]
-    ys, xs = _window(params, ny, nx)
     note = ""
     if params.level or params.region:
         note = (f"texels {ys.start}:{ys.stop}, {xs.start}:{xs.stop} of {ny} x {nx}"
-                + (f" at level {params.level} (block means of {1 << params.level}^2)"
-                   if params.level else ""))
+                + (f" at level {params.level} (block means of {f}^2)" if params.level else ""))
     data = {
-        "name": Path(str(params.store).rstrip("/")).name, "note": note,
+        "name": Path(str(name or params.store).rstrip("/")).name, "note": note,
         "width": int(v.shape[1]), "height": int(v.shape[0]), "rank": k,
         "channels": len(channels), "transform": transform.name, "eps": transform.eps,
         "exposure": float(scale),
@@ -195,4 +231,5 @@ STAGE = Stage("view", ViewParams, view,
               "triangulation). The initial light, view and exposure come from the URL: "
               "OUT.html#light=THETA,PHI&view=THETA,PHI&exposure=E (degrees). A store larger "
               "than --budget is refused: show a level of detail (--level) or a region "
-              "(--region).")
+              "(--region). A radiance store is compressed at --rank on the way (btf compress "
+              "keeps the compressed store for other uses).")
