@@ -106,3 +106,35 @@ def pack_eigentextures(v: np.ndarray) -> np.ndarray:
     padded = np.zeros((ny, nx, layers * 4), np.float32)
     padded[..., :k] = v
     return np.ascontiguousarray(half_bits(padded).reshape(ny, nx, layers, 4).transpose(2, 0, 1, 3))
+
+
+def triangle_grid(points: np.ndarray, triangles: np.ndarray, size: int) -> np.ndarray:
+    """Per cell of a ``size`` x ``size`` grid over ``[-1, 1]^2``, the triangle a shader blends in.
+
+    The triangle :func:`blend_weights` picks for the cell's centre (int32, row ``y`` from -1
+    up); -1 where there are no triangles. The surface mode looks up each pixel's light and view
+    direction here, then weighs the triangle's corners by their barycentric coordinates of the
+    exact direction, so only points within a cell of an edge can blend in a neighbouring
+    triangle, with weights clipped at 0 (continuous, 2 / ``size`` wide at most).
+    """
+    if len(triangles) == 0:
+        return np.full((size, size), -1, np.int32)
+    centres = (np.arange(size) + 0.5) / size * 2 - 1
+    gx, gy = np.meshgrid(centres, centres)
+    at = np.stack([gx.ravel(), gy.ravel()], -1)
+    a, b, c = (points[triangles[:, i]] for i in range(3))
+    m00, m01 = b[:, 0] - a[:, 0], c[:, 0] - a[:, 0]
+    m10, m11 = b[:, 1] - a[:, 1], c[:, 1] - a[:, 1]
+    det = m00 * m11 - m01 * m10
+    ok = np.abs(det) >= 1e-15
+    out = np.empty(len(at), np.int32)
+    for s in range(0, len(at), 1024):
+        px = at[s:s + 1024, None, 0] - a[None, :, 0]
+        py = at[s:s + 1024, None, 1] - a[None, :, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wb = (px * m11 - m01 * py) / det
+            wc = (m00 * py - px * m10) / det
+        low = np.minimum(np.minimum(1 - wb - wc, wb), wc)
+        low[:, ~ok] = -np.inf
+        out[s:s + 1024] = np.argmax(low, axis=1)  # the first of equals, as blend_weights
+    return out.reshape(size, size)

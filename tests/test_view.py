@@ -15,7 +15,7 @@ from helpers import BROWSER_FLAGS, chromium, generate_store, no_partial_outputs
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import to_uint8, tonemap
 from tasks.transform import Transform
-from tasks.viewer import blend_weights, disk, pack_eigentextures, triangulate
+from tasks.viewer import SNAP, blend_weights, disk, pack_eigentextures, triangle_grid, triangulate
 
 HEIGHT, WIDTH, RANK = 40, 56, 8  # not square: rows and columns cannot be swapped unseen
 # Half-float eigentextures and float32 arithmetic on the GPU against float32 numpy: at most
@@ -219,6 +219,123 @@ def test_the_url_sets_the_directions_and_dragging_the_light_changes_the_image(br
     assert "light=" in tab.evaluate("location.hash")
     tab.close()
 
+
+SPHERE, GRID, LIGHT_DISTANCE = 384, 128, 4  # as the page (pipeline/templates/view.html)
+
+
+def _grid_blend(points, tris, grid, at):
+    """The page's surface-mode blend: the grid cell's triangle, barycentric weights, or None
+    where ``at`` is so close to a cell border that float32 may pick the other cell."""
+    cell = (np.asarray(at) * 0.5 + 0.5) * GRID
+    if np.any(np.abs(cell - np.round(cell)) < 1e-3):
+        return None
+    if len(tris) == 0:
+        return [(0, 1.0)]
+    x, y = np.clip(cell.astype(int), 0, GRID - 1)
+    tri = tris[grid[y, x]]
+    a, b, c = points[tri]
+    wb, wc = np.linalg.solve(np.array([b - a, c - a]).T, np.asarray(at) - a)
+    w = np.array([1 - wb - wc, wb, wc])
+    w = np.where(w > SNAP, w, 0.0)
+    return list(zip(tri.tolist(), (w / w.sum()).tolist(), strict=True))
+
+
+def _sphere_pixel(g, px: int, py: int, light, repeat: float, scale: float):
+    """What the sphere shows at pixel (px, py) (GL rows: from the bottom), or None if the
+    pixel sits on a border a float32 computation may round either way."""
+    q = (np.array([px, py]) + 0.5) / SPHERE * 2 - 1
+    n = np.array([q[0], q[1], np.sqrt(max(1 - q @ q, 0.0))])
+    t = np.array([n[2] + 1e-7, 0.0, -n[0]])
+    t /= np.linalg.norm(t)
+    bt = np.cross(n, t)
+    th, ph = np.radians(light)
+    lw = LIGHT_DISTANCE * np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph),
+                                    np.cos(th)]) - n
+    lw /= np.linalg.norm(lw)
+    local_l = np.array([lw @ t, lw @ bt, lw @ n])
+    if local_l[2] <= 0.01:
+        return None
+    tv, pv, tl, pl = (g[k][...] for k in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    weights = []
+    for (theta, phi), at in (((tv, pv), np.array([t[2], bt[2]])), ((tl, pl), local_l[:2])):
+        tris = triangulate(theta, phi, "direction")
+        points = disk(theta, phi)
+        weights.append(_grid_blend(points, tris, triangle_grid(points, tris, GRID), at))
+    if None in weights:
+        return None
+    u = np.arctan2(n[0], n[2]) / (2 * np.pi) + 0.5
+    h = np.arccos(np.clip(n[1], -1, 1)) / np.pi
+    fx, fy = (u * repeat) % 1 * WIDTH, (h * repeat * 0.5) % 1 * HEIGHT
+    if min(abs(fx - round(fx)), abs(fy - round(fy))) < 1e-2:
+        return None
+    v = g["V"][int(fy), int(fx), :RANK].astype(np.float16).astype(np.float32)
+    us = g["U"][..., :RANK] * g["S"][:RANK]
+    coef = sum(wv * wl * us[i, j].astype(np.float64) for i, wv in weights[0]
+               for j, wl in weights[1])
+    values = (coef @ v).astype(np.float32)
+    radiance = Transform.from_attrs(g.attrs["transform"]).decode(values[None])[0]
+    return to_uint8(tonemap(radiance, scale=scale))
+
+
+def test_the_sphere_gives_every_pixel_its_own_light_view_and_texel(browser, page, compressed):
+    g = zarr.open_group(compressed, mode="r")
+    tab, _ = _open(browser, page, "#light=45,135&view=0,0&mode=1&repeat=3")
+    state = tab.evaluate("window.btfView.state")
+    assert state["mode"] == "sphere" and state["repeat"] == 3
+    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+        SPHERE, SPHERE, 4)[..., :3].astype(int)  # GL rows: bottom first
+    rng = np.random.default_rng(5)
+    checked, worst = 0, 0
+    while checked < 60:
+        px, py = rng.integers(0, SPHERE, 2)
+        if ((np.array([px, py]) + 0.5) / SPHERE * 2 - 1) @ (
+                (np.array([px, py]) + 0.5) / SPHERE * 2 - 1) >= 0.98:
+            continue
+        want = _sphere_pixel(g, int(px), int(py), (45, 135), 3, state["exposure"])
+        if want is None:
+            continue
+        worst = max(worst, int(np.abs(shown[py, px] - want).max()))
+        checked += 1
+    assert worst <= BOUND, worst
+    lit, dark = shown[SPHERE * 3 // 4, SPHERE // 4], shown[SPHERE // 4, SPHERE * 3 // 4]
+    assert lit.sum() > 60 and dark.sum() == 0  # facing the light (upper left) / turned away
+    assert (shown[0, 0] == [29, 31, 33]).all()  # outside the sphere: the background
+    tab.close()
+
+
+def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser,
+                                                                             compressed):
+    from pipeline.cli import main
+    from pipeline.stores.tileset import stored_seed
+    from tasks.placement import cell_tiles, gather
+
+    q, page = compressed.parent / "q.zarr", compressed.parent / "q.html"
+    assert main(["quilt", str(compressed), str(q), "--corners", "2", "--seed", "1", "-q"]) == 0
+    assert main(["view", str(q), str(page), "--rank", str(RANK), "-q"]) == 0
+    g = zarr.open_group(q, mode="r")
+    tiles = g["V"][..., :RANK]
+    ty, tx = tiles.shape[1:3]
+    cells = max(1, min(4, 512 // max(ty, tx)))
+    seed = stored_seed(g)
+    tab, _ = _open(browser, page)
+    ids = cell_tiles(0, 0, cells, cells, seed=seed, corners=2)
+    assert tab.evaluate("window.btfView.swatchMap") == ids.ravel().tolist()
+    assert len(set(ids.ravel().tolist())) > 1  # several variations laid
+    tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    tab.evaluate(f"window.btfView.set([{tl[7]}, {pl[7]}], [{tv[3]}, {pv[3]}])")
+    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+        cells * ty, cells * tx, 4)[::-1, :, :3].astype(int)
+    mosaic = gather(tiles.astype(np.float16).astype(np.float32), 0, 0, cells * ty, cells * tx,
+                    seed=seed, corners=2)
+    layer = reconstruct_layers(g["U"][3, 7, :, :RANK][None], g["S"][:RANK], mosaic,
+                               transform=Transform.from_attrs(g.attrs["transform"]))[0]
+    scale = tab.evaluate("window.btfView.state.exposure")
+    assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
+    tab.evaluate("window.btfView.set(null, null, null, 'sphere')")
+    ball = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+        SPHERE, SPHERE, 4)[..., :3]
+    assert ball[SPHERE // 2, SPHERE // 2].sum() > 0
+    tab.close()
 
 @pytest.mark.slow
 def test_btf_bench_view_reports_its_table(tmp_path):

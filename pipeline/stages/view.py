@@ -30,10 +30,11 @@ from pipeline.stores.compressed import check_compressed
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure
 from tasks.transform import Transform
-from tasks.viewer import disk, pack_eigentextures, triangulate
+from tasks.viewer import disk, pack_eigentextures, triangle_grid, triangulate
 
 MIB = 1 << 20
 DEFAULT_RANK = 16
+GRID = 128  # cells per side of the surface mode's direction -> triangle grids
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,6 +126,12 @@ def view(params: ViewParams, session: Session) -> Path:
     kind = group.attrs.get("btf_kind")
     if kind == "compressed":
         return _write_page(params, params.store, group, session)
+    if kind == "compressed-tileset":
+        return _write_page(params, params.store, group, session, tiles=_tile_set(params, group))
+    if kind == "tileset":
+        raise BTFError(f"{params.store}: a tile set of radiance; btf view lays compressed tile "
+                       "sets: quilt the compressed store (btf compress, then btf quilt "
+                       "COMPRESSED.zarr TILES.zarr)")
     if kind not in ("btf", "abtf"):
         raise BTFError(f"{params.store}: btf view shows a compressed or a radiance store; this "
                        f"is a {kind or 'non-BTF'} store")
@@ -154,6 +161,34 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
                            open_group(compressed), session, name=params.store)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Tiles:
+    """A quilted tile set as the page lays it: tiles, corner types, placement seed."""
+
+    count: int
+    corners: int
+    seed: int
+    cells: int  # cells per side of the swatch
+
+
+def _tile_set(params: ViewParams, group) -> _Tiles:
+    """The page's view of a compressed tile set (btf quilt of a compressed store)."""
+    from pipeline.stores.tileset import stored_seed
+
+    if "representative" in group:
+        raise BTFError(f"{params.store}: a roller tile set (double toroidal tiles on a "
+                       "lattice) is not shown by btf view yet; btf render lays it")
+    if params.level or params.region:
+        raise BTFError(f"{params.store}: --level and --region apply to a store, not to a tile "
+                       "set, whose tiles are shown whole")
+    count = group["V"].shape[0]
+    corners = round(count ** 0.25)
+    if corners**4 != count:
+        raise BTFError(f"{params.store}: {count} tiles are not a corner tile set (corners^4)")
+    side = max(group["V"].shape[1:3])
+    return _Tiles(count, corners, stored_seed(group), max(1, min(4, 512 // side)))
+
+
 def _check_budget(params: ViewParams, size: int) -> None:
     if size > params.budget * MIB:
         raise BTFError(f"{params.store}: the page would hold {size / MIB:.1f} MB of data, over "
@@ -163,9 +198,10 @@ def _check_budget(params: ViewParams, size: int) -> None:
 
 
 def _write_page(params: ViewParams, store: str, group, session: Session, *,
-                name: str | None = None) -> Path:
-    """The page of the compressed store ``store`` (``name``: the store the user gave)."""
-    check_compressed(group, store)
+                name: str | None = None, tiles: _Tiles | None = None) -> Path:
+    """The page of the compressed store or tile set ``store`` (``name``: the one given)."""
+    if tiles is None:
+        check_compressed(group, store)
     stored = group["S"].shape[0]
     if params.rank is not None and params.rank > stored:
         raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
@@ -185,25 +221,36 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
         light_tris = triangulate(d.theta_light, d.phi_light, "light")
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
-    ny, nx = group["V"].shape[:2]
+    count = tiles.count if tiles else 1
+    ny, nx = group["V"].shape[-3:-1]
     ys, xs = _window(params, ny, nx)
     f = 1 << params.level
     u_shape = group["U"].shape
-    _check_budget(params, _page_size(((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k),
-                                     int(np.prod(u_shape[:-1])) * k))
+    _check_budget(params, count * _page_size(
+        ((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), 0)
+        + _page_size((0, 0, k), int(np.prod(u_shape[:-1])) * k))
     s = np.asarray(group["S"][:k], np.float32)
     us = np.asarray(group["U"][..., :k], np.float32) * s
-    v = _eigentextures(params, store, k, ys, xs, session)
+    if tiles:
+        v = np.asarray(group["V"][..., :k], np.float32)  # within the budget: a few MB
+    else:
+        v = _eigentextures(params, store, k, ys, xs, session)[None]
     iv, il = _initial_pair(d)
     scale = params.exposure or exposure(
-        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v, transform=transform))
+        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v[0], transform=transform))
+    cells = tiles.cells if tiles else 1
     note = ""
     if params.level or params.region:
         note = (f"texels {ys.start}:{ys.stop}, {xs.start}:{xs.stop} of {ny} x {nx}"
                 + (f" at level {params.level} (block means of {f}^2)" if params.level else ""))
+    if tiles:
+        note = (f"{count} tiles of {v.shape[1]} x {v.shape[2]} texels, {cells} x {cells} laid "
+                f"as btf render lays them (seed {tiles.seed})")
     data = {
         "name": Path(str(name or params.store).rstrip("/")).name, "note": note,
-        "width": int(v.shape[1]), "height": int(v.shape[0]), "rank": k,
+        "width": int(v.shape[2]) * cells, "height": int(v.shape[1]) * cells, "rank": k,
+        "tileWidth": int(v.shape[2]), "tileHeight": int(v.shape[1]), "tiles": count,
+        "corners": tiles.corners if tiles else 1, "seed": str(tiles.seed if tiles else 0),
         "channels": len(channels), "transform": transform.name, "eps": transform.eps,
         "exposure": float(scale),
         "views": np.stack([d.theta_view, d.phi_view], -1).tolist(),
@@ -211,11 +258,16 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
         "viewDisk": disk(d.theta_view, d.phi_view).tolist(),
         "lightDisk": disk(d.theta_light, d.phi_light).tolist(),
         "viewTriangles": view_tris.tolist(), "lightTriangles": light_tris.tolist(),
+        "grid": GRID,
         "initial": {"view": [float(d.theta_view[iv]), float(d.phi_view[iv])],
                     "light": [float(d.theta_light[il]), float(d.phi_light[il])]},
     }
-    html = _page(data, {"V": pack_eigentextures(v), "US": us})
-    session.log(f"view: {d.views} x {d.lights} directions, {v.shape[0]} x {v.shape[1]} texels "
+    grids = {f"{side}Grid": triangle_grid(disk(t, p), tris, GRID)
+             for side, t, p, tris in (("light", d.theta_light, d.phi_light, light_tris),
+                                      ("view", d.theta_view, d.phi_view, view_tris))}
+    html = _page(data, {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us,
+                        **grids})
+    session.log(f"view: {d.views} x {d.lights} directions, {v.shape[1]} x {v.shape[2]} texels "
                 f"at rank {k} -> {params.out} ({len(html) / MIB:.1f} MB)"
                 + (f"; {note}" if note else ""))
     write_whole(params.out, html.encode("utf-8"), params.overwrite)
