@@ -89,6 +89,7 @@ def test_eigentextures_pack_as_half_float_layers_of_four():
 
 def test_bad_inputs_are_one_clear_error_and_nothing_is_written(compressed, btf, tmp_path):
     out = tmp_path / "v.html"
+    assert btf("view", compressed, out, "--rank", "65").code == 2  # a usage error
     over = btf("view", compressed, out, "--rank", "13")
     assert over.code == 1 and "--rank 13 is larger than the store's rank 12" in over.err
     big = btf("view", compressed, out, "--budget", "0.01")

@@ -34,6 +34,7 @@ from tasks.viewer import disk, pack_eigentextures, triangle_grid, triangulate
 
 MIB = 1 << 20
 DEFAULT_RANK = 16
+MAX_RANK = 64
 GRID = 128  # cells per side of the surface mode's direction -> triangle grids
 
 
@@ -56,8 +57,9 @@ class ViewParams:
 
     def __post_init__(self):
         check_region(self.region)
-        if self.rank is not None and self.rank < 1:
-            raise ParamError("rank", f"must be at least 1, got {self.rank}")
+        if self.rank is not None and not 1 <= self.rank <= MAX_RANK:
+            raise ParamError("rank", f"must be between 1 and {MAX_RANK} (the shader's rows of U "
+                             f"are uniforms and registers), got {self.rank}")
         if not 0 <= self.level <= 12:
             raise ParamError("level", f"must be between 0 and 12, got {self.level}")
         if not self.budget > 0:
