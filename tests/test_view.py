@@ -338,6 +338,38 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
     assert ball[SPHERE // 2, SPHERE // 2].sum() > 0
     tab.close()
 
+
+def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser, tmp_path):
+    from pipeline.cli import main
+    from pipeline.stores.tileset import stored_seed
+    from tasks.placement import lattice_gather
+
+    t = generate_store(tmp_path / "t.zarr", "--material", "tiles", "--size", "96", "--scale",
+                       "24", "--sampling", "hemi:9", "--seed", "1")
+    for args in (["compress", t, tmp_path / "c.zarr", "--rank", "8"],
+                 ["roller", tmp_path / "c.zarr", tmp_path / "r.zarr", "--tiles", "2",
+                  "--seed", "2"],
+                 ["view", tmp_path / "r.zarr", tmp_path / "r.html"]):
+        assert main([str(a) for a in args] + ["-q"]) == 0, args
+    g = zarr.open_group(tmp_path / "r.zarr", mode="r")
+    spec = g.attrs["lattice"]
+    tab, _ = _open(browser, tmp_path / "r.html")
+    w, h = (tab.evaluate(f"DATA.{k}") for k in ("width", "height"))
+    tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    tab.evaluate(f"window.btfView.set([{tl[5]}, {pl[5]}], [{tv[2]}, {pv[2]}])")
+    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+        h, w, 4)[::-1, :, :3].astype(int)
+    rep = g["representative"][...] if "representative" in g.array_keys() else None
+    mosaic = lattice_gather(g["V"][...].astype(np.float16).astype(np.float32), 0, 0, h, w,
+                            hnf=tuple(spec["hnf"]), basis=(tuple(spec["U"]), tuple(spec["V"])),
+                            representative=rep, seed=stored_seed(g))
+    layer = reconstruct_layers(g["U"][2, 5][None], g["S"][...], mosaic,
+                               transform=Transform.from_attrs(g.attrs["transform"]))[0]
+    scale = tab.evaluate("window.btfView.state.exposure")
+    assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
+    assert h % spec["hnf"][0] == 0 and w % spec["hnf"][1] == 0  # whole periods: wraps round
+    tab.close()
+
 @pytest.mark.slow
 def test_btf_bench_view_reports_its_table(tmp_path):
     chromium()

@@ -129,7 +129,7 @@ def view(params: ViewParams, session: Session) -> Path:
     if kind == "compressed":
         return _write_page(params, params.store, group, session)
     if kind == "compressed-tileset":
-        return _write_page(params, params.store, group, session, tiles=_tile_set(params, group))
+        return _write_page(params, params.store, group, session, tiled=True)
     if kind == "tileset":
         raise BTFError(f"{params.store}: a tile set of radiance; btf view lays compressed tile "
                        "sets: quilt the compressed store (btf compress, then btf quilt "
@@ -165,30 +165,55 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
 
 @dataclasses.dataclass(frozen=True)
 class _Tiles:
-    """A quilted tile set as the page lays it: tiles, corner types, placement seed."""
+    """A tile set as the page lays it.
 
-    count: int
+    Quilt's corner sets: tiles in corner-code order, ``corners`` types, the seed, laid by the
+    page's hash on ``cells`` x ``cells`` cells. The roller's lattice sets: ``index``, the
+    stored (tile, y, x) of every texel of the swatch (``tile * ty * tx + y * tx + x``), from
+    :func:`tasks.placement.lattice_gather` itself.
+    """
+
+    v: np.ndarray  # (tile, y, x, k) float32
     corners: int
     seed: int
-    cells: int  # cells per side of the swatch
+    cells: int
+    index: np.ndarray | None = None
+
+    @property
+    def note(self) -> str:
+        """What the page shows of the set."""
+        n, ty, tx = self.v.shape[:3]
+        if self.index is not None:
+            return (f"{n} roller tile(s) of {ty} x {tx} texels on their lattice, "
+                    f"{self.index.shape[0]} x {self.index.shape[1]} texels laid as btf render "
+                    f"lays them (seed {self.seed})")
+        return (f"{n} tiles of {ty} x {tx} texels, {self.cells} x {self.cells} laid as btf "
+                f"render lays them (seed {self.seed})")
 
 
-def _tile_set(params: ViewParams, group) -> _Tiles:
-    """The page's view of a compressed tile set (btf quilt of a compressed store)."""
-    from pipeline.stores.tileset import stored_seed
+def _tile_set(params: ViewParams, group, rank: int) -> _Tiles:
+    """The page's view of a compressed tile set (btf quilt or btf roller of a compressed store)."""
+    from pipeline.stores.tileset import corner_order, stored_seed
+    from tasks.placement import lattice_gather
 
-    if "representative" in group:
-        raise BTFError(f"{params.store}: a roller tile set (double toroidal tiles on a "
-                       "lattice) is not shown by btf view yet; btf render lays it")
     if params.level or params.region:
         raise BTFError(f"{params.store}: --level and --region apply to a store, not to a tile "
                        "set, whose tiles are shown whole")
-    count = group["V"].shape[0]
-    corners = round(count ** 0.25)
-    if corners**4 != count:
-        raise BTFError(f"{params.store}: {count} tiles are not a corner tile set (corners^4)")
-    side = max(group["V"].shape[1:3])
-    return _Tiles(count, corners, stored_seed(group), max(1, min(4, 512 // side)))
+    v = np.asarray(group["V"][..., :rank], np.float32)  # within the budget: a few MB
+    n, ty, tx = v.shape[:3]
+    seed = stored_seed(group)
+    if group.attrs.get("placement") != "lattice":
+        types = int(group.attrs["corner_types"])
+        order = corner_order(params.store, group["corners"][...], types)
+        return _Tiles(v[order], types, seed, max(1, min(4, 512 // max(ty, tx))))
+    spec = group.attrs["lattice"]
+    h, w, _ = spec["hnf"]
+    ids = np.arange(n * ty * tx, dtype=np.int32).reshape(n, ty, tx)
+    index = lattice_gather(ids, 0, 0, h * max(1, min(4, 512 // h)), w * max(1, min(4, 512 // w)),
+                           hnf=tuple(spec["hnf"]), basis=(tuple(spec["U"]), tuple(spec["V"])),
+                           representative=group["representative"][...]
+                           if "representative" in group.array_keys() else None, seed=seed)
+    return _Tiles(v, 1, seed, 1, index.astype(np.int32))
 
 
 def _check_budget(params: ViewParams, size: int) -> None:
@@ -199,16 +224,10 @@ def _check_budget(params: ViewParams, size: int) -> None:
                        "--budget")
 
 
-def _write_page(params: ViewParams, store: str, group, session: Session, *,
-                name: str | None = None, tiles: _Tiles | None = None) -> Path:
-    """The page of the compressed store or tile set ``store`` (``name``: the one given)."""
-    if tiles is None:
+def _check_shown(params: ViewParams, group, store: str, tiles: bool):
+    """The store's directions, channels and transform, checked; the two triangulations."""
+    if not tiles:
         check_compressed(group, store)
-    stored = group["S"].shape[0]
-    if params.rank is not None and params.rank > stored:
-        raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
-                       f"rank {stored}")
-    k = params.rank or min(DEFAULT_RANK, stored)
     d = read_directions(group)
     channels = list(read_channels(group))
     transform = Transform.from_attrs(group.attrs["transform"])
@@ -219,42 +238,26 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
         raise BTFError(f"{params.store}: 1 light direction cannot be triangulated: there is "
                        "nothing to relight (the viewer blends at least three lights)")
     try:
-        view_tris = triangulate(d.theta_view, d.phi_view, "view")
-        light_tris = triangulate(d.theta_light, d.phi_light, "light")
+        triangles = (triangulate(d.theta_view, d.phi_view, "view"),
+                     triangulate(d.theta_light, d.phi_light, "light"))
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
-    count = tiles.count if tiles else 1
-    ny, nx = group["V"].shape[-3:-1]
-    ys, xs = _window(params, ny, nx)
-    f = 1 << params.level
-    u_shape = group["U"].shape
-    _check_budget(params, count * _page_size(
-        ((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), 0)
-        + _page_size((0, 0, k), int(np.prod(u_shape[:-1])) * k))
-    s = np.asarray(group["S"][:k], np.float32)
-    us = np.asarray(group["U"][..., :k], np.float32) * s
-    if tiles:
-        v = np.asarray(group["V"][..., :k], np.float32)  # within the budget: a few MB
-    else:
-        v = _eigentextures(params, store, k, ys, xs, session)[None]
+    return d, channels, transform, triangles
+
+
+def _rank(params: ViewParams, group) -> int:
+    stored = group["S"].shape[0]
+    if params.rank is not None and params.rank > stored:
+        raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
+                       f"rank {stored}")
+    return params.rank or min(DEFAULT_RANK, stored)
+
+
+def _directions_data(d, triangles) -> dict:
+    """The page's directions: angles, disk points, triangles, and the initial pair."""
     iv, il = _initial_pair(d)
-    scale = params.exposure or exposure(
-        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v[0], transform=transform))
-    cells = tiles.cells if tiles else 1
-    note = ""
-    if params.level or params.region:
-        note = (f"texels {ys.start}:{ys.stop}, {xs.start}:{xs.stop} of {ny} x {nx}"
-                + (f" at level {params.level} (block means of {f}^2)" if params.level else ""))
-    if tiles:
-        note = (f"{count} tiles of {v.shape[1]} x {v.shape[2]} texels, {cells} x {cells} laid "
-                f"as btf render lays them (seed {tiles.seed})")
-    data = {
-        "name": Path(str(name or params.store).rstrip("/")).name, "note": note,
-        "width": int(v.shape[2]) * cells, "height": int(v.shape[1]) * cells, "rank": k,
-        "tileWidth": int(v.shape[2]), "tileHeight": int(v.shape[1]), "tiles": count,
-        "corners": tiles.corners if tiles else 1, "seed": str(tiles.seed if tiles else 0),
-        "channels": len(channels), "transform": transform.name, "eps": transform.eps,
-        "exposure": float(scale),
+    view_tris, light_tris = triangles
+    return {
         "views": np.stack([d.theta_view, d.phi_view], -1).tolist(),
         "lights": np.stack([d.theta_light, d.phi_light], -1).tolist(),
         "viewDisk": disk(d.theta_view, d.phi_view).tolist(),
@@ -264,11 +267,49 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
         "initial": {"view": [float(d.theta_view[iv]), float(d.phi_view[iv])],
                     "light": [float(d.theta_light[il]), float(d.phi_light[il])]},
     }
-    grids = {f"{side}Grid": triangle_grid(disk(t, p), tris, GRID)
-             for side, t, p, tris in (("light", d.theta_light, d.phi_light, light_tris),
-                                      ("view", d.theta_view, d.phi_view, view_tris))}
-    html = _page(data, {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us,
-                        **grids})
+
+
+def _write_page(params: ViewParams, store: str, group, session: Session, *,
+                name: str | None = None, tiled: bool = False) -> Path:
+    """The page of the compressed store or tile set ``store`` (``name``: the one given)."""
+    d, channels, transform, triangles = _check_shown(params, group, store, tiled)
+    k = _rank(params, group)
+    ny, nx = group["V"].shape[-3:-1]
+    ys, xs = _window(params, ny, nx)
+    f = 1 << params.level
+    count = group["V"].shape[0] if tiled else 1
+    _check_budget(params, count * _page_size(
+        ((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), 0)
+        + _page_size((0, 0, k), int(np.prod(group["U"].shape[:-1])) * k))
+    us = np.asarray(group["U"][..., :k], np.float32) * np.asarray(group["S"][:k], np.float32)
+    tiles = _tile_set(params, group, k) if tiled else None
+    v = tiles.v if tiles else _eigentextures(params, store, k, ys, xs, session)[None]
+    iv, il = _initial_pair(d)
+    scale = params.exposure or exposure(
+        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v[0], transform=transform))
+    note = tiles.note if tiles else ""
+    if params.level or params.region:
+        note = (f"texels {ys.start}:{ys.stop}, {xs.start}:{xs.stop} of {ny} x {nx}"
+                + (f" at level {params.level} (block means of {f}^2)" if params.level else ""))
+    height, width = (tiles.index.shape if tiles and tiles.index is not None
+                     else (v.shape[1] * (tiles.cells if tiles else 1),
+                           v.shape[2] * (tiles.cells if tiles else 1)))
+    data = {
+        "name": Path(str(name or params.store).rstrip("/")).name, "note": note,
+        "width": int(width), "height": int(height), "rank": k,
+        "tileWidth": int(v.shape[2]), "tileHeight": int(v.shape[1]), "tiles": len(v),
+        "corners": tiles.corners if tiles else 1, "seed": str(tiles.seed if tiles else 0),
+        "indexed": bool(tiles and tiles.index is not None),
+        "channels": len(channels), "transform": transform.name, "eps": transform.eps,
+        "exposure": float(scale), **_directions_data(d, triangles),
+    }
+    blobs = {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us}
+    for side, t, p, tris in (("light", d.theta_light, d.phi_light, triangles[1]),
+                             ("view", d.theta_view, d.phi_view, triangles[0])):
+        blobs[f"{side}Grid"] = triangle_grid(disk(t, p), tris, GRID)
+    if data["indexed"]:
+        blobs["index"] = tiles.index
+    html = _page(data, blobs)
     session.log(f"view: {d.views} x {d.lights} directions, {v.shape[1]} x {v.shape[2]} texels "
                 f"at rank {k} -> {params.out} ({len(html) / MIB:.1f} MB)"
                 + (f"; {note}" if note else ""))
