@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,34 +9,6 @@ import pytest
 
 from helpers import generate_store
 from pipeline.cli import main
-
-RAM_DISK = Path("/dev/shm")
-RAM_DISK_FREE = 8 << 30  # the largest tests (the slow set's kill -9 runs) write a few GB
-
-
-def pytest_configure(config):
-    """Keep test outputs on a RAM disk where there is a large one (unless --basetemp is given).
-
-    Stages fsync their resume markers and atomic renames; on this project's 2-core machines
-    the tests spend about a fifth of their time waiting for the disk (test_compress.py: 104 s
-    on disk, 80 s on /dev/shm). What the tests check does not depend on the medium.
-    """
-    if config.option.basetemp or os.environ.get("BTF_TESTS_ON_DISK"):
-        return
-    try:
-        free = shutil.disk_usage(RAM_DISK).free
-    except OSError:
-        return
-    if free >= RAM_DISK_FREE and os.access(RAM_DISK, os.W_OK):
-        config.option.basetemp = tempfile.mkdtemp(prefix="btf-tests-", dir=RAM_DISK)
-        config._btf_ram_basetemp = config.option.basetemp
-
-
-def pytest_unconfigure(config):
-    """Remove the RAM disk's test outputs: they hold memory until removed."""
-    made = getattr(config, "_btf_ram_basetemp", None)
-    if made is not None:
-        shutil.rmtree(made, ignore_errors=True)
 
 
 @dataclass
