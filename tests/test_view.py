@@ -370,6 +370,63 @@ def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser,
     assert h % spec["hnf"][0] == 0 and w % spec["hnf"][1] == 0  # whole periods: wraps round
     tab.close()
 
+
+BONN_VIEWS = [(0.0, 0.0), (0.3, 1.2), (0.6, -2.0)]  # radians, as Bonn's files store them
+BONN_LIGHTS = [(0.0, 0.0), (0.5, 0.4), (0.9, 3.0), (1.1, -1.5)]
+
+
+def _bonn_factors(rng, model: int, texels: int):
+    """Per-channel U and S x V of clearly coloured texels: a log luminance about -1 and, for
+    the YUV models, chroma large enough that a wrong YUV matrix shows (model 10 keeps its
+    chroma as log magnitudes above log eps)."""
+    rows = len(BONN_VIEWS) * len(BONN_LIGHTS)
+    chroma = {9: 0.15, 10: 10.0, 11: 0.4}.get(model)
+    u, sxv = [], []
+    for c in range(3):
+        uc, vc = rng.normal(size=(rows, 2)) * 0.1, rng.normal(size=(texels, 2)) * 0.5
+        vc[:, 0] = 1.0
+        if chroma is None or c == 0:
+            uc[:, 0] += -1.0 if model == 12 or (c == 0 and chroma) else 0.5
+        else:
+            uc[:, 0] += chroma * (1 if c == 1 else -1)
+        u.append(uc)
+        sxv.append(vc)
+    return u, sxv
+
+
+@pytest.mark.parametrize("model", [3, 9, 10, 11, 12])
+def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
+    """Data the viewer was not made on: a DFMF file of each kind of colour model, ingested
+    (the YUV models are decoded by the shader), against the decoding of Bonn's own reader."""
+    from dfmf_files import reference_decode, write_dfmf
+
+    from pipeline.cli import main
+
+    w, h = 13, 9
+    u, sxv = _bonn_factors(np.random.default_rng(model), model, w * h)
+    kw = {"color_matrix": np.array([[0.9, 0.1, 0.05], [0.2, 0.7, -0.1], [0.0, 0.3, 1.1]]),
+          "color_mean": (0.2, 0.3, 0.25)} if model == 3 else {}
+    write_dfmf(tmp_path / "f.btf", views=BONN_VIEWS, lights=BONN_LIGHTS, u=u, sxv=sxv,
+               width=w, height=h, color_model=model, scalar_size=4, **kw)
+    for args in (["ingest", tmp_path / "f.btf", tmp_path / "f.zarr"],
+                 ["view", tmp_path / "f.zarr", tmp_path / "f.html"]):
+        assert main([str(a) for a in args] + ["-q"]) == 0, args
+    bonn = np.maximum(reference_decode(u, sxv, color_model=model, width=w, height=h,
+                                       lights=BONN_LIGHTS, **kw), 0)
+    tab, _ = _open(browser, tmp_path / "f.html")
+    scale = tab.evaluate("window.btfView.state.exposure")
+    g = zarr.open_group(tmp_path / "f.zarr", mode="r")
+    tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    for view, light in [(0, 0), (1, 2), (2, 3)]:
+        tab.evaluate(f"window.btfView.set([{tl[light]}, {pl[light]}], [{tv[view]}, {pv[view]}])")
+        shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+            h, w, 4)[::-1, :, :3].astype(int)
+        want = to_uint8(tonemap(bonn[view, light].astype(np.float32), scale=scale)).astype(int)
+        assert np.abs(shown - want).max() <= BOUND, (model, view, light)
+        assert np.ptp(want, axis=-1).mean() > 10  # coloured: the channels differ
+    tab.close()
+
+
 @pytest.mark.slow
 def test_btf_bench_view_reports_its_table(tmp_path):
     chromium()
