@@ -89,6 +89,11 @@ def git_revision() -> str:
                           text=True).stdout.strip()
 
 
+# Debian's chromium headless with WebGL2 on the CPU (SwiftShader): the viewer's tests and bench
+BROWSER_FLAGS = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader"]
+
+
 def machine() -> dict:
     """What the figures were measured on."""
     import os

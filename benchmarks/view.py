@@ -3,7 +3,7 @@
 A generated BTF (``--size``, ``--sampling``) is compressed (``--rank``) and written as a page
 by ``btf view``. Debian's chromium (headless, WebGL2 on SwiftShader: the CPU, no GPU) opens it
 ``--repeat`` times; "first frame" is the page's own clock from navigation start to its first
-frame drawn and finished (``gl.finish``), "frame" the time of each of ``--frames`` frames
+frame drawn (and read back, which waits for it), "frame" the time of each of ``--frames`` frames
 while the light moves around the hemisphere (blend weights, uniforms, draw, finish). The
 reference, measured in the same run, is numpy rebuilding and tone-mapping the same layer on
 the CPU (``tasks.svd.reconstruct_layers`` + ``tasks.tonemap.tonemap``), as ``btf reconstruct``
@@ -21,11 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import btf_executable, git_revision, machine
+from benchmarks.harness import BROWSER_FLAGS, btf_executable, git_revision, machine
 
 SUITE = "view"
-FLAGS = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader",
-         "--enable-unsafe-swiftshader"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -97,7 +95,7 @@ def run(args) -> dict:
         reference = _reference(c, args.rank, args.repeat)
         firsts, frames = [], []
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=exe, args=FLAGS)
+            browser = p.chromium.launch(executable_path=exe, args=BROWSER_FLAGS)
             for _ in range(args.repeat):
                 first, ms = _load(browser, page, args.frames)
                 firsts.append(first)

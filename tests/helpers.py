@@ -46,10 +46,6 @@ def btf_process(*args, env: dict | None = None, cwd: Path | None = None,
                           cwd=cwd, timeout=timeout)
 
 
-BROWSER_FLAGS = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader"]  # WebGL2 on the CPU (SwiftShader)
-
-
 def chromium() -> str:
     """Debian's chromium; skips the test where there is none, fails if BTF_REQUIRE_BROWSER."""
     found = shutil.which("chromium") or shutil.which("chromium-browser")

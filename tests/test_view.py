@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import BROWSER_FLAGS, chromium, generate_store, no_partial_outputs
+from benchmarks.harness import BROWSER_FLAGS
+from helpers import chromium, generate_store, no_partial_outputs
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import to_uint8, tonemap
 from tasks.transform import Transform
@@ -104,7 +105,18 @@ def test_bad_inputs_are_one_clear_error_and_nothing_is_written(compressed, btf, 
     assert btf("compress", tmp_path / "one_r.zarr", one, "--rank", "4", "-q").code == 0
     single = btf("view", one, out)
     assert single.code == 1 and "1 light direction cannot be triangulated" in single.err
+    line = tmp_path / "line.zarr"
+    assert btf("crop", compressed.parent / "r.zarr", tmp_path / "line_r.zarr", "--light",
+               "0,1", "-q").code == 0
+    assert btf("compress", tmp_path / "line_r.zarr", line, "--rank", "4", "-q").code == 0
+    two = btf("view", line, out)
+    assert two.code == 1 and "2 light direction(s) cannot be triangulated" in two.err
+    assert btf("view", compressed, out, "--exposure", "-1").code == 2
     assert no_partial_outputs(out) and not out.exists()
+    out.write_text("kept")
+    there = btf("view", compressed, out)
+    assert there.code == 1 and "already exists; pass --overwrite" in there.err
+    assert out.read_text() == "kept"
 
 
 def _blobs(page) -> dict[str, str]:
@@ -199,6 +211,17 @@ def test_between_two_measured_lights_the_canvas_lies_between_them(browser, page,
     low, high = np.minimum(one, two), np.maximum(one, two)
     assert (mid >= low - BOUND).all() and (mid <= high + BOUND).all()
     assert (np.abs(mid - one) > BOUND).any() and (np.abs(mid - two) > BOUND).any()
+    u, s_, v = g["U"][..., :RANK], g["S"][:RANK], g["V"][..., :RANK]
+    half = reconstruct_layers(((u[view, a] + u[view, b]) / 2)[None], s_, v,
+                              transform=Transform.from_attrs(g.attrs["transform"]))[0]
+    assert np.abs(mid - to_uint8(tonemap(half, scale=scale))).max() <= BOUND  # 0.5 and 0.5
+    # the page's blending rule is tasks.viewer's, point for point, inside and outside the hull
+    rng = np.random.default_rng(3)
+    for at in rng.uniform(-1, 1, (100, 2)):
+        js = tab.evaluate(f"blendWeights(DATA.lightDisk, DATA.lightTriangles, [{at[0]}, {at[1]}])")
+        py = blend_weights(points, tris, at)
+        assert [i for i, _ in js] == [i for i, _ in py], at
+        assert np.allclose([x for _, x in js], [x for _, x in py], atol=1e-9), at
     tab.close()
 
 
@@ -367,7 +390,8 @@ def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser,
                                transform=Transform.from_attrs(g.attrs["transform"]))[0]
     scale = tab.evaluate("window.btfView.state.exposure")
     assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
-    assert h % spec["hnf"][0] == 0 and w % spec["hnf"][1] == 0  # whole periods: wraps round
+    hh, ww, shear = spec["hnf"]
+    assert h % (hh * ww // np.gcd(shear, ww)) == 0 and w % ww == 0  # whole periods both ways
     tab.close()
 
 
@@ -429,15 +453,18 @@ def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
 
 @pytest.mark.slow
 def test_btf_bench_view_reports_its_table(tmp_path):
-    chromium()
-    pytest.importorskip("playwright.sync_api")
-    from benchmarks.cli import main as bench
-
-    out = tmp_path / "view.json"
-    assert bench(["view", "--size", "64", "--repeat", "1", "--frames", "4", "--json",
-                  str(out)]) == 0
     import json
 
-    r = json.loads(out.read_text())
-    assert len(r["frame_ms"]) == 4 and all(ms > 0 for ms in r["frame_ms"])
-    assert 0 < r["first_frame_ms"][0] and r["page_mb"] < 1 and r["numpy_layer_ms"] > 0
+    from helpers import btf_process
+
+    chromium()
+    pytest.importorskip("playwright.sync_api")
+    out = tmp_path / "view.json"  # a process of its own: playwright's sync API does not nest
+    r = btf_process("bench", "view", "--size", "64", "--repeat", "1", "--frames", "4",
+                    "--json", out)
+    assert r.returncode == 0, r.stderr
+    assert "| page MB |" in r.stdout
+    figures = json.loads(out.read_text())
+    assert len(figures["frame_ms"]) == 4 and all(ms > 0 for ms in figures["frame_ms"])
+    assert figures["first_frame_ms"][0] > 0 and figures["page_mb"] < 1
+    assert figures["numpy_layer_ms"] > 0

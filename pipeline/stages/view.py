@@ -15,6 +15,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import math
 from importlib import resources
 from pathlib import Path
 
@@ -64,6 +65,8 @@ class ViewParams:
             raise ParamError("level", f"must be between 0 and 12, got {self.level}")
         if not self.budget > 0:
             raise ParamError("budget", f"must be positive, got {self.budget}")
+        if self.exposure is not None and not self.exposure > 0:
+            raise ParamError("exposure", f"must be positive, got {self.exposure}")
 
 
 def _window(params: ViewParams, ny: int, nx: int) -> tuple[slice, slice]:
@@ -124,11 +127,21 @@ def _page(data: dict, blobs: dict[str, np.ndarray]) -> str:
 
 def view(params: ViewParams, session: Session) -> Path:
     """Write the relighting page of a compressed store (a radiance store is compressed first)."""
+    from pipeline import storage
+
+    if not params.overwrite and storage.exists(storage.parse(params.out, what="output")):
+        raise BTFError(f"{params.out}: already exists; pass --overwrite to replace it")
     group = open_group(params.store)
     kind = group.attrs.get("btf_kind")
     if kind == "compressed":
         return _write_page(params, params.store, group, session)
     if kind == "compressed-tileset":
+        from pipeline.stores.tileset import check_tileset
+
+        check_tileset(group, params.store)
+        if params.level or params.region:
+            raise BTFError(f"{params.store}: --level and --region apply to a store, not to a "
+                           "tile set, whose tiles are shown whole")
         return _write_page(params, params.store, group, session, tiled=True)
     if kind == "tileset":
         raise BTFError(f"{params.store}: a tile set of radiance; btf view lays compressed tile "
@@ -145,10 +158,12 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
     import tempfile
 
     from pipeline.stages import STAGES  # by name, as btf run composes stages
+    from pipeline.stores.radiance import check_radiance
 
-    rad = group["radiance"]
-    nv, nl, ny, nx, nc = rad.shape
-    k = params.rank or DEFAULT_RANK
+    check_radiance(group, params.store)
+    _check_directions(params, group)  # before the compression, not after it
+    nv, nl, ny, nx, nc = group["radiance"].shape
+    k = params.rank or min(DEFAULT_RANK, nv * nl * nc, ny * nx)
     ys, xs = _window(params, ny, nx)
     f = 1 << params.level
     size = _page_size(((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), nv * nl * nc * k)
@@ -196,9 +211,6 @@ def _tile_set(params: ViewParams, group, rank: int) -> _Tiles:
     from pipeline.stores.tileset import corner_order, stored_seed
     from tasks.placement import lattice_gather
 
-    if params.level or params.region:
-        raise BTFError(f"{params.store}: --level and --region apply to a store, not to a tile "
-                       "set, whose tiles are shown whole")
     v = np.asarray(group["V"][..., :rank], np.float32)  # within the budget: a few MB
     n, ty, tx = v.shape[:3]
     seed = stored_seed(group)
@@ -207,9 +219,11 @@ def _tile_set(params: ViewParams, group, rank: int) -> _Tiles:
         order = corner_order(params.store, group["corners"][...], types)
         return _Tiles(v[order], types, seed, max(1, min(4, 512 // max(ty, tx))))
     spec = group.attrs["lattice"]
-    h, w, _ = spec["hnf"]
+    h, w, shear = spec["hnf"]
+    rows = h * (w // math.gcd(shear, w))  # down this far, the lattice is back in column
     ids = np.arange(n * ty * tx, dtype=np.int32).reshape(n, ty, tx)
-    index = lattice_gather(ids, 0, 0, h * max(1, min(4, 512 // h)), w * max(1, min(4, 512 // w)),
+    index = lattice_gather(ids, 0, 0, rows * max(1, min(4, 512 // rows)),
+                           w * max(1, min(4, 512 // w)),
                            hnf=tuple(spec["hnf"]), basis=(tuple(spec["U"]), tuple(spec["V"])),
                            representative=group["representative"][...]
                            if "representative" in group.array_keys() else None, seed=seed)
@@ -228,10 +242,19 @@ def _check_shown(params: ViewParams, group, store: str, tiles: bool):
     """The store's directions, channels and transform, checked; the two triangulations."""
     if not tiles:
         check_compressed(group, store)
+    transform = Transform.from_attrs(group.attrs["transform"])
+    d, channels, triangles = _check_directions(params, group)
+    if transform.channels and len(channels) != 3:
+        raise BTFError(f"{params.store}: transform {transform.name} needs 3 channels, the "
+                       f"store has {len(channels)}")
+    return d, channels, transform, triangles
+
+
+def _check_directions(params: ViewParams, group):
+    """Directions, channels and triangulations of any store the page could show, checked."""
     d = read_directions(group)
     channels = list(read_channels(group))
-    transform = Transform.from_attrs(group.attrs["transform"])
-    if len(channels) not in (1, 3) or (transform.channels and len(channels) != 3):
+    if len(channels) not in (1, 3):
         raise BTFError(f"{params.store}: the viewer shows 1 or 3 channels, the store has "
                        f"{len(channels)} ({', '.join(channels)})")
     if d.lights == 1:
@@ -242,7 +265,7 @@ def _check_shown(params: ViewParams, group, store: str, tiles: bool):
                      triangulate(d.theta_light, d.phi_light, "light"))
     except ValueError as exc:
         raise BTFError(f"{params.store}: {exc}") from None
-    return d, channels, transform, triangles
+    return d, channels, triangles
 
 
 def _rank(params: ViewParams, group) -> int:
@@ -303,13 +326,17 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
         "channels": len(channels), "transform": transform.name, "eps": transform.eps,
         "exposure": float(scale), **_directions_data(d, triangles),
     }
-    blobs = {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us}
+    try:
+        blobs = {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us}
+    except ValueError as exc:  # beyond half floats' range
+        raise BTFError(f"{params.store}: variable 'V': {exc}") from None
     for side, t, p, tris in (("light", d.theta_light, d.phi_light, triangles[1]),
                              ("view", d.theta_view, d.phi_view, triangles[0])):
         blobs[f"{side}Grid"] = triangle_grid(disk(t, p), tris, GRID)
     if data["indexed"]:
         blobs["index"] = tiles.index
     html = _page(data, blobs)
+    _check_budget(params, len(html))  # with what the estimate leaves out (grids, script)
     session.log(f"view: {d.views} x {d.lights} directions, {v.shape[1]} x {v.shape[2]} texels "
                 f"at rank {k} -> {params.out} ({len(html) / MIB:.1f} MB)"
                 + (f"; {note}" if note else ""))
