@@ -328,7 +328,7 @@ def test_the_sphere_gives_every_pixel_its_own_light_view_and_texel(browser, page
 
 
 def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser,
-                                                                             compressed):
+                                                                             compressed, btf):
     from pipeline.cli import main
     from pipeline.stores.tileset import stored_seed
     from tasks.placement import cell_tiles, gather
@@ -336,6 +336,8 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
     q, page = compressed.parent / "q.zarr", compressed.parent / "q.html"
     assert main(["quilt", str(compressed), str(q), "--corners", "2", "--seed", "1", "-q"]) == 0
     assert main(["view", str(q), str(page), "--rank", str(RANK), "-q"]) == 0
+    big = btf("view", q, compressed.parent / "big.html", "--budget", "0.01")
+    assert big.code == 1 and "lower --rank, or raise --budget" in big.err  # not --level
     g = zarr.open_group(q, mode="r")
     tiles = g["V"][..., :RANK]
     ty, tx = tiles.shape[1:3]

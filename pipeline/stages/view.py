@@ -230,12 +230,14 @@ def _tile_set(params: ViewParams, group, rank: int) -> _Tiles:
     return _Tiles(v, 1, seed, 1, index.astype(np.int32))
 
 
-def _check_budget(params: ViewParams, size: int) -> None:
+def _check_budget(params: ViewParams, size: int, tiled: bool = False) -> None:
+    """Refuse a page over ``--budget``, saying what would make it smaller."""
     if size > params.budget * MIB:
+        smaller = ("lower --rank" if tiled  # a tile set is shown whole
+                   else f"show a level of detail (--level {params.level + 1}) or a region "
+                        "(--region Y0:Y1,X0:X1)")
         raise BTFError(f"{params.store}: the page would hold {size / MIB:.1f} MB of data, over "
-                       f"--budget {params.budget:g} MB; show a level of detail (--level "
-                       f"{params.level + 1}) or a region (--region Y0:Y1,X0:X1), or raise "
-                       "--budget")
+                       f"--budget {params.budget:g} MB; {smaller}, or raise --budget")
 
 
 def _check_shown(params: ViewParams, group, store: str, tiles: bool):
@@ -303,7 +305,7 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     count = group["V"].shape[0] if tiled else 1
     _check_budget(params, count * _page_size(
         ((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), 0)
-        + _page_size((0, 0, k), int(np.prod(group["U"].shape[:-1])) * k))
+        + _page_size((0, 0, k), int(np.prod(group["U"].shape[:-1])) * k), tiled)
     us = np.asarray(group["U"][..., :k], np.float32) * np.asarray(group["S"][:k], np.float32)
     tiles = _tile_set(params, group, k) if tiled else None
     v = tiles.v if tiles else _eigentextures(params, store, k, ys, xs, session)[None]
@@ -336,7 +338,7 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     if data["indexed"]:
         blobs["index"] = tiles.index
     html = _page(data, blobs)
-    _check_budget(params, len(html))  # with what the estimate leaves out (grids, script)
+    _check_budget(params, len(html), tiled)  # with what the estimate left out (grids, script)
     session.log(f"view: {d.views} x {d.lights} directions, {v.shape[1]} x {v.shape[2]} texels "
                 f"at rank {k} -> {params.out} ({len(html) / MIB:.1f} MB)"
                 + (f"; {note}" if note else ""))
