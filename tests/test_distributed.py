@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 import zarr
 
 from helpers import (
@@ -67,7 +68,9 @@ def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quie
     if quiet:
         assert run.stderr == ""
     else:  # the stages' messages and a bar per compute, as on the local schedulers
-        assert "[1/9] generate" in run.stderr and _shows_progress(run.stderr), run.stderr
+        stages = len(yaml.safe_load(demo.read_text())["stages"])
+        assert f"[1/{stages}] generate" in run.stderr, run.stderr
+        assert f"[{stages}/{stages}] report" in run.stderr and _shows_progress(run.stderr)
     out = tmp_path / "out" / "demo"
     assert (out / "report.html").is_file() and len(list((out / "scene").glob("*.png"))) == 3
     # the cluster's store is the one a local synchronous run makes
