@@ -28,7 +28,8 @@ derived from the seed and the piece's name, so the same seed gives the same tile
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -88,11 +89,17 @@ class BorderCheck:
     reference image's own.
     """
 
-    def __init__(self, reference: np.ndarray, params: QuiltParams):
+    def __init__(self, reference: np.ndarray, params: QuiltParams,
+                 exemplar: PatchExemplar | None = None):
         self.half = params.block // 2
         self.reach = params.step / 2
         self.periodic = params.corners == 1
-        self.exemplar = PatchExemplar(reference, patch=min(PATCH, params.block))
+        self.exemplar = exemplar or PatchExemplar(reference, patch=self.patch(params))
+
+    @staticmethod
+    def patch(params: QuiltParams) -> int:
+        """The structure patch's side for ``params``' block."""
+        return min(PATCH, params.block)
 
     def frame(self, tile: Canvas, top: Canvas, bottom: Canvas, left: Canvas, right: Canvas
               ) -> np.ndarray:
@@ -165,11 +172,12 @@ class _TileSetPlanner:
 
     KINDS: ClassVar[dict[str, int]] = {"corner": 0, HORIZONTAL: 1, VERTICAL: 2, "tile": 3}
 
-    def __init__(self, reference: np.ndarray, params: QuiltParams, seed: int):
+    def __init__(self, reference: np.ndarray, params: QuiltParams, seed: int,
+                 exemplar: PatchExemplar | None = None):
         self.params, self.seed = params, seed
         self.planner = Planner(reference, params, np.random.default_rng(seed))
         self.channels = reference.shape[-1]
-        self.check = BorderCheck(reference, params)
+        self.check = BorderCheck(reference, params, exemplar)
         v = range(params.corners)
         self.types = list(itertools.product(v, repeat=4))
         self.strip_keys = [(d, a, z) for d in (HORIZONTAL, VERTICAL) for a in v for z in v]
@@ -310,7 +318,9 @@ INTERIOR_ATTEMPTS = 3  # plans of a tile's interior along one set of strips
 STRIP_ATTEMPTS = 3  # plans of a strip before the whole tile set is planned again
 
 
-def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> TileSet:
+def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
+               exemplar: PatchExemplar | None = None,
+               progress: Callable[[str], None] | None = None) -> TileSet:
     """Plan a corner tile set (``V^4`` tiles; one periodic tile for ``V = 1``), see the module.
 
     Parameters
@@ -322,6 +332,13 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
         (``max_seam``) and budget (``attempts``: rounds of planning again).
     seed
         Seed of every random choice: the same seed gives the same plan.
+    exemplar
+        The border check's patches of ``reference`` (:class:`BorderCheck`), when made
+        already for another plan with the same structure patch.
+    progress
+        Called with a line after every round that leaves tiles beyond the bound (and the
+        round that ends it), and within a round of many tiles every
+        :data:`PROGRESS_SECONDS`.
 
     Raises
     ------
@@ -331,7 +348,8 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
     reference = np.asarray(reference, np.float32)
     if reference.ndim == 2:
         reference = reference[..., None]
-    plan = _TileSetPlanner(reference, params, seed)
+    plan = _TileSetPlanner(reference, params, seed, exemplar)
+    report = _Progress(plan, progress)
     best: TileSet | None = None
     strip_plans: dict[tuple, int] = {}
     plan.plan_all()
@@ -339,10 +357,12 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
         for number in range(len(plan.types)):
             if number not in plan.tiles:
                 plan.tiles[number] = plan.plan_tile(number, INTERIOR_ATTEMPTS)
+                report.tile(round_)
         result = plan.result(reference.shape[:2])
         if best is None or result.worst < best.worst:
             best = result
         failed = [n for n, t in plan.tiles.items() if not t.passed]
+        report.round(round_, failed)
         if not failed:
             return result
         if round_ + 1 == params.attempts:
@@ -361,17 +381,62 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int) -> Tile
     raise SeamError(worst, params.max_seam)
 
 
+PROGRESS_SECONDS = 10.0  # the most time between two progress lines within a round
+
+
+class _Progress:
+    """Progress lines of :func:`plan_tiles` (none without a callback)."""
+
+    def __init__(self, plan: _TileSetPlanner, callback: Callable[[str], None] | None):
+        self.plan, self.callback = plan, callback
+        self.last = time.monotonic()
+        qp = plan.params
+        self.what = (f"block {qp.block}, {len(plan.types)} tile(s) of {qp.tile[0]} x "
+                     f"{qp.tile[1]}")
+
+    def _say(self, line: str) -> None:
+        self.callback(f"{self.what}: {line} ({sum(self.plan.plans)} interior plan(s) so far)")
+        self.last = time.monotonic()
+
+    def tile(self, round_: int) -> None:
+        """A tile planned: a line if the round has run long without one."""
+        if self.callback is not None and time.monotonic() - self.last >= PROGRESS_SECONDS:
+            self._say(f"round {round_ + 1}: {len(self.plan.tiles)} of "
+                      f"{len(self.plan.types)} tile(s) planned")
+
+    def round(self, round_: int, failed: list[int]) -> None:
+        """A round ended with ``failed`` tiles beyond the bound."""
+        if self.callback is None:
+            return
+        n = len(self.plan.types)
+        if not failed:
+            if round_ > 0:  # a first round that passes needs no line
+                self._say(f"round {round_ + 1}: every tile within the bound")
+        else:
+            last = round_ + 1 == self.plan.params.attempts
+            self._say(f"round {round_ + 1} of at most {self.plan.params.attempts}: "
+                      f"{n - len(failed)} of {n} tile(s) within the bound"
+                      + ("" if last else "; planning the worst borders' strips again"))
+
+
 def plan_first(reference: np.ndarray, params: Iterable[QuiltParams], *, seed: int,
-               on_failure=None) -> tuple[TileSet, QuiltParams]:
+               on_failure=None, progress: Callable[[str], None] | None = None
+               ) -> tuple[TileSet, QuiltParams]:
     """The first of ``params`` (e.g. :func:`tasks.quilt_layout.layouts`) whose plan passes.
 
     ``on_failure(error)`` is called with the :class:`SeamError` of each one that does not;
-    when none passes, the last error is raised.
+    when none passes, the last error is raised. ``progress`` as for :func:`plan_tiles`. The
+    border check's patches are made once per structure patch size.
     """
     failure = None
+    exemplars: dict[int, PatchExemplar] = {}
     for qp in params:
+        patch = BorderCheck.patch(qp)
+        if patch not in exemplars:
+            exemplars[patch] = PatchExemplar(np.asarray(reference, np.float32), patch=patch)
         try:
-            return plan_tiles(reference, qp, seed=seed), qp
+            return plan_tiles(reference, qp, seed=seed, exemplar=exemplars[patch],
+                              progress=progress), qp
         except SeamError as exc:
             failure = exc
             if on_failure is not None:

@@ -174,6 +174,7 @@ class PatchExemplar:
 
     def __init__(self, sample: np.ndarray, *, patch: int = PATCH, dims: int = 12,
                  candidates: int = 8):
+        from scipy.linalg import eigh
         from scipy.spatial import cKDTree
 
         sample = np.asarray(sample, np.float32)
@@ -190,8 +191,13 @@ class PatchExemplar:
         step = max(1, int(np.sqrt(ny * nx / 4096)))
         subset = self.windows[::step, ::step].reshape(-1, self.windows[0, 0].size)
         self.mean = subset.mean(axis=0)
-        _, _, vt = np.linalg.svd(subset - self.mean, full_matrices=False)
-        self.basis = np.ascontiguousarray(vt[: min(dims, vt.shape[0])].T)
+        centred = (subset - self.mean).astype(np.float64)
+        # the leading eigenvectors of the covariance: its right singular vectors, 10x
+        # faster than the SVD of the subset (1.2 s for 16^2 x 3 patches)
+        n = centred.shape[1]
+        keep = min(dims, n, len(centred))
+        _, vectors = eigh(centred.T @ centred, subset_by_index=(n - keep, n - 1))
+        self.basis = np.ascontiguousarray(vectors[:, ::-1], np.float32)
         rows = max(1, _BATCH // nx)
         self.tree = cKDTree(np.concatenate([
             self._project(self.windows[y : y + rows].reshape(-1, self.mean.size))
@@ -244,13 +250,16 @@ class PatchExemplar:
             out[i : i + _BATCH] = np.einsum("qkd,qkd->qk", diff, diff).min(axis=1)
         return np.sqrt(out / queries.shape[1])
 
-    def distance_map(self, image: np.ndarray, *, wrap: bool, stride: int = STRIDE
+    def distance_map(self, image: np.ndarray, *, wrap: bool, stride: int = STRIDE,
+                     within: tuple[slice, slice] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nearest-patch distances of an image's patches on a grid of ``stride``.
 
         Returns the ``(ny, nx)`` distances and the positions of the patches' centre lines
         (rows, columns: between texel ``c - 1`` and ``c``). With ``wrap`` the image is a
-        torus and every position is a patch origin.
+        torus and every position is a patch origin. With ``within`` (rows, columns) only the
+        patches of the grid whose centre lines lie in that part (ends included) are measured:
+        the rest of the grid is left out of all three.
         """
         image = np.asarray(image, np.float32)
         if image.ndim == 2:
@@ -260,17 +269,21 @@ class PatchExemplar:
         if wrap:
             image = np.pad(image, ((0, p - 1), (0, p - 1), (0, 0)), mode="wrap")
         windows = sliding_window_view(image, (p, p), axis=(0, 1))[::stride, ::stride]
+        cy = np.arange(windows.shape[0]) * stride + p / 2
+        cx = np.arange(windows.shape[1]) * stride + p / 2
+        if wrap:
+            cy, cx = cy % h, cx % w
+        if within is not None:
+            ys, xs = ((c >= s.start) & (c <= s.stop) for c, s in zip((cy, cx), within,
+                                                                      strict=True))
+            windows, cy, cx = windows[ys][:, xs], cy[ys], cx[xs]
         ny, nx = windows.shape[:2]
         d = np.empty((ny, nx))
-        rows = max(1, _BATCH // nx)
+        rows = max(1, _BATCH // max(nx, 1))
         for y in range(0, ny, rows):
             block = windows[y : y + rows]
             d[y : y + rows] = self.distances(block.reshape(-1, block[0, 0].size)).reshape(
                 block.shape[:2])
-        cy = np.arange(ny) * stride + p / 2
-        cx = np.arange(nx) * stride + p / 2
-        if wrap:
-            cy, cx = cy % h, cx % w
         return d, cy, cx
 
 
@@ -292,12 +305,11 @@ def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Border
     least the floor.
     """
     h, w = np.shape(image)[:2]
-    d, cy, cx = exemplar.distance_map(image, wrap=borders.wrap, stride=stride)
-    ys, xs = borders.within((h, w))
-    in_y = (cy >= ys.start) & (cy <= ys.stop)  # centre lines within the judged part
-    in_x = (cx >= xs.start) & (cx <= xs.stop)
-    inside = ((~_near(cy, borders.rows, h, borders.wrap, reach) & in_y)[:, None]
-              & (~_near(cx, borders.cols, w, borders.wrap, reach) & in_x)[None, :])
+    ys, xs = borders.within((h, w))  # only patches centred within the judged part count
+    d, cy, cx = exemplar.distance_map(image, wrap=borders.wrap, stride=stride,
+                                      within=(ys, xs))
+    inside = (~_near(cy, borders.rows, h, borders.wrap, reach)[:, None]
+              & ~_near(cx, borders.cols, w, borders.wrap, reach)[None, :])
     if not inside.any():
         raise ValueError(f"no patch of the {h} x {w} image lies farther than {reach} texels "
                          "from every border: nothing to compare the borders with")
@@ -306,12 +318,10 @@ def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Border
         scale = max(exemplar.own_repeat, exemplar.floor)
     out = []
     for kind, line in borders.lines():
-        centres, n, values, inner, along = ((cy, h, d, in_y, in_x) if kind == "row"
-                                            else (cx, w, d.T, in_x, in_y))
+        centres, n, values = (cy, h, d) if kind == "row" else (cx, w, d.T)
         offset = _offsets(centres, line, n, borders.wrap)
-        values = values[:, along]  # the line's segment along the judged part
-        sides = [values[(offset >= -reach) & (offset <= 0) & inner],
-                 values[(offset >= 0) & (offset <= reach) & inner]]
+        sides = [values[(offset >= -reach) & (offset <= 0)],
+                 values[(offset >= 0) & (offset <= reach)]]
         out.append(max(max(float(side.mean()), exemplar.floor) for side in sides if side.size)
                    / scale)
     return tuple(out)

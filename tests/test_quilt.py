@@ -16,7 +16,7 @@ from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
 from tasks.canvas import TERMS
-from tasks.corner_tiles import plan_tiles
+from tasks.corner_tiles import SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.svd import reconstruct_layers
@@ -527,6 +527,22 @@ def test_many_seeds_keep_every_border_within_the_bound(texture, corners, count):
     seeds = np.random.default_rng().integers(0, 2**31 - 1, count).tolist()
     r = _worst_seed(texture, None, corners, seeds, refusals=1 if corners > 1 else 0)
     assert r["seam"]["worst"] <= 1.3 and r["structure"]["worst"] <= 1.3, r["seeds"]
+
+
+def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent():
+    reference = np.random.default_rng(5).random((50, 54, 3))
+    lines = []
+    strict = QuiltParams(12, 3, 3, 2, (18, 18), max_seam=1e-3, attempts=2)
+    with pytest.raises(SeamError):
+        plan_tiles(reference, strict, seed=2, progress=lines.append)
+    assert len(lines) == 2, lines
+    assert lines[0].startswith("block 12, 16 tile(s) of 18 x 18: round 1 of at most 2: ")
+    assert lines[0].endswith("strips again (48 interior plan(s) so far)"), lines
+    assert "round 2 of at most 2: 0 of 16 tile(s) within the bound (" in lines[1], lines
+    lines.clear()
+    plan_tiles(reference, QuiltParams(12, 3, 3, 2, (18, 18), **ANY_SEAM), seed=2,
+               progress=lines.append)
+    assert lines == []
 
 
 def test_the_border_check_refuses_a_tile_that_breaks_the_pattern():

@@ -174,7 +174,8 @@ def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels
 
     try:
         plan, qp = plan_first(reference, candidates(), seed=params.seed,
-                              on_failure=lambda exc: session.log(f"quilt: {exc}"))
+                              on_failure=lambda exc: session.log(f"quilt: {exc}"),
+                              progress=lambda line: session.log(f"quilt: {line}"))
     except ValueError as exc:  # SeamError too: the last layout's
         raise BTFError(f"{params.store}: {exc}") from None
     worst = max(plan.checks, key=lambda c: c.figures.worst)
