@@ -32,6 +32,10 @@ DEFAULT_BLOCK = 32
 BLOCK_RANGE = (16, 96)
 LARGER_BLOCKS = (48, 64, 96)  # tried in turn when the default block's plans fail the check
 PHASE_TOLERANCE = 1.0  # texels: a tile side this close to a lattice vector closes in phase
+# texels: the farthest the texel nearest a lattice point lies from it. Sample positions in
+# phase with another are this close to a lattice vector from it: on a strictly periodic
+# sample a position one texel off (within PHASE_TOLERANCE) breaks the pattern by a texel
+PHASE_ROUNDING = 0.5**0.5
 MIN_CONFIDENCE = 0.5
 
 
@@ -70,10 +74,14 @@ def lattice_mismatch(vectors, lattice: Lattice) -> np.ndarray | float:
 
 
 def in_phase(shape: tuple[int, int], origin: tuple[int, int], lattice: Lattice) -> np.ndarray:
-    """Positions of a ``shape`` grid whose offset from ``origin`` is a lattice vector."""
+    """Positions of a ``shape`` grid a lattice vector away from ``origin``, to the texel.
+
+    The offset must lie within :data:`PHASE_ROUNDING` of a lattice point: on an integer
+    lattice exactly on one.
+    """
     ys, xs = np.indices(shape)
     offsets = np.stack([ys - origin[0], xs - origin[1]], axis=-1)
-    return lattice_mismatch(offsets, lattice) <= PHASE_TOLERANCE
+    return lattice_mismatch(offsets, lattice) <= PHASE_ROUNDING + 1e-9
 
 
 def tile_mismatch(tile: tuple[int, int], lattice: Lattice | None) -> tuple[float, float]:
