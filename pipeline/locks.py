@@ -10,6 +10,11 @@ with ``kill -9`` leaves a lock that expires one lease later, and a rerun then ta
 finding a lock that has not expired stops at once, naming the lock and when it expires.
 The lease is ``BTF_LOCK_LEASE`` seconds (30 by default).
 
+A lock taken on this machine is known dead at once, lease or not, when its holder is gone
+(:func:`holder_gone`): the machine booted since (its boot id changed), no process has the
+holder's id, or the process with that id started at another time (the id was reused). Locks
+of live processes and of other machines keep the lease rule.
+
 A store without conditional writes (older MinIO and SeaweedFS releases) answers a conditional
 write like a plain one: btf then reads the lock back and goes on only if it holds its own
 owner tag, which catches two runs that do not start in the same instant, not all races; the
@@ -34,6 +39,47 @@ def lease() -> float:
     return float(os.environ.get("BTF_LOCK_LEASE", "30"))
 
 
+def _boot_id() -> str | None:
+    """The id of the machine's current boot (Linux), or None where the system has none."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            return f.read().strip()
+    except OSError:
+        return None
+
+
+def _started(pid: int) -> float | None:
+    """When process ``pid`` started (seconds since the epoch), or None if there is none."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).create_time()
+    except (psutil.NoSuchProcess, psutil.ZombieProcess):
+        return None
+    except psutil.Error:  # exists but not ours to inspect: alive
+        return float("nan")
+
+
+def holder_gone(body: dict) -> bool:
+    """Whether a lock's holder (its ``owner``, ``boot`` and ``started``) is gone for sure.
+
+    Only a holder on this machine can be known gone; any doubt (another machine, a lock
+    written without those fields, a process that may not be inspected) says it is not.
+    """
+    host, _, rest = str(body.get("owner", "")).partition(":")
+    pid = rest.partition(":")[0]
+    if host != socket.gethostname() or not pid.isdigit():
+        return False
+    boot = _boot_id()
+    if body.get("boot") and boot and body["boot"] != boot:
+        return True  # the machine restarted: every process of that boot is gone
+    started = _started(int(pid))
+    if started is None:
+        return True
+    recorded = body.get("started")
+    return recorded is not None and abs(started - recorded) > 1.0  # the pid was reused
+
+
 def _update(meta) -> dict:
     """An obstore ``UpdateVersion`` for an object's entity tag and version (when it has one)."""
     return {k: meta[k] for k in ("e_tag", "version") if meta.get(k) is not None}
@@ -51,7 +97,8 @@ class ObjectLock:
         self.lost = False
 
     def _body(self) -> bytes:
-        return json.dumps({"owner": self.owner, "expires": time.time() + lease()}).encode()
+        return json.dumps({"owner": self.owner, "expires": time.time() + lease(),
+                           "boot": _boot_id(), "started": _started(os.getpid())}).encode()
 
     def _put(self, mode):
         import obstore
@@ -75,14 +122,14 @@ class ObjectLock:
                     return self.__enter__()
                 meta, body = held.meta, json.loads(bytes(held.bytes()))
             left = body.get("expires", 0) - time.time()
-            if left > 0:
+            if left > 0 and not holder_gone(body):
                 raise BTFError(f"{self.shown}: another btf run is writing this output ("
                                f"{body.get('owner', '?')} holds {self.url}, for {left:.0f} s "
                                "more unless it renews it); wait for it to end") from None
             try:
                 self.version = self._put(_update(meta))
             except (oe.PreconditionError, oe.AlreadyExistsError):
-                raise BTFError(f"{self.shown}: another btf run took over the expired lock "
+                raise BTFError(f"{self.shown}: another btf run took over the dead lock "
                                f"{self.url} at the same moment; wait for it to end") from None
         held = json.loads(storage.read(self.url) or b"{}")
         if held.get("owner") != self.owner:  # a store that ignored the condition
