@@ -506,7 +506,7 @@ def test_a_seed_keeps_every_border_within_the_bound(texture, block, corners):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("texture,block,corners", BOUND_CASES)
-@settings(max_examples=2, deadline=None, derandomize=False)
+@settings(max_examples=1, deadline=None, derandomize=False)
 @given(seed=SEEDS)
 def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners, seed):
     """Seeds the test did not pick, new ones every run (hypothesis)."""
@@ -515,10 +515,12 @@ def test_every_seed_keeps_every_border_within_the_bound(texture, block, corners,
 
 @pytest.mark.slow
 @pytest.mark.parametrize("texture,corners,count", [
-    ("brick", 1, 12),  # the bug report's texture; the bench runs 20 seeds of every one
-    *[(t, 1, 6) for t in ("gravel", "grass", "moon", "lattice", "tiles")],
-    ("brick", 2, 4),  # tile sets cost 3-60 s a seed
-    *[(t, 2, 3) for t in ("gravel", "grass", "moon", "lattice", "tiles")],
+    # new seeds every run, a few per case (CI's runs add them up; `btf bench quilt
+    # --seams-only` runs 20 of every one): brick is the bug report's texture
+    ("brick", 1, 5),
+    *[(t, 1, 3) for t in ("gravel", "grass", "moon", "lattice", "tiles")],
+    ("brick", 2, 2),  # tile sets cost 3-60 s a seed
+    *[(t, 2, 2) for t in ("gravel", "grass", "moon", "lattice", "tiles")],
 ])
 def test_many_seeds_keep_every_border_within_the_bound(texture, corners, count):
     """Seeds the test did not pick (new ones every run): every output within the bound, and
