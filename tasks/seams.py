@@ -192,8 +192,8 @@ class PatchExemplar:
         subset = self.windows[::step, ::step].reshape(-1, self.windows[0, 0].size)
         self.mean = subset.mean(axis=0)
         centred = (subset - self.mean).astype(np.float64)
-        # the leading eigenvectors of the covariance: its right singular vectors, 10x
-        # faster than the SVD of the subset (1.2 s for 16^2 x 3 patches)
+        # the leading eigenvectors of the covariance: its right singular vectors (the
+        # SVD of the subset took 1.2 s for 16^2 x 3 patches; the exemplar 1.9 s, now 0.6 s)
         n = centred.shape[1]
         keep = min(dims, n, len(centred))
         _, vectors = eigh(centred.T @ centred, subset_by_index=(n - keep, n - 1))
@@ -274,9 +274,8 @@ class PatchExemplar:
         if wrap:
             cy, cx = cy % h, cx % w
         if within is not None:
-            ys, xs = ((c >= s.start) & (c <= s.stop) for c, s in zip((cy, cx), within,
-                                                                      strict=True))
-            windows, cy, cx = windows[ys][:, xs], cy[ys], cx[xs]
+            keep = [_kept(c, s) for c, s in zip((cy, cx), within, strict=True)]
+            windows, cy, cx = windows[keep[0]][:, keep[1]], cy[keep[0]], cx[keep[1]]
         ny, nx = windows.shape[:2]
         d = np.empty((ny, nx))
         rows = max(1, _BATCH // max(nx, 1))
@@ -285,6 +284,17 @@ class PatchExemplar:
             d[y : y + rows] = self.distances(block.reshape(-1, block[0, 0].size)).reshape(
                 block.shape[:2])
         return d, cy, cx
+
+
+def _kept(centres: np.ndarray, part: slice) -> slice | np.ndarray:
+    """The centres within ``part`` (ends included), as a slice where they are consecutive.
+
+    A slice keeps the selected sliding windows a view; an index array would copy them.
+    """
+    keep = np.flatnonzero((centres >= part.start) & (centres <= part.stop))
+    if keep.size and keep[-1] - keep[0] + 1 == keep.size:
+        return slice(int(keep[0]), int(keep[-1]) + 1)
+    return keep
 
 
 def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
