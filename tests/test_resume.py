@@ -107,10 +107,17 @@ def test_generate_resumes_after_kill_9(tmp_path):
                      seed=1)
 
 
+@pytest.fixture(scope="module")
+def wood768(tmp_path_factory) -> Path:
+    """The generate test's store, made once for the three compress tests (never written)."""
+    return generate_store(tmp_path_factory.mktemp("wood768") / "s.zarr", "--material", "wood",
+                          "--size", "768", "--sampling", "abtf:12,4", "--chunk", "64",
+                          "--seed", "3")
+
+
 @pytest.mark.parametrize("sketch", ["texels", "rows", "one pass"])
-def test_compress_resumes_after_kill_9(tmp_path, sketch):
-    src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "768",
-                         "--sampling", "abtf:12,4", "--chunk", "64", "--seed", "3")
+def test_compress_resumes_after_kill_9(tmp_path, sketch, wood768):
+    src = wood768
     # one pass: the sketch (its scratch kept in the partial output), V from it, verification
     mode = (["--passes", "1", "--oversample", "17"] if sketch == "one pass"
             else ["--power-iters", "4", "--sketch", sketch])
