@@ -47,7 +47,9 @@ def _finished_units(out: Path) -> list[Path]:
     partial = _partial(out)
     if partial is None or not (partial / DONE).is_dir():
         return []
-    return [p for p in (partial / DONE).iterdir() if p.name != CREATED]
+    # a marker still being written (``.NAME.PID.tmp``, renamed when whole) is not finished
+    return [p for p in (partial / DONE).iterdir()
+            if p.name != CREATED and not p.name.endswith(".tmp")]
 
 
 def _same(a: Path, b: Path, arrays: tuple[str, ...]) -> None:
