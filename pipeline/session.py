@@ -17,7 +17,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass
-from functools import partial
+from functools import cache, partial
 from typing import Any
 
 LOCAL_SCHEDULERS = ("synchronous", "threads", "processes")
@@ -381,6 +381,36 @@ class Session:
     def _local_progress(self):
         if self.options.quiet:
             return contextlib.nullcontext()
-        from dask.diagnostics import ProgressBar
+        return _progress_bar()(minimum=progress_after(), out=sys.stderr)
 
-        return ProgressBar(minimum=progress_after(), out=sys.stderr)
+
+@cache
+def _progress_bar():
+    """The text progress bar of dask, whose timer stops as soon as the compute ends.
+
+    dask's own timer thread sleeps ``dt`` (0.1 s) between updates and the compute waits for it
+    at the end: up to 0.1 s more per compute (measured: 0.27 s of 0.48 s for a small
+    three-pass ``btf compress``). Here the timer waits on an event that the end sets.
+    """
+    import threading
+    from timeit import default_timer
+
+    from dask.diagnostics import ProgressBar
+
+    class Bar(ProgressBar):
+        def _start(self, dsk):
+            self._ended = threading.Event()
+            super()._start(dsk)
+
+        def _finish(self, dsk, state, errored):
+            self._ended.set()
+            super()._finish(dsk, state, errored)
+
+        def _timer_func(self):
+            while self._running:
+                elapsed = default_timer() - self._start_time
+                if elapsed > self._minimum:
+                    self._update_bar(elapsed)
+                self._ended.wait(self._dt)
+
+    return Bar
