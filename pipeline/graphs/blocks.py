@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 TASK_TEXELS = 512  # texels per side of the block one task reads or writes
+TASK_VALUES = 2**20  # values a grouped task block gathers across directions (4 MB of float32)
 
 
 def write_unit(array) -> tuple[int, ...]:
@@ -27,18 +28,35 @@ def task_side(unit: int) -> int:
     return unit * max(1, TASK_TEXELS // unit)
 
 
-def task_block(array) -> tuple[int, ...]:
-    """The block one task reads or writes: whole write units, ~TASK_TEXELS per spatial side."""
+def task_block(array, *, grouped: bool = False) -> tuple[int, ...]:
+    """The block one task reads or writes: whole write units, ~TASK_TEXELS per spatial side.
+
+    ``grouped``: the other axes (directions, tiles) also gather whole write units, last axis
+    first, up to :data:`TASK_VALUES` values a block, so that stores of small textures in small
+    chunks are not cut into thousands of tiny tasks. Only for work that is the same whatever
+    the grouping (per-texel means, copies): the blocks of a seeded or summed computation are
+    part of its result.
+    """
     dims = array.metadata.dimension_names or (None,) * array.ndim
-    return tuple(task_side(unit) if dim in ("y", "x") else unit
-                 for unit, dim in zip(write_unit(array), dims, strict=True))
+    block = [task_side(unit) if dim in ("y", "x") else unit
+             for unit, dim in zip(write_unit(array), dims, strict=True)]
+    if grouped:
+        for axis in reversed(range(len(block))):
+            if dims[axis] in ("y", "x"):
+                continue
+            others = int(np.prod([min(b, n) for i, (b, n) in enumerate(zip(
+                block, array.shape, strict=True)) if i != axis]))
+            unit, size = block[axis], array.shape[axis]
+            units = max(1, TASK_VALUES // max(1, others * unit))
+            block[axis] = min(unit * units, -(-size // unit) * unit)
+    return tuple(block)
 
 
-def aligned_chunks(array) -> tuple[tuple[int, ...], ...]:
+def aligned_chunks(array, *, grouped: bool = False) -> tuple[tuple[int, ...], ...]:
     """Dask chunks that cover ``array`` in task blocks (see :func:`task_block`)."""
     from dask.array.core import normalize_chunks
 
-    return normalize_chunks(task_block(array), array.shape)
+    return normalize_chunks(task_block(array, grouped=grouped), array.shape)
 
 
 def block_regions(array) -> list[tuple[slice, ...]]:

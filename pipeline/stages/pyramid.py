@@ -138,7 +138,7 @@ def _write_levels(group, name: str, levels, count: int, method: str,
     base = group[name]
     dims = tuple(base.metadata.dimension_names)
     ay, ax = dims.index("y"), dims.index("x")
-    previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base))
+    previous = level0 = da.from_zarr(base, chunks=aligned_chunks(base, grouped=True))
     basis = _basis(group) if name == "V" and method == "projected" else None
     for n in range(1, count + 1):
         if basis is not None and "tile" in dims:
@@ -152,10 +152,10 @@ def _write_levels(group, name: str, levels, count: int, method: str,
                            chunks=tuple(min(c, s) for c, s in zip(base.chunks, shape,
                                                                   strict=True)),
                            attrs=dict(base.attrs))
-        coarse = coarse.rechunk(aligned_chunks(target))
+        coarse = coarse.rechunk(aligned_chunks(target, grouped=True))
         session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
         session.compute(store_aligned([coarse], [target]))
-        previous = da.from_zarr(target, chunks=aligned_chunks(target))
+        previous = da.from_zarr(target, chunks=aligned_chunks(target, grouped=True))
 
 
 def _basis(group) -> dict:
