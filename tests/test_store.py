@@ -67,25 +67,41 @@ def test_layout_chunks_divide_shards_and_cover_the_axis(n, chunk, shard_chunks, 
 
 @settings(max_examples=25, deadline=None)
 @given(st.integers(1, 90), st.integers(1, 70), st.integers(1, 7),
-       st.sampled_from([8, 16]), st.integers(0, 3), st.integers(8, 40))
+       st.sampled_from([8, 16]), st.integers(0, 3), st.integers(8, 40),
+       st.sampled_from([None, 1, 500, 5000]))
 def test_task_blocks_cover_every_element_once_in_whole_write_units(ny, nx, lights, chunk,
-                                                                   shard_chunks, task_texels):
+                                                                   shard_chunks, task_texels,
+                                                                   grouped_values):
+    """Also grouped across directions (``grouped_values``: TASK_VALUES, None: not grouped):
+    still whole units, and no larger than the budget unless one direction's block is."""
     import pipeline.graphs.blocks as blocks
 
     with pytest.MonkeyPatch.context() as mp, tempfile.TemporaryDirectory() as tmp:
         mp.setattr(blocks, "TASK_TEXELS", task_texels)
-        d = Directions(np.zeros(1), np.zeros(1), np.arange(lights) * 5.0, np.zeros(lights))
+        mp.setattr(blocks, "TASK_VALUES", grouped_values or 1)
+        d = Directions(np.zeros(2), np.zeros(2), np.arange(lights) * 5.0, np.zeros(lights))
         array = create_radiance_store(
             Path(tmp) / "s.zarr", directions=d, ny=ny, nx=nx, channels=("R",),
             layout=Layout(chunk=chunk, dir_chunk=3, shard=chunk * shard_chunks),
             attrs={})[RADIANCE]
         count = np.zeros(array.shape, np.int32)
         unit = blocks.write_unit(array)
-        for region in blocks.block_regions(array):
+        grouped = grouped_values is not None
+        one = np.prod([min(b, n) for b, n in zip(blocks.task_block(array), array.shape,
+                                                  strict=True)])
+        chunks = blocks.aligned_chunks(array, grouped=grouped)
+        from dask.array.core import slices_from_chunks
+
+        for region in slices_from_chunks(chunks):
             count[region] += 1
             for r, u, n in zip(region, unit, array.shape, strict=True):
                 assert r.start % u == 0 and (r.stop % u == 0 or r.stop == n)
+            size = np.prod([r.stop - r.start for r in region])
+            assert size <= max(one, grouped_values or 0)
         assert (count == 1).all()
+        if grouped and grouped_values >= array.size:  # one block holds it all
+            assert len(slices_from_chunks(chunks)) == -(-ny // min(
+                ny, blocks.task_block(array)[2])) * -(-nx // min(nx, blocks.task_block(array)[3]))
 
 
 def test_layout_rejects_shards_that_are_not_chunk_multiples():

@@ -47,8 +47,9 @@ def task_block(array, *, grouped: bool = False) -> tuple[int, ...]:
             others = int(np.prod([min(b, n) for i, (b, n) in enumerate(zip(
                 block, array.shape, strict=True)) if i != axis]))
             unit, size = block[axis], array.shape[axis]
-            units = max(1, TASK_VALUES // max(1, others * unit))
-            block[axis] = min(unit * units, -(-size // unit) * unit)
+            whole = -(-size // unit) * unit  # the axis in whole units
+            block[axis] = whole if others * size <= TASK_VALUES else \
+                min(whole, unit * max(1, TASK_VALUES // (others * unit)))
     return tuple(block)
 
 
