@@ -9,9 +9,13 @@ STAMP  := $(VENV)/.installed
 run: $(STAMP)
 	$(BIN)/btf run configs/demo.yaml
 
+# The test files on two pytest workers (pytest-xdist), a file's tests on one worker so that
+# its module fixtures are made once; TEST_WORKERS=0 runs them in this process.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 # (Re)install when the package metadata changes; the stamp makes repeated runs instant.
 $(STAMP): pyproject.toml

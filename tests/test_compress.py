@@ -183,7 +183,7 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_
     assert np.isfinite(s).all() and attrs["transform"]["clamp"] is True
 
 
-@pytest.mark.parametrize("scheduler", ["threads", "processes",
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, scheduler,
                                                                  request, monkeypatch):

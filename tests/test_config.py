@@ -18,10 +18,14 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
-# terabyte.yaml at 64^2 texels is still 151 x 151 directions (1.1 GB, 100 s): in the slow set;
-# its plan is checked in the default set (tests/test_plan.py)
+# In the slow set: terabyte.yaml (at 64^2 texels still 151 x 151 directions, 1.1 GB, 100 s;
+# its plan is checked in the default set, tests/test_plan.py) and cluster.yaml (the default
+# set runs it on S3 and on a cluster: tests/test_s3.py::test_the_cluster_config_on_s3_...)
+SLOW_CONFIGS = ("terabyte.yaml", "cluster.yaml")
+
+
 @pytest.mark.parametrize("config", [pytest.param(c, marks=pytest.mark.slow)
-                                    if c.name == "terabyte.yaml" else c for c in CONFIGS],
+                                    if c.name in SLOW_CONFIGS else c for c in CONFIGS],
                          ids=[c.name for c in CONFIGS])
 def test_every_shipped_config_runs(btf, workdir, config, request):
     if config.name == "cluster.yaml":  # its stores are in object storage: a real S3 server

@@ -52,10 +52,12 @@ def _shows_progress(stderr: str) -> bool:
     return "% Completed" in stderr and "Traceback" not in stderr
 
 
+# In the slow set: the default set runs btf on clusters of separate processes over TLS
+# (tests/test_tls.py) and with cluster.yaml on S3 (tests/test_s3.py), the demo locally
+# (tests/test_config.py), and shows progress on a cluster in the next test.
+@pytest.mark.slow
 @pytest.mark.distributed
-# the progress variant in the slow set: the next tests show progress on the cluster too
-@pytest.mark.parametrize("quiet", [pytest.param(False, marks=pytest.mark.slow), True],
-                         ids=["progress", "quiet"])
+@pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
 def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quiet):
     # docker-compose.yml's runner command with the demo config, scaled down (local stores,
     # which this host's workers share; its own config, on S3, runs in tests/test_s3.py)
@@ -83,7 +85,7 @@ def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quie
         assert np.array_equal(a[name][:], b[name][:]), name
 
 
-@pytest.mark.slow  # the default set quilts on the cluster in the demo run above
+@pytest.mark.slow  # the default set quilts on a cluster in cluster.yaml (tests/test_s3.py)
 @pytest.mark.distributed
 def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster):
     src = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "48",

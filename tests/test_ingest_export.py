@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import no_partial_outputs
+from helpers import SLOW_PROCESSES, no_partial_outputs
 from pipeline.images import read_image, write_exr, write_png
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
@@ -235,7 +235,7 @@ def test_bad_input_names_the_file_and_leaves_no_store(tmp_path, btf, damage):
     assert no_partial_outputs(out)
 
 
-@pytest.mark.parametrize("scheduler", ["threads", "processes",
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_tasks_still_running_after_a_failure_leave_nothing_behind(tmp_path, btf, scheduler,
                                                                   request):

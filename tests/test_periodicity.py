@@ -16,10 +16,15 @@ from tasks.periodicity import detect_lattice
 THRESHOLD = 0.5  # btf roller's default --min-confidence
 
 
-def test_two_hundred_random_lattices_give_their_primitive_cell():
+# All 200 lattices (the rate of BENCHMARKS.md: 97%, and 90% of every motif) in the slow set;
+# the first 48 of them in the default set, where two misses are already 4% (both are "lines"
+# cases of the 200): a broken detector finds far fewer.
+@pytest.mark.parametrize(("count", "rate", "motif_rate"),
+                         [(48, 0.9, 0.75), pytest.param(200, 0.97, 0.9, marks=pytest.mark.slow)])
+def test_random_lattices_give_their_primitive_cell(count, rate, motif_rate):
     rng = np.random.default_rng(20261123)  # not a seed the detector was developed on
     found, total, failures = Counter(), Counter(), []
-    for i in range(200):
+    for i in range(count):
         case = random_lattice_texture(rng, motif=MOTIFS[i % len(MOTIFS)])
         lattice = detect_lattice(case.image)
         good = lattice.confidence >= THRESHOLD and judge(lattice.u, lattice.v, case.u, case.v)
@@ -28,9 +33,9 @@ def test_two_hundred_random_lattices_give_their_primitive_cell():
         if not good:
             failures.append(f"{case.describe()}: found {lattice.u}, {lattice.v} "
                             f"({lattice.confidence:.2f})")
-    assert sum(found.values()) >= 194, "\n".join(failures)  # 97%
+    assert sum(found.values()) >= rate * count, "\n".join(failures)
     for motif in MOTIFS:
-        assert found[motif] >= 0.9 * total[motif], (motif, failures)
+        assert found[motif] >= motif_rate * total[motif], (motif, failures)
 
 
 def test_judging_is_basis_independent_and_rejects_wrong_cells():
