@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import pipeline.graphs.tile_passes as tile_passes
 from helpers import SLOW_PROCESSES
-from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks
+from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks, spans
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
 from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
@@ -319,6 +319,15 @@ def test_row_blocks_cover_every_texture_once_within_budget(nv, nl, dir_chunk, bu
     unit = dir_chunk * 3 * 64 * 4
     for b in blocks:
         assert b.rows * 64 * 4 <= max(budget, unit)
+        # the block's reads: rectangles of its units, in row order, of at most 8 layers (or
+        # one unit)
+        for layers in (1, 8, 10**6):
+            read = [(v, li) for v0, v1, l0, l1 in spans(b.units, layers)
+                    for v in range(v0, v1) for li in range(l0, l1)]
+            assert read == [(v, li) for v, l0, l1 in b.units for li in range(l0, l1)]
+            assert all((v1 - v0) * (l1 - l0) <= max(layers, dir_chunk)
+                       for v0, v1, l0, l1 in spans(b.units, layers))
+        assert len(spans(b.units, 10**6)) <= len({v for v, _, _ in b.units})
 
 
 def test_lazy_radiance_has_the_original_dims_and_coordinates(tmp_path, btf, small_abtf):
