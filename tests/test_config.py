@@ -48,7 +48,7 @@ def test_every_shipped_config_runs(btf, workdir, config, request):
 def test_demo_runs_the_mission_writes_its_report_and_skips_what_is_up_to_date(btf, workdir):
     from helpers import small_demo
 
-    demo = small_demo(workdir)
+    demo = small_demo(workdir, 64)
     first = btf("run", demo)
     assert first.code == 0, first.err
     out = workdir / "out" / "demo"

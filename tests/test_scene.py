@@ -365,7 +365,7 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
                                                                              monkeypatch):
     monkeypatch.chdir(tmp_path)
     stages = """stages:
-  - generate: {out: m.zarr, material: leather, size: 96, sampling: "hemi:9", chunk: 16,
+  - generate: {out: m.zarr, material: leather, size: 64, sampling: "hemi:9", chunk: 16,
                dir_chunk: 3, seed: 4}
   - compress: {store: m.zarr, out: c.zarr, rank: 8}
   - reconstruct: {store: c.zarr, out: r.zarr, chunk: 16, dir_chunk: 3}
@@ -381,21 +381,21 @@ def test_a_run_config_scene_restricts_reconstruct_and_quilt_to_what_it_reads(tmp
     assert check.code == 0, check.err
     assert "--for-scene r.yaml" in check.out
     # counted before anything exists, from the planned shapes and generate's sampling
-    planned = re.search(r"reconstruct: restricted to the scene: (\d+) of 972 chunks", check.out)
-    assert "compress: all 63 chunks: the SVD needs every layer and texel" in check.out
-    assert "generate: all 972 chunks: a measurement" in check.out
+    planned = re.search(r"reconstruct: restricted to the scene: (\d+) of 432 chunks", check.out)
+    assert "compress: all 43 chunks: the SVD needs every layer and texel" in check.out
+    assert "generate: all 432 chunks: a measurement" in check.out
     assert btf("run", "r.yaml", "-q").code == 0
     again = btf("run", "r.yaml", "--check")
-    counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 972 chunks", again.out)
+    counted = re.search(r"reconstruct: restricted to the scene: (\d+) of 432 chunks", again.out)
     r = zarr.open_group("r.zarr", mode="r")
     only = r.attrs["computed_for_scene"]
     assert "computed only for the scene r.yaml: 9 of 81 layers, texels" in btf(
         "inspect", "r.zarr").out
     assert len(only["layers"]) == 9 and only["of_layers"] == 81  # (0, 0) among the 9
     written = np.isfinite(r["radiance"][..., 0, 16, 0])  # (view, light) written at all
-    # 96^2 texels are one task block: whole light chunks (3 lights) of the needed layers
+    # 64^2 texels are one task block: whole light chunks (3 lights) of the needed layers
     blocks = {(v, li // 3) for v, li in zip(*np.nonzero(written), strict=True)}
-    assert int(counted.group(1)) == int(planned.group(1)) == 36 * len(blocks) < 972 // 2
+    assert int(counted.group(1)) == int(planned.group(1)) == 16 * len(blocks) < 432 // 2
     assert all(written[v, li] for v, li in only["layers"])
     # the scene equals the same scene on a full reconstruction
     assert btf("reconstruct", "c.zarr", "full.zarr", "-q").code == 0
