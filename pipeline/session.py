@@ -36,6 +36,21 @@ def progress_after() -> float:
     return float(dask.config.get("btf.progress-after", PROGRESS_AFTER))
 
 
+NO_WORKERS_TIMEOUT = 120.0  # seconds a cluster run waits with no worker at all (default)
+
+
+def no_workers_timeout() -> float:
+    """Seconds a cluster run waits while the cluster has no worker: ``btf.no-workers-timeout``.
+
+    After that the run stops with an error instead of waiting for workers that may never come
+    (all of them lost, or none started). Set it like any dask option, e.g.
+    ``DASK_BTF__NO_WORKERS_TIMEOUT=600``.
+    """
+    import dask
+
+    return float(dask.config.get("btf.no-workers-timeout", NO_WORKERS_TIMEOUT))
+
+
 PROTOCOLS = ("tcp://", "tls://")
 
 
@@ -336,14 +351,25 @@ class Session:
         with warnings.catch_warnings():  # shared values travel with the graph on purpose
             warnings.filterwarnings("ignore", message="Sending large graph")
             futures = self.client.compute(list(collections))
+        watchdog = _NoWorkers(self.client, futures, no_workers_timeout())
         try:
             if not self.options.quiet:
                 self._cluster_progress(futures)
             return tuple(self.client.gather(futures))
         except BaseException:
             self.client.cancel(futures, force=True)
+            if watchdog.fired:
+                from pipeline.errors import BTFError
+
+                raise BTFError(
+                    f"the dask cluster at {self.options.scheduler} has had no worker for "
+                    f"{watchdog.timeout:g} s, so this run stopped: start workers and run the "
+                    "same command again (dask option btf.no-workers-timeout sets how long to "
+                    "wait)") from None
             self._wait_until_idle()
             raise
+        finally:
+            watchdog.stop()
 
     def _cluster_progress(self, futures) -> None:
         """A text progress bar on stderr until ``futures`` finish (or one fails).
@@ -414,3 +440,42 @@ def _progress_bar():
                 self._ended.wait(self._dt)
 
     return Bar
+
+
+class _NoWorkers:
+    """Cancel ``futures`` once ``client``'s cluster has had no worker for ``timeout`` seconds.
+
+    A thread asks the scheduler for its workers every second while the futures run. Without
+    it a run whose workers all died (a segfault, the out-of-memory killer) waits forever: the
+    scheduler keeps its tasks for workers that may join later.
+    """
+
+    def __init__(self, client, futures, timeout: float):
+        import threading
+
+        self.client, self.futures, self.timeout = client, futures, timeout
+        self.fired = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="btf-no-workers",
+                                        daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        since = None
+        while not self._stop.wait(1.0):
+            try:
+                workers = len(self.client.nthreads())
+            except Exception:  # the client is closing or the scheduler is gone: not ours
+                return
+            if workers:
+                since = None
+                continue
+            since = since if since is not None else time.monotonic()
+            if time.monotonic() - since >= self.timeout:
+                self.fired = True
+                self.client.cancel(self.futures, force=True)
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()

@@ -117,3 +117,34 @@ def test_quilt_application_survives_a_lost_worker(tmp_path, two_workers):
     _same_as_synchronous(tmp_path, workers, address, "quilt", src,
                          ["--block", "32", "--overlap", "8", "--size", "480,480"],
                          ("radiance",))
+
+
+@pytest.mark.parametrize("progress", [False, True], ids=["quiet", "progress"])
+def test_a_run_whose_last_worker_is_lost_stops_with_a_message(tmp_path, progress):
+    """No worker left: the run stops after btf.no-workers-timeout (here 3 s) instead of
+    waiting for ever, says why, and leaves no output; with a progress bar too."""
+    out = tmp_path / "g.zarr"
+    env = {**os.environ, "DASK_BTF__NO_WORKERS_TIMEOUT": "3",
+           **({"DASK_BTF__PROGRESS_AFTER": "0"} if progress else {})}
+    with dask_cluster(tmp_path, workers=1, processes=1, no_nanny=True) as (address, workers):
+        proc = subprocess.Popen([BIN / "btf", "generate", out, *GENERATE, "--scheduler",
+                                 address, *([] if progress else ["--quiet"])],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=env)
+        try:
+            deadline = time.monotonic() + 120
+            while _chunks(out) < 4 and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert proc.poll() is None, "the run ended before its worker could be killed"
+            os.kill(workers[0].pid, signal.SIGKILL)
+            lost = time.monotonic()
+            _, err = proc.communicate(timeout=120)
+            waited = time.monotonic() - lost
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 1, err
+    assert f"the dask cluster at {address} has had no worker for 3 s" in err, err
+    assert "Traceback" not in err and waited < 30, (waited, err)
+    assert not out.exists()
