@@ -10,6 +10,9 @@ RUN pip install --no-cache-dir .
 # glibc: blocks of 16 MiB and more are mapped and unmapped on their own, so that the worker
 # threads' arenas do not fragment (pipeline.session.steady_memory; BENCHMARKS.md, issue 27).
 ENV MALLOC_MMAP_THRESHOLD_=16777216
+# A worker that crashes in C code (a segfault) prints every thread's Python stack to its log
+# first, so the log says where it died (issue 36: a worker once died so in libpython).
+ENV PYTHONFAULTHANDLER=1
 # Outputs go to the shared volume; every container sees it at the same path, because tasks
 # carry absolute paths to the stores they read and write.
 WORKDIR /data

@@ -157,6 +157,9 @@ def dask_cluster(folder: Path, *, workers: int = 1, processes: int = 2, protocol
 
     port = free_port()
     address = f"{protocol}://127.0.0.1:{port}"
+    # a process that crashes in C code prints its Python stacks to the log, which is shown
+    # below (with a failing test's output) when one did
+    env = {**os.environ, "PYTHONFAULTHANDLER": "1", **(env or {})}
     bin_ = Path(sys.executable).parent
     log = (folder / "cluster.log").open("w")
     scheduler = compose_command("scheduler", values={
@@ -210,3 +213,7 @@ def dask_cluster(folder: Path, *, workers: int = 1, processes: int = 2, protocol
                     proc.kill()
                     proc.wait()
         log.close()
+        text = (folder / "cluster.log").read_text(errors="replace")
+        if "Fatal Python error" in text:
+            print(f"a cluster process crashed; {folder / 'cluster.log'}:\n{text}",
+                  file=sys.stderr)
