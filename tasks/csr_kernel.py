@@ -3,7 +3,10 @@
 Kept apart from :mod:`tasks.prescription`, which imports it on first use, so that importing
 that does not load numba (a quarter of a second and ~100 MB). Every loop releases the GIL
 (``nogil``), so the pipeline's threads run them in parallel, and none uses numba's own threads
-(they must not be entered from several dask threads at once) or its on-disk cache.
+(they must not be entered from several dask threads at once). Compiled code is kept in numba's
+on-disk cache (``__pycache__`` beside this file, or the user's cache folder where that is not
+writable; keyed by the source and the CPU): compiling takes about 3 s, which every ``btf quilt``
+and every new worker process paid before, and loading it some 50 ms.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ def prefetch(typingctx, address):
     return types.void(types.intp), codegen
 
 
-@numba.njit(nogil=True, cache=False)
+@numba.njit(nogil=True, cache=True)
 def _any_channels(indptr, indices, data, s, d):
     """``d = P @ s`` for one layer of any number of channels: a plain loop."""
     for r in range(indptr.size - 1):
@@ -50,7 +53,7 @@ def _any_channels(indptr, indices, data, s, d):
             d[r, k] = a
 
 
-@numba.njit(nogil=True, cache=False)
+@numba.njit(nogil=True, cache=True)
 def _rgb(indptr, indices, data, s, d):
     """``d = P @ s`` for one RGB layer, prefetching sources ``AHEAD`` texels on."""
     rows, stride, base = indptr.size - 1, s.strides[0], s.ctypes.data
@@ -67,7 +70,7 @@ def _rgb(indptr, indices, data, s, d):
         d[r, 0], d[r, 1], d[r, 2] = a0, a1, a2
 
 
-@numba.njit(nogil=True, cache=False)
+@numba.njit(nogil=True, cache=True)
 def _rgb_pair(indptr, indices, data, s, t, ds, dt):
     """``ds = P @ s`` and ``dt = P @ t`` for two RGB layers in one pass over ``P``."""
     rows, stride = indptr.size - 1, s.strides[0]
@@ -90,7 +93,7 @@ def _rgb_pair(indptr, indices, data, s, t, ds, dt):
         dt[r, 0], dt[r, 1], dt[r, 2] = b0, b1, b2
 
 
-@numba.njit(nogil=True, cache=False)
+@numba.njit(nogil=True, cache=True)
 def csr_product(indptr, indices, data, src, dst):
     """``dst[l] = P @ src[l]`` for ``(layers, texels, channels)`` arrays, ``P`` as CSR arrays.
 
@@ -101,7 +104,7 @@ def csr_product(indptr, indices, data, src, dst):
     the loop waits on memory; for three channels (RGB) it works on two layers at once (the same
     terms, two independent loads) and prefetches the sources of the texel ``AHEAD`` texels on,
     which together make it about 1.4x faster than a plain loop (BENCHMARKS.md, quilting).
-    numba compiles it once per process for every combination of argument types it meets.
+    numba compiles it once for every combination of argument types it meets, and caches it.
     """
     layers, channels = src.shape[0], src.shape[2]
     if channels != 3:

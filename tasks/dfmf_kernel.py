@@ -8,9 +8,9 @@ and one bit cast. :func:`halves_to_float32` converts arrays; :func:`halves_produ
 inside the product with a channel's ``U`` rows, so a file's bytes are read once and no
 float32 copy is made. :func:`decode_colour` applies a colour model to a block of channel
 values in one pass, where numpy's expression would make a temporary per step. All release
-the GIL (the caller runs bands on threads) and use no numba threads or disk cache, as
-:mod:`tasks.csr_kernel`. Kept apart from :mod:`tasks.dfmf`, so that reading a header does not
-load numba.
+the GIL (the caller runs bands on threads), use no numba threads and keep their compiled
+code in numba's on-disk cache, as :mod:`tasks.csr_kernel`. Kept apart from
+:mod:`tasks.dfmf`, so that reading a header does not load numba.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ HALF_INSTRUCTION = _has_half_instruction()
 half = _half_instruction if HALF_INSTRUCTION else _half_integer
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, cache=True)
 def halves_to_float32(bits: np.ndarray, out: np.ndarray) -> None:
     """Float32 values of float16 ``bits`` (uint16, any shape, C order) into ``out``."""
     flat, dest = bits.ravel(), out.ravel()
@@ -100,7 +100,7 @@ def halves_to_float32(bits: np.ndarray, out: np.ndarray) -> None:
         dest[i] = half(flat[i])
 
 
-@numba.njit(nogil=True, fastmath=True)
+@numba.njit(nogil=True, fastmath=True, cache=True)
 def halves_product(u: np.ndarray, bits: np.ndarray, out: np.ndarray) -> None:
     """``out = u @ halves(bits)^T``: rows ``u`` ``(n, k)`` float32 times float16 ``bits``.
 
@@ -127,7 +127,7 @@ def halves_product(u: np.ndarray, bits: np.ndarray, out: np.ndarray) -> None:
             out[i, t] = acc
 
 
-@numba.njit(nogil=True, fastmath=True)
+@numba.njit(nogil=True, fastmath=True, cache=True)
 def decode_colour(values: np.ndarray, model: int, eps: float, matrix: np.ndarray,
                   mean: np.ndarray, scale: np.ndarray) -> None:
     """Radiance of channel values ``(n, texels, C)`` float32, in place, clamped at 0.

@@ -7,6 +7,8 @@ BTF_REQUIRE_BROWSER, so there they fail instead).
 
 from __future__ import annotations
 
+import base64
+
 import numpy as np
 import pytest
 import zarr
@@ -169,8 +171,23 @@ def _open(browser, page_path, fragment: str = ""):
     return tab, requests
 
 
+# The canvas's RGBA bytes as base64: playwright's JSON of a 384^2 canvas as a list of numbers
+# takes about 5 s, this 0.1 s.
+_PIXELS_BASE64 = """() => {
+  const p = window.btfView.pixels();
+  let s = "";
+  for (let i = 0; i < p.length; i += 0x8000) s += String.fromCharCode(...p.slice(i, i + 0x8000));
+  return btoa(s);
+}"""
+
+
+def _pixels(tab) -> np.ndarray:
+    """``window.btfView.pixels()``: RGBA bytes, bottom row first."""
+    return np.frombuffer(base64.b64decode(tab.evaluate(_PIXELS_BASE64)), np.uint8)
+
+
 def _canvas(tab) -> np.ndarray:
-    flat = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8)
+    flat = _pixels(tab)
     return flat.reshape(HEIGHT, WIDTH, 4)[::-1, :, :3]  # GL rows run bottom-up
 
 
@@ -306,7 +323,7 @@ def test_the_sphere_gives_every_pixel_its_own_light_view_and_texel(browser, page
     tab, _ = _open(browser, page, "#light=45,135&view=0,0&mode=1&repeat=3")
     state = tab.evaluate("window.btfView.state")
     assert state["mode"] == "sphere" and state["repeat"] == 3
-    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+    shown = _pixels(tab).reshape(
         SPHERE, SPHERE, 4)[..., :3].astype(int)  # GL rows: bottom first
     rng = np.random.default_rng(5)
     checked, worst = 0, 0
@@ -349,7 +366,7 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
     assert len(set(ids.ravel().tolist())) > 1  # several variations laid
     tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
     tab.evaluate(f"window.btfView.set([{tl[7]}, {pl[7]}], [{tv[3]}, {pv[3]}])")
-    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+    shown = _pixels(tab).reshape(
         cells * ty, cells * tx, 4)[::-1, :, :3].astype(int)
     mosaic = gather(tiles.astype(np.float16).astype(np.float32), 0, 0, cells * ty, cells * tx,
                     seed=seed, corners=2)
@@ -358,7 +375,7 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
     scale = tab.evaluate("window.btfView.state.exposure")
     assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
     tab.evaluate("window.btfView.set(null, null, null, 'sphere')")
-    ball = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+    ball = _pixels(tab).reshape(
         SPHERE, SPHERE, 4)[..., :3]
     assert ball[SPHERE // 2, SPHERE // 2].sum() > 0
     tab.close()
@@ -382,7 +399,7 @@ def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser,
     w, h = (tab.evaluate(f"DATA.{k}") for k in ("width", "height"))
     tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
     tab.evaluate(f"window.btfView.set([{tl[5]}, {pl[5]}], [{tv[2]}, {pv[2]}])")
-    shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+    shown = _pixels(tab).reshape(
         h, w, 4)[::-1, :, :3].astype(int)
     rep = g["representative"][...] if "representative" in g.array_keys() else None
     mosaic = lattice_gather(g["V"][...].astype(np.float16).astype(np.float32), 0, 0, h, w,
@@ -445,7 +462,7 @@ def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
     tv, pv, tl, pl = (g[n][...] for n in ("theta_view", "phi_view", "theta_light", "phi_light"))
     for view, light in [(0, 0), (1, 2), (2, 3)]:
         tab.evaluate(f"window.btfView.set([{tl[light]}, {pl[light]}], [{tv[view]}, {pv[view]}])")
-        shown = np.array(tab.evaluate("window.btfView.pixels()"), np.uint8).reshape(
+        shown = _pixels(tab).reshape(
             h, w, 4)[::-1, :, :3].astype(int)
         want = to_uint8(tonemap(bonn[view, light].astype(np.float32), scale=scale)).astype(int)
         assert np.abs(shown - want).max() <= BOUND, (model, view, light)
