@@ -215,7 +215,11 @@ def store(location: str | os.PathLike):
 
     A partial output written in place (:func:`hide_root`) keeps its root ``zarr.json`` under
     :data:`ASIDE` until it is committed, so that nothing opens it before it is complete.
+    Every store opens with chunk checksums checked by :mod:`pipeline.checksums`.
     """
+    from pipeline import checksums
+
+    checksums.install()
     location = str(location)
     if not is_url(location):
         return location

@@ -117,12 +117,15 @@ def test_a_subcommand_on_the_cluster_shows_progress_and_reports_a_failing_task(t
     done = _btf("compress", src, tmp_path / "c.zarr", "--rank", "4", "--scheduler", cluster)
     assert done.returncode == 0 and _shows_progress(done.stderr), done.stderr
     assert "compress: pass 3/3 (projection" in done.stderr
-    # a chunk that does not decode fails its task on a worker: one clear error, no output
+    # a chunk whose bytes changed fails its task on a worker: one clear error naming the
+    # chunk (its checksum), no output
     chunk = next(p for p in sorted((src / "radiance" / "c").rglob("*")) if p.is_file())
     chunk.write_bytes(b"not a blosc frame")
     failed = _btf("compress", src, tmp_path / "bad.zarr", "--rank", "4", "--scheduler", cluster)
     assert failed.returncode == 1, failed.stderr
-    assert "btf compress: error:" in failed.stderr and "is unreadable" in failed.stderr
+    assert "btf compress: error:" in failed.stderr
+    assert "variable 'radiance', chunk (0, 0, 0, 0, 0)" in failed.stderr
+    assert "fails its checksum" in failed.stderr
     assert "Traceback" not in failed.stderr and no_partial_outputs(tmp_path / "bad.zarr")
 
 

@@ -154,7 +154,7 @@ def _stores(tmp_path: Path, btf) -> dict[str, Path]:
     return out
 
 
-def test_every_kind_of_store_has_the_codec_coordinates_and_channels(tmp_path, btf):
+def test_every_kind_of_store_has_the_codecs_checksums_coordinates_and_channels(tmp_path, btf):
     import xarray as xr
 
     from pipeline.stores import KINDS
@@ -169,8 +169,11 @@ def test_every_kind_of_store_has_the_codec_coordinates_and_channels(tmp_path, bt
             assert name in group.array_keys(), (kind, name)
         coords = {"theta_view", "phi_view", "theta_light", "phi_light", "channel", "corner"}
         for name in set(group.array_keys()) - coords:
-            (compressor,) = group[name].compressors
+            compressor, checksum = group[name].compressors
             assert compressor.to_dict()["configuration"]["cname"] == "lz4", (kind, name)
+            assert checksum.to_dict() == {"name": "crc32c"}, (kind, name)
             assert group[name].metadata.dimension_names, (kind, name)
+        for name in set(group.array_keys()) & coords:  # every chunk carries its checksum
+            assert [c.to_dict() for c in group[name].compressors] == [{"name": "crc32c"}]
         ds = xr.open_zarr(path, consolidated=False)  # the store contract: xarray opens it
         assert np.all(np.isfinite(ds["theta_light"].values)), kind

@@ -1,7 +1,8 @@
 """Reductions over stores with dask's own machinery (``dask.array.reduction`` and friends).
 
 - :func:`read_array`: a zarr variable as a dask array of task blocks whose read errors name the
-  store, variable and block;
+  store, variable and block (the chunk, for a failed checksum); :func:`bad_chunks` lists every
+  unreadable chunk of some variables;
 - :func:`statistics`: counts of NaN, Inf and negative values and the finite minimum, maximum
   and sum of an array, all from one read of each block;
 - :func:`light_sums`: the per-texel sums over all lights of one view that the reference image
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks
 from pipeline.stores.base import location
@@ -26,9 +27,12 @@ def _read_region(block_info=None, *, store: str, variable: str) -> np.ndarray:
     import zarr
 
     region = tuple(slice(a, b) for a, b in block_info[None]["array-location"])
+    array = zarr.open_array(storage.store(store), path=variable, mode="r")
     try:
-        return zarr.open_array(storage.store(store), path=variable, mode="r")[region]
+        return array[region]
     except Exception as exc:  # re-raised with the block's key, whatever the codec raised
+        if (error := checksums.named(store, variable, array, region, exc)) is not None:
+            raise error from None
         where = ", ".join(f"{r.start}:{r.stop}" for r in region)
         raise BTFError(f"{store}: variable {variable!r}, block [{where}] is unreadable: "
                        f"{type(exc).__name__}: {exc}") from None
@@ -43,6 +47,37 @@ def read_array(path: str | Path, name: str):
     array = zarr.open_array(storage.store(store), path=name, mode="r")
     return da.map_blocks(_read_region, chunks=aligned_chunks(array), dtype=array.dtype,
                          meta=np.empty((0,) * array.ndim, array.dtype), store=store, variable=name)
+
+
+def _bad_chunks(store: str, variable: str, region: tuple[slice, ...]) -> list:
+    import zarr
+
+    array = zarr.open_array(storage.store(store), path=variable, mode="r")
+    try:
+        array[region]
+        return []
+    except Exception:  # one chunk at a time, to find which
+        return checksums.bad_chunks(array, region)
+
+
+def bad_chunks(path: str | Path, names: list[str]) -> dict:
+    """Delayed lists of the unreadable chunks of variables ``names`` (grid indices), per name.
+
+    Read task block by task block; a block that fails is read again chunk by chunk.
+    """
+    import dask
+    import zarr
+    from dask.array.core import slices_from_chunks
+
+    store = location(path)
+    out = {}
+    for name in names:
+        array = zarr.open_array(storage.store(store), path=name, mode="r")
+        parts = [dask.delayed(_bad_chunks, pure=True)(store, name, region)
+                 for region in slices_from_chunks(aligned_chunks(array))]
+        out[name] = dask.delayed(lambda *lists: sorted(c for part in lists for c in part),
+                                 pure=True)(*parts)
+    return out
 
 
 def statistics(x) -> dict:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
 from tasks.svd import (
@@ -150,6 +150,9 @@ def _raise_unreadable(array, store: str, block: RowBlock, ys: slice, xs: slice) 
         try:
             array[v : v + 1, l0:l1, ys, xs]
         except Exception as exc:
+            region = (slice(v, v + 1), slice(l0, l1), ys, xs, slice(None))
+            if (error := checksums.named(store, RADIANCE, array, region, exc)) is not None:
+                raise error from None
             raise BTFError(f"{store}: variable 'radiance', block [view {v}, lights {l0}:{l1}, "
                            f"y {ys.start}:{ys.stop}, x {xs.start}:{xs.stop}] is unreadable: "
                            f"{type(exc).__name__}: {exc}") from None

@@ -25,7 +25,7 @@ import dataclasses
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import checksums, storage
 from pipeline.graphs.row_passes import (
     ROW_BLOCK_BYTES,
     RowBlock,
@@ -138,12 +138,14 @@ def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np
 def create_scratch(location: str, ny: int, nx: int, s: int, chunk: tuple[int, int]) -> None:
     """The scratch array of a one-view sketch's ``W^T``: ``(y, x, s)`` float32, a chunk a tile.
 
-    Uncompressed (signed sums of the data compress little); overwritten if present.
+    Uncompressed (signed sums of the data compress little) but checksummed; overwritten if
+    present.
     """
     import zarr
 
     zarr.create_array(storage.store(location), shape=(ny, nx, s), chunks=(*chunk, s),
-                      dtype="float32", compressors=None, fill_value=0.0, overwrite=True)
+                      dtype="float32", compressors=checksums.codec(), fill_value=0.0,
+                      overwrite=True)
 
 
 def _sketch_task(store: str, tile: TexelTile, blocks: list[RowBlock], sketch: Sketch,

@@ -17,9 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import checksums
 from pipeline.atomic import atomic_output
+from pipeline.checksums import ChecksumError
 from pipeline.errors import BTFError
-from pipeline.graphs.reductions import read_array, statistics
+from pipeline.graphs.reductions import bad_chunks, read_array, statistics
 from pipeline.params import option
 from pipeline.session import Session
 from pipeline.stage import Stage
@@ -37,7 +39,8 @@ class InspectParams:
     store: str = option(help="zarr store to describe", positional=True, path="in")
     json: bool = option(False, help="print one JSON object instead of text")
     scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
-                                    "and negative counts per variable")
+                                    "and negative counts per variable; every chunk's checksum "
+                                    "is verified and the bad chunks listed (exit status 1)")
     plot: str | None = option(None, path="out", metavar="FILE",
                               help="draw the direction sampling on the hemisphere (a PNG file; "
                                    "an existing file is replaced)")
@@ -106,7 +109,15 @@ def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
     names = [n for n in sorted(group.array_keys()) if group[n].dtype.kind in "fiu"
              and n not in DIRECTION_COORDS]
     session.log(f"scan: {len(names)} variable(s) of {path}")
-    (lazy,) = session.compute({n: statistics(read_array(path, n)) for n in names})
+    try:
+        (lazy,) = session.compute({n: statistics(read_array(path, n)) for n in names})
+    except ChecksumError:
+        session.log("scan: a chunk failed its checksum; reading every chunk to list the bad ones")
+        (bad,) = session.compute(bad_chunks(path, names))
+        listed = [f"  {n} {checksums.chunk_name(group[n], c)}" for n in names for c in bad[n]]
+        raise BTFError(f"{path}: {len(listed)} chunk(s) fail their checksum or cannot be "
+                       f"decoded (variable, chunk grid index and the values it holds):\n"
+                       + "\n".join(listed) + f"\n{checksums.RESTORE}") from None
     out = {}
     for name in names:
         s = {k: float(v) for k, v in lazy[name].items()}

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from tasks.sampling import btf_kind
 
@@ -76,14 +76,17 @@ def location(path: str | Path) -> str:
     return storage.parse(path)
 
 
-def codec():
-    """The project's compressor for data variables: Blosc lz4 with byte shuffling."""
+def compressors() -> tuple:
+    """The project's codecs for data variables: Blosc lz4 with byte shuffling, then a checksum.
+
+    The checksum (:mod:`pipeline.checksums`) finds a chunk whose bytes changed after writing.
+    """
     from zarr.codecs import BloscCodec
 
     # Byte shuffling groups the float32 exponents together. Measured on a generated wood ABTF
     # (one 48 MiB shard): lz4 gives 1.26x at 830 MB/s encode / 1390 MB/s decode, zstd-3 1.33x
     # at 220 / 1060 MB/s. Stores are read many times over (compression passes), so lz4.
-    return BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+    return BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"), checksums.codec()
 
 
 def create_store(path: str | Path, *, kind: str, attrs: dict[str, Any],
@@ -100,12 +103,13 @@ def create_store(path: str | Path, *, kind: str, attrs: dict[str, Any],
         for name, dim in DIRECTION_COORDS.items():
             values = np.asarray(getattr(directions, name), np.float64)
             coord = group.create_array(name, shape=values.shape, dtype="float64",
-                                       dimension_names=(dim,), compressors=None,
+                                       dimension_names=(dim,), compressors=checksums.codec(),
                                        attributes={"units": "degree"})
             coord[:] = values
     if channels is not None:
         labels = group.create_array("channel", shape=(len(channels),), dtype=str,
-                                    dimension_names=("channel",), compressors=None)
+                                    dimension_names=("channel",),
+                                    compressors=checksums.codec())
         labels[:] = np.array(channels)
     return group
 
@@ -121,7 +125,7 @@ def add_array(group, name: str, *, shape: tuple[int, ...], dims: tuple[str, ...]
     if fill_value is None:
         fill_value = np.nan if np.dtype(dtype).kind == "f" else 0
     return group.create_array(name, shape=shape, chunks=chunks or "auto", shards=shards,
-                              dtype=dtype, dimension_names=dims, compressors=codec(),
+                              dtype=dtype, dimension_names=dims, compressors=compressors(),
                               fill_value=fill_value, attributes=attrs or None)
 
 

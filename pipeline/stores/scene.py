@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import checksums
 from pipeline.errors import BTFError
 from pipeline.scene_spec import DIRECTION_FIELDS
 from pipeline.stores.base import RADIANCE, StoreKind, add_array, check_variables, create_store
@@ -46,7 +47,8 @@ def create_scene_store(path, *, directions: np.ndarray, shape: tuple[int, int],
     group = create_store(path, kind=NAME, attrs=attrs, directions=None, channels=channels)
     for k, name in enumerate(DIRECTION_FIELDS):
         coord = group.create_array(name, shape=(len(directions),), dtype="float64",
-                                   dimension_names=("direction",), compressors=None,
+                                   dimension_names=("direction",),
+                                   compressors=checksums.codec(),
                                    attributes={"units": "degree"})
         coord[:] = directions[:, k]
     block = min(chunk, shape[0]), min(chunk, shape[1])

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import checksums
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -74,7 +75,7 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
     add_array(group, "reference", shape=reference.shape, chunks=reference.shape,
               dims=("sample_y", "sample_x", "reference_channel"))[...] = reference
     names = group.create_array("corner", shape=(4,), dtype=str, dimension_names=("corner",),
-                               compressors=None)
+                               compressors=checksums.codec())
     names[:] = np.array(CORNERS)
     return group
 
