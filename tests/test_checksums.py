@@ -92,3 +92,18 @@ def test_stores_written_before_checksums_read_as_they_did(tmp_path, btf):
     a, b = (zarr.open_group(tmp_path / f"{n}_svd.zarr", mode="r") for n in ("new", "old"))
     for name in ("U", "S", "V"):
         assert np.array_equal(a[name][...], b[name][...]), name
+
+
+@pytest.mark.slow
+def test_btf_bench_checksums_measures_both_codecs():
+    import argparse
+
+    from benchmarks import checksums as suite
+
+    result = suite.run(argparse.Namespace(size=64, repeat=1))
+    for key in ("write_seconds", "read_seconds"):
+        assert set(result[key]) == {"blosc", "blosc + crc32c"}
+        assert all(v > 0 for v in result[key].values())
+    assert result["bytes"] == 64 * 64 * 48 * 3 * 4 and result["stored_bytes"] > 0
+    text = suite.report(result)
+    assert "| blosc + crc32c |" in text and "| blosc | " in text
