@@ -2,10 +2,12 @@
 
 Stages write into a hidden sibling (``.NAME.partial-XXXX``) and rename it into place when they
 finish. A failure or an interrupt removes the partial output (stages wait for their running
-tasks first, see :meth:`pipeline.session.Session.compute`). An existing output is replaced only
-with ``overwrite``, only once the new one is complete, and only if it is the same kind of thing
-(file or folder) and, for a folder, something btf wrote: a store with btf metadata or a folder of
-exported layers. A good output is never lost: if the final swap fails, it is put back.
+tasks first, see :meth:`pipeline.session.Session.compute`), except that a full disk keeps a
+resumable one (below) so that the same command continues once space is freed. An existing
+output is replaced only with ``overwrite``, only once the new one is complete, and only if it is
+the same kind of thing (file or folder) and, for a folder, something btf wrote: a store with btf
+metadata or a folder of exported layers. A good output is never lost: if the final swap fails,
+it is put back.
 
 With ``resume`` (the stage's provenance record) the partial output is named after that record,
 ``.NAME.resume-KEY``, so a rerun of the same command after the stage was killed (``kill -9``,
@@ -36,6 +38,7 @@ guarantees take another protocol, written down in docs/cluster-and-storage.md:
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -172,7 +175,36 @@ def atomic_output(path: str | os.PathLike, *, directory: bool, overwrite: bool =
         yield from _fill(_sibling(path, "partial"), path, shown, directory)
         return
     with output_lock(str(path), str(shown)):
-        yield from _fill(_resumable(path, resume), path, shown, directory)
+        yield from _fill(_resumable(path, resume), path, shown, directory, resumable=True)
+
+
+def _disk_full(exc: BaseException, folder: Path) -> str | None:
+    """What a full disk in ``exc`` (or an error it came from) says, if it is one; else None.
+
+    E.g. ``no space left on the disk of /data (0.4 MiB free)``.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        code = exc.errno if isinstance(exc, OSError) else None
+        if code is None:  # libraries that say it in words (OpenEXR's RuntimeError)
+            code = next((c for c in (errno.ENOSPC, errno.EDQUOT) if os.strerror(c) in str(exc)),
+                        None)
+        if code in (errno.ENOSPC, errno.EDQUOT):
+            what = "no space left" if code == errno.ENOSPC else "the disk quota is exceeded"
+            try:
+                free = f" ({shutil.disk_usage(folder).free / 2**20:.1f} MiB free)"
+            except OSError:
+                free = ""
+            return f"{what} on the disk of {folder}{free}"
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _size(path: Path) -> str:
+    """Bytes under ``path``, for a message."""
+    total = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return f"{total / 2**20:.1f} MiB"
 
 
 def write_whole(out: str, data: bytes, overwrite: bool) -> None:
@@ -191,15 +223,28 @@ def write_whole(out: str, data: bytes, overwrite: bool) -> None:
     storage.write(location, data)
 
 
-def _fill(tmp: Path, path: Path, shown: Path, directory: bool) -> Iterator[Path]:
-    """The body of :func:`atomic_output` once ``tmp`` is chosen: yield it, then swap."""
+def _fill(tmp: Path, path: Path, shown: Path, directory: bool, *,
+          resumable: bool = False) -> Iterator[Path]:
+    """The body of :func:`atomic_output` once ``tmp`` is chosen: yield it, then swap.
+
+    A full disk (or quota) is one message; a ``resumable`` partial output is then kept, so that
+    the same command continues once space is freed.
+    """
     try:
         yield tmp
     except BaseException as exc:
+        full = _disk_full(exc, path.parent)
+        if full and resumable:
+            raise BTFError(f"{shown}: {full} while writing it; the work done so far is kept "
+                           f"in {tmp} ({_size(tmp)}): free space and run the same command "
+                           "again to continue where it stopped") from None
         try:
             _remove(tmp)
         except OSError as err:
             exc.add_note(f"the partial output {tmp} could not be removed: {err}")
+        if full:
+            raise BTFError(f"{shown}: {full} while writing it; nothing was written (an output "
+                           "already there is untouched): free space and run it again") from None
         raise
     if not tmp.exists():
         raise BTFError(f"{shown}: the stage finished without writing its output")

@@ -12,7 +12,8 @@ block), so a resumed output is bit-identical to an uninterrupted one. The marker
 before the output is moved into place.
 
 An interrupt (Ctrl-C) or an error still removes the partial output: resuming is for runs that
-were killed before they could clean up.
+were killed before they could clean up, and for a full disk, which keeps it
+(:mod:`pipeline.atomic`).
 """
 
 from __future__ import annotations

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import pytest
+import zarr
 
 from helpers import generate_store
 from pipeline.atomic import atomic_output
@@ -149,3 +151,54 @@ def test_a_second_run_of_the_same_resumable_output_is_refused_while_the_first_wr
         assert tmp.parent == tmp_path  # the first run's partial output is untouched
         tmp.mkdir()
     assert out.is_dir() and not list(tmp_path.glob(".o.zarr.lock"))  # the lock goes too
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MiB tmpfs at ``tmp_path/disk``, unmounted at the end; skipped where mounting is not
+    allowed (it needs root, or CAP_SYS_ADMIN in a container)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+WOOD = ("--material", "wood", "--sampling", "hemi:4", "--seed", "2")
+
+
+def test_a_full_disk_is_one_message_and_a_resumable_run_continues_once_space_is_freed(
+        tmp_path, btf, small_disk):
+    old = generate_store(small_disk / "g.zarr", *WOOD, "--size", "32")
+    before = _files(old)
+    full = btf("generate", old, *WOOD, "--size", "256", "--overwrite")
+    assert full.code == 1 and "Traceback" not in full.err
+    assert f"no space left on the disk of {small_disk}" in full.err, full.err
+    assert "free space and run the same command again to continue" in full.err
+    assert _files(old) == before  # the previous output untouched
+    (partial,) = small_disk.glob(".g.resume-*.zarr")  # the work done so far, kept
+    subprocess.run(["mount", "-o", "remount,size=64m", str(small_disk)], check=True)
+    again = btf("generate", old, *WOOD, "--size", "256", "--overwrite")
+    assert again.code == 0 and "resuming an interrupted run" in again.err, again.err
+    assert not partial.exists()
+    reference = generate_store(tmp_path / "ref.zarr", *WOOD, "--size", "256")
+    assert zarr.open_group(old, mode="r")["radiance"][...].tobytes() == \
+        zarr.open_group(reference, mode="r")["radiance"][...].tobytes()
+
+
+def test_a_full_disk_under_an_output_that_cannot_resume_leaves_nothing(tmp_path, btf,
+                                                                        small_disk):
+    store = generate_store(tmp_path / "g.zarr", *WOOD, "--size", "256")
+    full = btf("export", store, small_disk / "layers", "--format", "exr")
+    assert full.code == 1 and "Traceback" not in full.err
+    assert f"no space left on the disk of {small_disk}" in full.err, full.err
+    assert "nothing was written" in full.err
+    assert list(small_disk.iterdir()) == []
