@@ -101,11 +101,35 @@ class ObjectLock:
                            "boot": _boot_id(), "started": _started(os.getpid())}).encode()
 
     def _put(self, mode):
+        """One conditional write of the lock, retried while the server does not answer.
+
+        obstore does not retry a conditional write whose request may have reached the server
+        (it is not idempotent), so this does, within the retry settings' time
+        (:func:`pipeline.storage.retry_settings`). A retry that meets its own earlier write
+        (the answer was lost on the way back) finds the lock holding this run's owner tag.
+        """
         import obstore
+        import obstore.exceptions as oe
 
         bucket, key = storage._bucket(self.url)
-        with storage._guard(self.shown):
-            return obstore.put(bucket, key, self._body(), mode=mode)
+        deadline = time.monotonic() + storage.retry_settings()[1]
+        wait, retried = 0.1, False
+        while True:
+            with storage._guard(self.shown):  # conditions lost pass through it
+                try:
+                    return obstore.put(bucket, key, self._body(), mode=mode)
+                except (oe.AlreadyExistsError, oe.PreconditionError):
+                    if not retried:
+                        raise
+                    held = obstore.get(bucket, key)
+                    if json.loads(bytes(held.bytes())).get("owner") != self.owner:
+                        raise
+                    return held.meta
+                except (oe.BaseError, OSError) as exc:
+                    if not storage.unreachable(exc) or time.monotonic() + wait > deadline:
+                        raise
+            time.sleep(wait)
+            wait, retried = min(2 * wait, 5.0), True
 
     def __enter__(self) -> ObjectLock:
         import obstore

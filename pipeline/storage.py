@@ -102,20 +102,44 @@ ENVIRONMENT = ("AWS_ENDPOINT_URL", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY",
 
 
 def _environment() -> tuple:
-    """The variables obstore configures itself from (stores are cached per their values)."""
-    return tuple(os.environ.get(k) for k in ENVIRONMENT)
+    """What a store is configured from: obstore's variables and the retry settings.
+
+    Stores are cached per these values.
+    """
+    return (*(os.environ.get(k) for k in ENVIRONMENT), *retry_settings())
+
+
+MAX_RETRIES = 100  # retries of a failed request (5xx, timeouts, resets, refused connections)
+RETRY_TIMEOUT = 60.0  # seconds after a request's first try when no more retries are made
+
+
+def retry_settings() -> tuple[int, float]:
+    """Retries of an object-store request and the seconds within which they are made.
+
+    The dask options ``btf.object-store.max-retries`` (default 100) and
+    ``btf.object-store.retry-timeout`` (seconds, default 60), e.g.
+    ``DASK_BTF__OBJECT_STORE__RETRY_TIMEOUT=300``. Waits between retries grow from 0.1 s up to
+    5 s with jitter (obstore's backoff: 10 retries took 7.4 s here, 30 took 9.2 s), so with the
+    defaults the time bounds the retries: a request rides out an outage of the server of up
+    to a minute, and an endpoint that never answers fails after as long.
+    """
+    import dask
+
+    return (int(dask.config.get("btf.object-store.max-retries", MAX_RETRIES)),
+            float(dask.config.get("btf.object-store.retry-timeout", RETRY_TIMEOUT)))
 
 
 def _options() -> dict:
-    """Connection and retry settings: a dead endpoint fails in seconds, not minutes."""
+    """Connection and retry settings (:func:`retry_settings`): obstore's own retries."""
     from datetime import timedelta
 
+    retries, timeout = retry_settings()
     allow_http = os.environ.get("AWS_ALLOW_HTTP", "").lower() in ("1", "true", "yes")
     return {"client_options": {"connect_timeout": timedelta(seconds=5),
                                "timeout": timedelta(seconds=120), "allow_http": allow_http},
-            "retry_config": {"max_retries": 4, "backoff": {"init_backoff": timedelta(
+            "retry_config": {"max_retries": retries, "backoff": {"init_backoff": timedelta(
                 milliseconds=100), "max_backoff": timedelta(seconds=5), "base": 2},
-                             "retry_timeout": timedelta(seconds=30)}}
+                             "retry_timeout": timedelta(seconds=timeout)}}
 
 
 @functools.lru_cache(maxsize=16)
@@ -133,6 +157,14 @@ def bucket_store(scheme: str, bucket: str):
 def _bucket(url: str) -> tuple[object, str]:
     scheme, bucket, key = _split(url)
     return bucket_store(scheme, bucket), key
+
+
+def unreachable(exc: BaseException) -> bool:
+    """Whether an object-store error is the server not answering (a transport failure)."""
+    full = str(exc)
+    first = full.split("\n", 1)[0].lower()
+    return ("error sending request" in full.lower() or "connect" in first or "dns" in first
+            or "timed out" in full.lower() or "reset" in first)
 
 
 def explain(url: str, exc: BaseException) -> BTFError:
@@ -157,8 +189,7 @@ def explain(url: str, exc: BaseException) -> BTFError:
             or "403 Forbidden" in full:
         cause = ("permission denied: these credentials may not do this here (AWS_ACCESS_KEY_ID, "
                  "the bucket's policy)")
-    elif "error sending request" in full.lower() or "connect" in first.lower() \
-            or "dns" in first.lower() or "timed out" in full.lower():
+    elif unreachable(exc):
         cause = f"cannot reach the object store at {endpoint}"
     else:
         cause = first

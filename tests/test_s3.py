@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import dask
 import numpy as np
 import pytest
 import zarr
@@ -223,6 +224,28 @@ def test_a_swap_cut_short_is_finished_by_the_next_run(btf, s3, monkeypatch):
     _same(url, s3.url("swap/two.zarr"))
 
 
+def test_a_run_rides_out_a_10_s_outage_of_the_object_store(tmp_path, btf, s3, monkeypatch):
+    """Every connection reset, and every new one, for 10 s in the middle of the writes: the
+    run waits it out (obstore's retries) and writes the same store as without the outage."""
+    from urllib.parse import urlparse
+
+    from benchmarks.faultproxy import FlakyProxy
+
+    server = urlparse(s3.endpoint)
+    url = s3.url("flaky/wood.zarr")
+    with FlakyProxy((server.hostname, server.port), after_requests=12, seconds=10) as proxy:
+        monkeypatch.setenv("AWS_ENDPOINT_URL", proxy.endpoint)
+        start = time.monotonic()
+        result = btf("generate", url, *GEN, "--quiet")
+        took = time.monotonic() - start
+        assert result.code == 0, result.err
+        assert len(proxy.outages) == 1 and proxy.reset > 0  # the outage happened, mid-run
+        assert took >= 10, took
+    monkeypatch.setenv("AWS_ENDPOINT_URL", s3.endpoint)
+    assert btf("generate", tmp_path / "wood.zarr", *GEN, "--quiet").code == 0
+    _same(tmp_path / "wood.zarr", url)
+
+
 @pytest.mark.parametrize("case", ["unreachable", "bucket", "credentials", "permission"])
 def test_bad_object_storage_stops_with_the_url_and_the_cause(btf, s3, monkeypatch, case):
     from benchmarks.s3server import READER_KEY, READER_SECRET
@@ -241,7 +264,10 @@ def test_bad_object_storage_stops_with_the_url_and_the_cause(btf, s3, monkeypatc
         monkeypatch.setenv("AWS_ACCESS_KEY_ID", READER_KEY)
         monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", READER_SECRET)
         cause = "permission denied"
-    result = btf("generate", url, *GEN, "--quiet")
+    # one retry where nothing answers: the defaults retry for about 30 s
+    retries = {"btf.object-store.max-retries": 1} if case == "unreachable" else {}
+    with dask.config.set(retries):
+        result = btf("generate", url, *GEN, "--quiet")
     assert result.code == 1 and f"{url}: {cause}" in result.err, result.err
     assert result.err.count("\n") == 1  # one message
     monkeypatch.undo()
