@@ -3,13 +3,15 @@
 A stage that may be resumed writes into a partial output named after its provenance
 (:func:`pipeline.atomic.atomic_output` with ``resume``), so a rerun of the same command after a
 ``kill -9`` or the out-of-memory killer finds it again. (Chunk files are not fsynced: after a
-power loss a marker may outlive its unit's data, so resuming is for killed processes, not for
-crashed machines.) One run at a time writes a partial output: it holds a lock on it. Inside it,
-:class:`Progress` keeps one empty marker file per finished unit of work (a block of a store, a
-pass of the SVD) in ``.btf-done/``. A marker is written only after its unit's data is written,
-so a unit cut off in the middle is simply done again; units are deterministic (seeded per
-block), so a resumed output is bit-identical to an uninterrupted one. The markers are removed
-before the output is moved into place.
+power loss a marker may outlive its unit's data. Blocks written by
+:func:`pipeline.graphs.blocks.store_aligned` are read back and written again if a chunk fails
+its checksum, see :meth:`Progress.pending`; other units are trusted, so resuming them is for
+killed processes, not for crashed machines.) One run at a time writes a partial output: it
+holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished unit
+of work (a block of a store, a pass of the SVD) in ``.btf-done/``. A marker is written only
+after its unit's data is written, so a unit cut off in the middle is simply done again; units
+are deterministic (seeded per block), so a resumed output is bit-identical to an uninterrupted
+one. The markers are removed before the output is moved into place.
 
 An interrupt (Ctrl-C) or an error still removes the partial output: resuming is for runs that
 were killed before they could clean up, and for a full disk, which keeps it
@@ -77,17 +79,20 @@ class Progress:
         """Finished units (the skeleton aside)."""
         return len(self._names() - {CREATED})
 
-    def pending(self, units: Iterable[tuple[str, Any]]) -> tuple[list, int]:
+    def pending(self, units: Iterable[tuple[str, Any]],
+                intact: Callable[[str], bool] | None = None) -> tuple[list, int]:
         """Delayed ``units`` (``(name, delayed)``) not yet done, each marking itself when done.
 
-        Returns them and how many were already done.
+        With ``intact(name)``, a unit marked done whose data no longer reads back whole (a
+        chunk failing its checksum: a crash of the machine can leave a marker whose chunks
+        never reached the disk) is done again. Returns the units and how many were kept.
         """
         import dask
 
         finished = self._names()  # one look at the markers
         todo, skipped = [], 0
         for name, unit in units:
-            if _file(name) in finished:
+            if _file(name) in finished and (intact is None or intact(name)):
                 skipped += 1
                 continue
             todo.append(dask.delayed(_keep, pure=True)(unit, storage.join(self.dir,

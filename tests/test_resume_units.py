@@ -100,3 +100,38 @@ def test_ingest_resumes_with_the_images_and_blocks_left(tmp_path, monkeypatch, c
     _crash_then_resume(tmp_path / "i", monkeypatch, capsys,
                        lambda out: ["ingest", str(layers), str(out), "--chunk", "8",
                                     "--scheduler", "synchronous"], ("radiance",))
+
+
+def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch, small_tasks):
+    """A marker whose data did not survive (a machine crash, bit rot) is not trusted."""
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    assert main(["generate", str(ref), *GENERATE, "--quiet"]) == 0
+    original, written, crash = blocks._write_block, [], [True]
+
+    def write(block, target, region):
+        if crash[0] and len(written) >= 3:
+            raise Crash("killed")
+        original(block, target, region)
+        written.append((target.path, tuple((r.start, r.stop) for r in region)))
+
+    monkeypatch.setattr(blocks, "_write_block", write)
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main(["generate", str(out), *GENERATE, "--quiet"])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    kept, crash[0] = list(written), False
+    written.clear()
+    name, region = kept[0]
+    chunks = zarr.open_array(ref / name).chunks
+    chunk = partial / name / "c" / "/".join(str(a // c) for (a, _), c in zip(region, chunks,
+                                                                            strict=True))
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    assert main(["generate", str(out), *GENERATE, "--quiet"]) == 0
+    assert (name, region) in written  # the damaged block, written again
+    assert not set(kept[1:]) & set(written)  # the intact ones kept
+    names = ("radiance", "height", "albedo")
+    expected, got = _arrays(ref, names), _arrays(out, names)
+    for n in names:
+        assert np.array_equal(expected[n], got[n]), n

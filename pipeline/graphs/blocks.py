@@ -97,7 +97,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                 )
     if progress is None and keep is None:
         return da.store(sources, targets, lock=False, compute=False)
-    units = []
+    units, regions = [], {}
     # optimised together, as da.store would: work the sources share stays shared
     for source, target in zip(dask.optimize(*sources), targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
@@ -108,10 +108,25 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
             if keep is not None and not keep(region):
                 continue
             name = f"{target.path}/{'.'.join(map(str, index))}"
+            regions[name] = (target, region)
             units.append((name, dask.delayed(_write_block, pure=False)(blocks[index], target,
                                                                         region)))
-    todo = progress.pending(units)[0] if progress is not None else [w for _, w in units]
+    if progress is None:
+        todo = [w for _, w in units]
+    else:
+        todo = progress.pending(units, intact=lambda name: _intact(*regions[name]))[0]
     return dask.delayed(_count, pure=False)(todo)
+
+
+def _intact(target, region: tuple[slice, ...]) -> bool:
+    """Whether a block a killed run wrote reads back: every chunk passes its checksum."""
+    from pipeline.checksums import ChecksumError
+
+    try:
+        target[region]
+    except ChecksumError:
+        return False
+    return True
 
 
 def _write_block(block: np.ndarray, target, region: tuple[slice, ...]) -> None:
