@@ -5,13 +5,13 @@ A stage that may be resumed writes into a partial output named after its provena
 ``kill -9`` or the out-of-memory killer finds it again. (Chunk files are not fsynced: after a
 power loss a marker may outlive its unit's data. Blocks written by
 :func:`pipeline.graphs.blocks.store_aligned` are read back and written again if a chunk fails
-its checksum, see :meth:`Progress.pending`; other units are trusted, so resuming them is for
-killed processes, not for crashed machines.) One run at a time writes a partial output: it
-holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished unit
-of work (a block of a store, a pass of the SVD) in ``.btf-done/``. A marker is written only
-after its unit's data is written, so a unit cut off in the middle is simply done again; units
-are deterministic (seeded per block), so a resumed output is bit-identical to an uninterrupted
-one. The markers are removed before the output is moved into place.
+its checksum (``redo`` of :meth:`Progress.pending`); other units are trusted, so resuming them
+is for killed processes, not for crashed machines.) One run at a time writes a partial output:
+it holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished
+unit of work (a block of a store, a pass of the SVD) in ``.btf-done/``. A marker is written
+only after its unit's data is written, so a unit cut off in the middle is simply done again;
+units are deterministic (seeded per block), so a resumed output is bit-identical to an
+uninterrupted one. The markers are removed before the output is moved into place.
 
 An interrupt (Ctrl-C) or an error still removes the partial output: resuming is for runs that
 were killed before they could clean up, and for a full disk, which keeps it
@@ -79,20 +79,25 @@ class Progress:
         """Finished units (the skeleton aside)."""
         return len(self._names() - {CREATED})
 
-    def pending(self, units: Iterable[tuple[str, Any]],
-                intact: Callable[[str], bool] | None = None) -> tuple[list, int]:
+    def finished(self, names: Iterable[str]) -> list[str]:
+        """Those of unit ``names`` that are marked done."""
+        done = self._names()
+        return [n for n in names if _file(n) in done]
+
+    def pending(self, units: Iterable[tuple[str, Any]], redo: Iterable[str] = ()
+                ) -> tuple[list, int]:
         """Delayed ``units`` (``(name, delayed)``) not yet done, each marking itself when done.
 
-        With ``intact(name)``, a unit marked done whose data no longer reads back whole (a
-        chunk failing its checksum: a crash of the machine can leave a marker whose chunks
-        never reached the disk) is done again. Returns the units and how many were kept.
+        Units named in ``redo`` are done again even if marked done (their data did not read
+        back: a crash of the machine can leave a marker whose chunks never reached the disk).
+        Returns the units and how many were kept.
         """
         import dask
 
-        finished = self._names()  # one look at the markers
+        finished = self._names() - {_file(n) for n in redo}  # one look at the markers
         todo, skipped = [], 0
         for name, unit in units:
-            if _file(name) in finished and (intact is None or intact(name)):
+            if _file(name) in finished:
                 skipped += 1
                 continue
             todo.append(dask.delayed(_keep, pure=True)(unit, storage.join(self.dir,

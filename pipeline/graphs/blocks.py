@@ -113,8 +113,12 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                                                                         region)))
     if progress is None:
         todo = [w for _, w in units]
-    else:
-        todo = progress.pending(units, intact=lambda name: _intact(*regions[name]))[0]
+    else:  # read back what a killed run kept, on threads here: redo blocks that do not read
+        kept = progress.finished(regions)
+        whole = dask.compute(*(dask.delayed(_intact)(*regions[n]) for n in kept),
+                             scheduler="threads")
+        todo = progress.pending(units, redo=[n for n, ok in zip(kept, whole, strict=True)
+                                             if not ok])[0]
     return dask.delayed(_count, pure=False)(todo)
 
 
