@@ -26,7 +26,7 @@ class FlakyProxy:
                  seconds: float = 10.0):
         self.target, self.after, self.seconds = target, after_requests, seconds
         self.requests, self.outages, self.reset = 0, [], 0
-        self._down_until = 0.0
+        self._down_until, self._tripped = 0.0, False
         self._lock = threading.Lock()
         self._open: set[socket.socket] = set()
         self._listener = socket.create_server(("127.0.0.1", 0))
@@ -44,9 +44,9 @@ class FlakyProxy:
             self._down_until = time.monotonic() + seconds
             self.outages.append((time.time(), seconds))
             doomed, self._open = list(self._open), set()
+            self.reset += len(doomed)
         for s in doomed:
             _reset(s)
-            self.reset += 1
 
     def close(self) -> None:
         """Stop accepting and close every connection."""
@@ -69,9 +69,11 @@ class FlakyProxy:
                 client, _ = self._listener.accept()
             except OSError:
                 return
-            if time.monotonic() < self._down_until:
+            with self._lock:
+                down = time.monotonic() < self._down_until
+                self.reset += down
+            if down:
                 _reset(client)
-                self.reset += 1
                 continue
             try:
                 upstream = socket.create_connection(self.target, timeout=5)
@@ -88,9 +90,12 @@ class FlakyProxy:
     def _pump(self, source: socket.socket, sink: socket.socket, from_client: bool) -> None:
         try:
             while data := source.recv(65536):
-                if from_client and self.after is not None and not self.outages:
-                    self.requests += len(_REQUEST.findall(data))
-                    if self.requests >= self.after:
+                if from_client and self.after is not None:
+                    with self._lock:  # pumps of several connections count together
+                        self.requests += len(_REQUEST.findall(data))
+                        due = not self._tripped and self.requests >= self.after
+                        self._tripped |= due
+                    if due:
                         self.outage(self.seconds)
                         return
                 sink.sendall(data)
