@@ -104,7 +104,7 @@ class ObjectLock:
         """One conditional write of the lock, retried while the server does not answer.
 
         obstore does not retry a conditional write whose request may have reached the server
-        (it is not idempotent), so this does, within the retry settings' time
+        (it is not idempotent), so this does, within the retry settings' count and time
         (:func:`pipeline.storage.retry_settings`). A retry that meets its own earlier write
         (the answer was lost on the way back) finds the lock holding this run's owner tag.
         """
@@ -112,8 +112,9 @@ class ObjectLock:
         import obstore.exceptions as oe
 
         bucket, key = storage._bucket(self.url)
-        deadline = time.monotonic() + storage.retry_settings()[1]
-        wait, retried = 0.1, False
+        retries, timeout = storage.retry_settings()
+        deadline = time.monotonic() + timeout
+        wait, retried = 0.1, 0
         while True:
             with storage._guard(self.shown):  # conditions lost pass through it
                 try:
@@ -126,10 +127,11 @@ class ObjectLock:
                         raise
                     return held.meta
                 except (oe.BaseError, OSError) as exc:
-                    if not storage.unreachable(exc) or time.monotonic() + wait > deadline:
+                    if (not storage.unreachable(exc) or retried >= retries
+                            or time.monotonic() + wait > deadline):
                         raise
             time.sleep(wait)
-            wait, retried = min(2 * wait, 5.0), True
+            wait, retried = min(2 * wait, 5.0), retried + 1
 
     def __enter__(self) -> ObjectLock:
         import obstore
