@@ -101,7 +101,7 @@ def _kill_and_resume(tmp_path: Path, args, arrays: tuple[str, ...], *, mark: str
 
 def test_generate_resumes_after_kill_9(tmp_path):
     def args(out):
-        return ["generate", out, "--material", "wood", "--size", "768", "--sampling",
+        return ["generate", out, "--material", "wood", "--size", "384", "--sampling",
                 "abtf:12,4", "--chunk", "64", "--seed", "3"]
 
     _kill_and_resume(tmp_path, args, ("radiance", "height", "albedo", "roughness", "specular"),
@@ -110,16 +110,16 @@ def test_generate_resumes_after_kill_9(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def wood768(tmp_path_factory) -> Path:
+def wood384(tmp_path_factory) -> Path:
     """The generate test's store, made once for the three compress tests (never written)."""
-    return generate_store(tmp_path_factory.mktemp("wood768") / "s.zarr", "--material", "wood",
-                          "--size", "768", "--sampling", "abtf:12,4", "--chunk", "64",
+    return generate_store(tmp_path_factory.mktemp("wood384") / "s.zarr", "--material", "wood",
+                          "--size", "384", "--sampling", "abtf:12,4", "--chunk", "64",
                           "--seed", "3")
 
 
 @pytest.mark.parametrize("sketch", ["texels", "rows", "one pass"])
-def test_compress_resumes_after_kill_9(tmp_path, sketch, wood768):
-    src = wood768
+def test_compress_resumes_after_kill_9(tmp_path, sketch, wood384):
+    src = wood384
     # one pass: the sketch (its scratch kept in the partial output), V from it, verification
     mode = (["--passes", "1", "--oversample", "17"] if sketch == "one pass"
             else ["--power-iters", "4", "--sketch", sketch])
@@ -133,11 +133,11 @@ def test_compress_resumes_after_kill_9(tmp_path, sketch, wood768):
 
 def test_quilt_resumes_after_kill_9(tmp_path):
     src = generate_store(tmp_path / "s.zarr", "--material", "wood", "--size", "256",
-                         "--sampling", "abtf:24,8", "--chunk", "64", "--dir-chunk", "4",
+                         "--sampling", "abtf:12,4", "--chunk", "64", "--dir-chunk", "4",
                          "--seed", "3")
 
     def args(out):
-        return ["quilt", src, out, "--block", "32", "--overlap", "8", "--size", "480,480"]
+        return ["quilt", src, out, "--block", "32", "--overlap", "8", "--size", "240,240"]
 
     _kill_and_resume(tmp_path, args, ("radiance",), mark="applying", resumed_says="resuming:",
                      seed=3)
