@@ -230,7 +230,7 @@ def test_a_photo_renders_the_same_in_one_block_or_many(tmp_path, monkeypatch):
     write_exr(photo, pixels, ("R", "G", "B"))
     args = ("--albedo", photo, "--sampling", "hemi:3", "--chunk", "8")
     one = generate_store(tmp_path / "one.zarr", *map(str, args))
-    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 8)
+    monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 16)
     many = generate_store(tmp_path / "many.zarr", *map(str, args))
     a, b = _arrays(one), _arrays(many)
     for name in VARIABLES:

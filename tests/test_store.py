@@ -152,7 +152,7 @@ def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler, sha
     group = _create(tmp_path / "s.zarr", ny=70, nx=52)
     shape = group[RADIANCE].shape
     data = da.from_array(_values(shape), chunks=aligned_chunks(group[RADIANCE]))
-    with dask.config.set(scheduler=scheduler, num_workers=4):
+    with dask.config.set(scheduler=scheduler, num_workers=2):
         dask.compute(store_aligned([data], [group[RADIANCE]]))
     assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], _values(shape))
 
