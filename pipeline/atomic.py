@@ -403,7 +403,9 @@ def _fill_object(tmp: str, shown: str, *, in_place: bool = False) -> Iterator[st
     except BaseException as exc:
         try:
             storage.remove(tmp)
-            if in_place:
+            # the record goes only with the last object: what is left (a write that landed
+            # after the removal listed the prefix) stays btf's, for the next run to remove
+            if in_place and not storage.any_below(tmp):
                 storage.remove(_record(tmp))
         except BTFError as err:
             exc.add_note(f"the partial output {tmp} could not be removed: {err}")

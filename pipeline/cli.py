@@ -251,6 +251,14 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into a program that stopped reading (e.g. head)
         sys.stderr.close()
         return 0
+    except Exception as exc:  # object storage failing inside zarr's chunk I/O: one message
+        from pipeline.storage import explain_request
+
+        named = explain_request(exc)
+        if named is None:
+            raise
+        print(f"btf {command}: error: {named}", file=sys.stderr)
+        return 1
 
 
 def _status(exc: SystemExit) -> int:

@@ -109,19 +109,22 @@ def _environment() -> tuple:
     return (*(os.environ.get(k) for k in ENVIRONMENT), *retry_settings())
 
 
-MAX_RETRIES = 100  # retries of a failed request (5xx, timeouts, resets, refused connections)
+# retries of a failed request (5xx, timeouts, resets, refused connections): so many that the
+# time bounds them (a refused connection fails at once: 100 retries took 31 s, not a minute)
+MAX_RETRIES = 10_000
 RETRY_TIMEOUT = 60.0  # seconds after a request's first try when no more retries are made
 
 
 def retry_settings() -> tuple[int, float]:
     """Retries of an object-store request and the seconds within which they are made.
 
-    The dask options ``btf.object-store.max-retries`` (default 100) and
+    The dask options ``btf.object-store.max-retries`` (default 10,000) and
     ``btf.object-store.retry-timeout`` (seconds, default 60), e.g.
     ``DASK_BTF__OBJECT_STORE__RETRY_TIMEOUT=300``. Waits between retries grow from 0.1 s up to
-    5 s with jitter (obstore's backoff: 10 retries took 7.4 s here, 30 took 9.2 s), so with the
-    defaults the time bounds the retries: a request rides out an outage of the server of up
-    to a minute, and an endpoint that never answers fails after as long.
+    5 s with jitter (obstore's backoff, which may draw short waits: 100 retries of a refused
+    connection took 31 s here), so with the defaults the time bounds the retries: a request
+    rides out an outage of the server of up to a minute, and an endpoint that never answers
+    fails after as long.
     """
     import dask
 
@@ -194,6 +197,25 @@ def explain(url: str, exc: BaseException) -> BTFError:
     else:
         cause = first
     return BTFError(f"{url}: {cause}")
+
+
+_REQUEST = re.compile(r"\b(?:GET|PUT|POST|DELETE|HEAD) (https?://\S+?)(?: in |$)", re.M)
+
+
+def explain_request(exc: BaseException) -> BTFError | None:
+    """An obstore error raised where no URL was at hand (zarr's chunk I/O), as one message.
+
+    The URL is the request's from the error's text, as ``s3://BUCKET/KEY`` when it is on
+    ``AWS_ENDPOINT_URL`` (path-style); None for other errors.
+    """
+    if not type(exc).__module__.startswith("obstore"):
+        return None
+    found = _REQUEST.search(str(exc))
+    url = found.group(1) if found else "object storage"
+    endpoint = os.environ.get("AWS_ENDPOINT_URL", "").rstrip("/")
+    if endpoint and url.startswith(endpoint + "/"):
+        url = "s3://" + url[len(endpoint) + 1:]
+    return explain(url, exc)
 
 
 def _guard(url: str):

@@ -224,6 +224,63 @@ def test_a_swap_cut_short_is_finished_by_the_next_run(btf, s3, monkeypatch):
     _same(url, s3.url("swap/two.zarr"))
 
 
+def test_a_write_landing_after_a_failed_run_s_cleanup_is_removed_by_the_next_run(btf, s3,
+                                                                                 monkeypatch):
+    """A failed run's cleanup lists and removes its partial output; a write still in flight
+    (a retry that got through once the server was back) can land after it. The record that
+    marks the prefix as btf's stays while anything is left, so the next run removes the rest
+    rather than refusing a prefix it takes for someone else's (the fault campaign found it)."""
+    import pipeline.stages.generate as gen
+
+    url = s3.url("late/wood.zarr")
+    real_remove = storage.remove
+    def remove_then_late_write(location):
+        real_remove(location)
+        if location == url:
+            storage.write(storage.join(url, "radiance/c/9/9/9/9/9"), b"late")
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("the object store went away")
+
+    monkeypatch.setattr(storage, "remove", remove_then_late_write)
+    monkeypatch.setattr(gen, "render_block", failing)
+    from pipeline.cli import main
+
+    with pytest.raises(RuntimeError, match="went away"):
+        main(["generate", url, *GEN, "--quiet"])
+    monkeypatch.undo()
+    for key, value in s3.environment.items():
+        monkeypatch.setenv(key, value)
+    assert storage.any_below(url)  # the late write is there, and so is the record
+    assert storage.read(storage.join(storage.parent(url), ".wood.zarr.record")) is not None
+    again = btf("generate", url, *GEN, "--quiet")
+    assert again.code == 0, again.err
+    assert btf("generate", s3.url("late/two.zarr"), *GEN, "--quiet").code == 0
+    _same(url, s3.url("late/two.zarr"))
+
+
+def test_an_object_store_error_inside_zarr_is_one_message_with_the_object_s_url(tmp_path, btf,
+                                                                                monkeypatch):
+    import obstore.exceptions as oe
+
+    import pipeline.stages.generate as gen
+
+    monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:9")
+    text = ("Generic S3 error: Error performing PUT http://127.0.0.1:9/btf/x.zarr/radiance/c/0/1"
+            " in 30.9s, after 100 retries, max_retries: 100, retry_timeout: 60s  - HTTP error: "
+            "error sending request\n\nDebug source:\nGeneric {...}")
+
+    def down(*args, **kwargs):
+        raise oe.GenericError(text)
+
+    monkeypatch.setattr(gen, "render_block", down)
+    result = btf("generate", tmp_path / "x.zarr", *GEN, "-q")
+    assert result.code == 1 and not list(tmp_path.iterdir())
+    assert result.err == ("btf generate: error: s3://btf/x.zarr/radiance/c/0/1: cannot reach "
+                          "the object store at http://127.0.0.1:9\n"), result.err
+    assert storage.explain_request(RuntimeError(text)) is None  # only obstore's errors
+
+
 def test_a_run_rides_out_a_10_s_outage_of_the_object_store(tmp_path, btf, s3, monkeypatch):
     """Every connection reset, and every new one, for 10 s in the middle of the writes: the
     run waits it out (obstore's retries) and writes the same store as without the outage."""
