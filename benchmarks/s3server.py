@@ -17,7 +17,7 @@ import socket
 import subprocess
 import time
 import urllib.request
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 KEY, SECRET = "btf-test-key", "btf-test-secret"
@@ -62,6 +62,7 @@ class S3Server:
     bucket: str
     process: subprocess.Popen
     folder: Path
+    command: list[str] = field(default_factory=list)  # what started it (for resume)
 
     @property
     def environment(self) -> dict[str, str]:
@@ -81,6 +82,37 @@ class S3Server:
             self.process.wait()
         shutil.rmtree(self.folder, ignore_errors=True)
 
+    def halt(self) -> None:
+        """Stop the server as an operator's restart does (SIGTERM), keeping its data."""
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+    def resume(self) -> None:
+        """Start a halted server again, on the same ports and data, and wait until it answers."""
+        with (self.folder / "weed.log").open("a") as log:
+            self.process = subprocess.Popen(self.command, stdout=log, stderr=log,
+                                            env=dict(os.environ))
+        _wait_until_up(self)
+
+
+def _wait_until_up(server: S3Server) -> None:
+    deadline = time.monotonic() + 60
+    while True:  # anonymous requests are refused (403) once the gateway is up
+        try:
+            urllib.request.urlopen(server.endpoint, timeout=1)
+        except urllib.error.HTTPError:
+            return
+        except OSError as exc:
+            if server.process.poll() is not None or time.monotonic() > deadline:
+                server.stop()
+                raise RuntimeError(f"weed server did not start: see {server.folder / 'weed.log'}"
+                                   ) from exc
+            time.sleep(0.3)
+
 
 def start(folder: Path, bucket: str = "btf") -> S3Server:
     """Start a server with its data in ``folder`` and make ``bucket``."""
@@ -94,28 +126,16 @@ def start(folder: Path, bucket: str = "btf") -> S3Server:
                                             "secretKey": READER_SECRET}],
          "actions": ["Read", "List"]}]}))
     env = dict(os.environ)
+    command = [weed_binary(), "server", f"-dir={folder / 'data'}", "-ip=127.0.0.1",
+               "-ip.bind=127.0.0.1", f"-master.port={master}", f"-volume.port={volume}",
+               f"-filer.port={filer}", "-s3", f"-s3.port={s3}", f"-s3.port.iceberg={iceberg}",
+               f"-s3.port.lance={lance}", f"-s3.config={config}", "-s3.autoCreateBucket=false",
+               "-master.telemetry=false", "-master.volumeSizeLimitMB=64", "-volume.max=0"]
     with (folder / "weed.log").open("w") as log:  # the server keeps its own descriptor
-        process = subprocess.Popen(
-            [weed_binary(), "server", f"-dir={folder / 'data'}", "-ip=127.0.0.1",
-             "-ip.bind=127.0.0.1", f"-master.port={master}", f"-volume.port={volume}",
-             f"-filer.port={filer}", "-s3", f"-s3.port={s3}", f"-s3.port.iceberg={iceberg}",
-             f"-s3.port.lance={lance}", f"-s3.config={config}", "-s3.autoCreateBucket=false",
-             "-master.telemetry=false", "-master.volumeSizeLimitMB=64", "-volume.max=0"],
-            stdout=log, stderr=log, env=env)
+        process = subprocess.Popen(command, stdout=log, stderr=log, env=env)
     (folder / "data").mkdir(exist_ok=True)
-    server = S3Server(f"http://127.0.0.1:{s3}", bucket, process, folder)
-    deadline = time.monotonic() + 60
-    while True:  # anonymous requests are refused (403) once the gateway is up
-        try:
-            urllib.request.urlopen(server.endpoint, timeout=1)
-        except urllib.error.HTTPError:
-            break
-        except OSError as exc:
-            if process.poll() is not None or time.monotonic() > deadline:
-                server.stop()
-                raise RuntimeError(f"weed server did not start: see {folder / 'weed.log'}"
-                                   ) from exc
-            time.sleep(0.3)
+    server = S3Server(f"http://127.0.0.1:{s3}", bucket, process, folder, command)
+    _wait_until_up(server)
     make_bucket(server, bucket)
     return server
 

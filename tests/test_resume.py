@@ -9,6 +9,7 @@ killed run had finished units of work, and leave the chunk files of those units 
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import pytest
 import zarr
 
 from benchmarks.harness import run_until
-from helpers import generate_store
+from helpers import btf_process, generate_store
 from pipeline.resume import CREATED, DONE
 
 BIN = Path(sys.executable).parent
@@ -159,3 +160,21 @@ def test_tiled_enlargement_resumes_after_kill_9(tmp_path):
 
     _kill_and_resume(tmp_path, args, ("U", "S", "V"), mark="level 1/",
                      resumed_says="finished by the interrupted run", seed=4)
+
+
+@pytest.mark.distributed
+def test_btf_bench_faults_finishes_a_run_after_each_kind_of_fault(tmp_path):
+    """The fault campaign's small form (``btf bench faults``, one run per mode): kill -9 of
+    the client, of a cluster worker, a restart of the S3 server; each run is finished by its
+    reruns with the bits of an undisturbed local run."""
+    out = tmp_path / "faults.json"
+    done = btf_process("bench", "faults", "--runs", "1", "--seed", str(np.random.SeedSequence(
+        ).entropy % 2**32), "--json", out, timeout=900)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    assert [m["mode"] for m in result["modes"]] == ["client", "worker", "s3"]
+    for m in result["modes"]:
+        assert m["undisturbed_identical"], m["mode"]
+        (row,) = m["runs"]
+        assert row["done"] and row["identical"], (m["mode"], row)
+    assert "| client | 1 | " in done.stdout and "| s3 | 1 | " in done.stdout
