@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import btf_executable, git_revision, machine
+from benchmarks.harness import btf_executable, git_revision, machine, stop_processes
 
 SUITE = "faults"
 MODES = ("client", "worker", "s3")
@@ -166,12 +166,14 @@ class Cluster:
             [self.bin / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
              "--dashboard-address", "127.0.0.1:0"], stdout=self.log, stderr=self.log,
             env=self.env)
-        self.workers = [self._worker(i) for i in range(workers)]
+        self.started = 0  # workers started, each in a folder of its own
+        self.workers = [self._worker() for _ in range(workers)]
         self.wait()
 
-    def _worker(self, i: int) -> subprocess.Popen:
-        home = self.folder / f"worker-{i}"
-        home.mkdir(exist_ok=True)
+    def _worker(self) -> subprocess.Popen:
+        home = self.folder / f"worker-{self.started}"
+        home.mkdir()
+        self.started += 1
         return subprocess.Popen([self.bin / "dask", "worker", self.address, "--nthreads", "1",
                                  "--no-nanny"], cwd=home, stdout=self.log, stderr=self.log,
                                 env=self.env)
@@ -198,21 +200,12 @@ class Cluster:
     def replace(self) -> None:
         """A new worker in place of a killed one."""
         if self.workers[0].poll() is not None:
-            self.workers[0] = self._worker(len(self.workers) + int(time.time()))
+            self.workers[0] = self._worker()
             self.wait()
 
     def close(self) -> None:
         """Stop the workers, then the scheduler (Ctrl-C, then SIGKILL if they linger)."""
-        for group in (self.workers, [self.scheduler]):
-            for p in group:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-            for p in group:
-                try:
-                    p.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_processes(self.workers, [self.scheduler])
         self.log.close()
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -14,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.harness import stop_processes
 from pipeline.cli import main
 
 # The processes scheduler (a fresh interpreter per worker, seconds each) as a slow parameter:
@@ -201,17 +201,7 @@ def dask_cluster(folder: Path, *, workers: int = 1, processes: int = 2, protocol
                 time.sleep(0.5)
         yield address, started
     finally:
-        # Ctrl-C, workers before the scheduler they say goodbye to: 0.3 s (SIGTERM: 8 s)
-        for group in (procs[1:], procs[:1]):
-            for proc in group:
-                if proc.poll() is None:
-                    proc.send_signal(signal.SIGINT)
-            for proc in group:
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        stop_processes(procs[1:], procs[:1])  # workers, then the scheduler
         log.close()
         text = (folder / "cluster.log").read_text(errors="replace")
         if "Fatal Python error" in text:
