@@ -168,7 +168,11 @@ class Cluster:
             env=self.env)
         self.started = 0  # workers started, each in a folder of its own
         self.workers = [self._worker() for _ in range(workers)]
-        self.wait()
+        try:
+            self.wait()
+        except BaseException:
+            self.close()
+            raise
 
     def _worker(self) -> subprocess.Popen:
         home = self.folder / f"worker-{self.started}"
