@@ -91,9 +91,9 @@ def scene_text(root: str) -> str:
 
 @dataclass
 class Attempt:
-    """One start of ``btf run``: its exit status (None: killed) and time; stage start times."""
+    """One start of ``btf run``: its exit status (-9: killed) and time; stage start times."""
 
-    code: int | None
+    code: int
     seconds: float
     fired: bool = False
     stages: list[tuple[str, float]] = field(default_factory=list)
@@ -119,8 +119,7 @@ def attempt(argv: list, log: Path, env: dict, *, fault_at: float | None = None,
                 fault(proc)
                 fired = True
             time.sleep(0.02)
-    return Attempt(proc.returncode if proc.returncode >= 0 else None,
-                   time.perf_counter() - start, fired, stages)
+    return Attempt(proc.returncode, time.perf_counter() - start, fired, stages)
 
 
 def arrays(root: str) -> dict[str, np.ndarray]:

@@ -74,19 +74,15 @@ class S3Server:
         return f"s3://{self.bucket}/{key}"
 
     def stop(self) -> None:
-        self.process.terminate()
-        try:  # its data is thrown away: no need to wait for a graceful shutdown
-            self.process.wait(timeout=3)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
+        """Stop the server and remove its files (its data is thrown away: no long wait)."""
+        self.halt(timeout=3)
         shutil.rmtree(self.folder, ignore_errors=True)
 
-    def halt(self) -> None:
+    def halt(self, timeout: float = 30) -> None:
         """Stop the server as an operator's restart does (SIGTERM), keeping its data."""
         self.process.terminate()
         try:
-            self.process.wait(timeout=30)
+            self.process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait()

@@ -234,6 +234,7 @@ def test_a_write_landing_after_a_failed_run_s_cleanup_is_removed_by_the_next_run
 
     url = s3.url("late/wood.zarr")
     real_remove = storage.remove
+
     def remove_then_late_write(location):
         real_remove(location)
         if location == url:
