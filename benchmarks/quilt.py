@@ -71,6 +71,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 20)")
     parser.add_argument("--seam-corners", default="1,2", metavar="V,..",
                         help="corner types of the tile sets measured (default 1,2)")
+    parser.add_argument("--seam-blocks", default="auto,48", metavar="B,..",
+                        help="blocks of the seams' plans: auto (as btf quilt chooses) and given "
+                             "sizes, overlap a quarter (default auto,48)")
+    parser.add_argument("--search-checks", type=int, default=0, metavar="N",
+                        help="also time the border check's nearest-patch search against an "
+                             "exact brute-force one on N checks recorded per texture "
+                             "(benchmarks/seams.py, search_accuracy; default 0: not run)")
     parser.add_argument("--seams-only", action="store_true",
                         help="measure the seams only (no planning, application or rendering)")
 
@@ -189,8 +196,10 @@ def run(args: argparse.Namespace) -> dict:
     from pipeline.session import RuntimeOptions, Session
 
     seams = _seams(args)
+    search = _search(args)
     if args.seams_only:
-        return {"suite": SUITE, "seams": seams, "machine": machine(), "git": git_revision()}
+        return {"suite": SUITE, "seams": seams, "search": search, "machine": machine(),
+                "git": git_revision()}
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
     sizes = parse_sizes(args.sizes, SUITE)
@@ -224,7 +233,7 @@ def run(args: argparse.Namespace) -> dict:
             "planning": planning, "application": application,
             "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
                           "peak_rss": quilt.peak_rss},
-            "rendering": rendering, "seams": seams, "machine": machine(),
+            "rendering": rendering, "seams": seams, "search": search, "machine": machine(),
             "git": git_revision()}
 
 
@@ -233,24 +242,42 @@ def _seams(args) -> list[dict]:
 
     rows = []
     log = lambda message: print(message, file=sys.stderr)  # noqa: E731
+    blocks = [None if b == "auto" else int(b) for b in args.seam_blocks.split(",")]
+    if args.seam_seeds <= 0:
+        return rows
     for texture in filter(None, args.seams.split(",")):
         for corners in (int(v) for v in args.seam_corners.split(",")):
-            for block in (None, 48):  # the automatic choice, and the bug report's 48 / 12
+            for block in blocks:  # e.g. the automatic choice, and the bug report's 48 / 12
                 rows.append(texture_seams(texture, block=block, seeds=range(args.seam_seeds),
                                           corners=corners, log=log))
     return rows
 
 
-def _seams_report(result: dict) -> list[str]:
-    from benchmarks.seams import seams_report
+def _search(args) -> list[dict]:
+    from benchmarks.seams import search_accuracy
 
-    if not result.get("seams"):
+    if args.search_checks <= 0:
         return []
-    return ["", "Seams of periodic textures (V = 1) and of 4 x 4 mosaics of corner tile sets "
-                "(V = 2), seed by seed (`benchmarks/seams.py`): the worst border line of each "
-                "texture or tile against its inside (1.00 = as good as the inside; the bound is "
-                "1.3), the worst seed's figure with the seed, and the median; sharpness = the "
-                "texture's neighbour differences over the photo's:", "",
+    return [search_accuracy(texture, checks=args.search_checks)
+            for texture in filter(None, args.seams.split(","))]
+
+
+def _seams_report(result: dict) -> list[str]:
+    from benchmarks.seams import seams_report, search_report
+
+    lines = []
+    if result.get("search"):
+        lines += ["", "The border check's nearest-patch search (`benchmarks/seams.py`, "
+                      "search_accuracy): checks recorded while planning V = 2 tile sets, "
+                      "measured again with each search and with an exact brute-force one at "
+                      "full dimension:", "", *search_report(result["search"])]
+    if not result.get("seams"):
+        return lines
+    return [*lines, "", "Seams of periodic textures (V = 1) and of 4 x 4 mosaics of corner "
+            "tile sets (V = 2), seed by seed (`benchmarks/seams.py`): the worst border line of "
+            "each texture or tile against its inside (1.00 = as good as the inside; the bound "
+            "is 1.3), the worst seed's figure with the seed, and the median; sharpness = the "
+            "texture's neighbour differences over the photo's:", "",
             *seams_report(result["seams"])]
 
 

@@ -275,3 +275,127 @@ def roller_seams(seeds, *, tiles: int = 3, log=None) -> dict:
                                             if r["seed"] == worst[key]["worst_seed"])
     return {"tiles": tiles, "seeds": rows, **worst}
 
+
+
+SEARCHES = {"exact k-d tree, 8 re-ranked": (0.0, 8), "eps 1, 8 re-ranked": (1.0, 8),
+            "eps 1, 16 re-ranked": (1.0, 16)}
+
+
+def _recorded_checks(name: str, reference: np.ndarray, seeds, count: int) -> list:
+    """Every other border check made while planning V = 2 tile sets, up to ``count``.
+
+    Each as the framed tile, its borders, its reach and its structure patch.
+    """
+    from tasks import corner_tiles
+    from tasks.quilt_layout import sample_lattice
+
+    recorded, calls = [], [0]
+    figures = corner_tiles.BorderCheck.figures
+
+    def recording(check, tile, top, bottom, left, right):
+        calls[0] += 1
+        if calls[0] % 2 == 0 and len(recorded) < count and not check.periodic:
+            recorded.append((check.frame(tile, top, bottom, left, right),
+                             corner_tiles.Borders.framed(tile.shape, check.half), check.reach,
+                             check.exemplar.patch))
+        return figures(check, tile, top, bottom, left, right)
+
+    corner_tiles.BorderCheck.figures = recording
+    try:
+        lattice = sample_lattice(reference)
+        for seed in seeds:
+            if len(recorded) >= count:
+                break
+            seed_figures(name, reference, lattice, block=None, overlap=None, corners=2,
+                         seed=seed)
+    finally:
+        corner_tiles.BorderCheck.figures = figures
+    return recorded
+
+
+def search_accuracy(name: str, *, checks: int = 16, seeds=range(20)) -> dict:
+    """The border check's nearest-patch search against an exact brute-force one.
+
+    ``checks`` border checks recorded while planning V = 2 tile sets of the texture (the first
+    seeds) are measured again with each setting of :data:`SEARCHES` (k-d tree approximation,
+    candidates re-ranked) and with the exact nearest patch at full dimension: per setting the
+    time of the checks' searches, how far each patch's distance lies above the exact one (mean
+    and 99th percentile of ``d / d_exact - 1``), and how far each check's worst structure ratio
+    lies from the exact search's (mean and largest).
+    """
+    from tasks.seams import PatchExemplar, structure_ratios
+
+    class Exact(PatchExemplar):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.known = {}  # each check's map is asked for twice
+
+        def distances(self, queries):
+            key = hash(np.ascontiguousarray(queries).tobytes())
+            if key not in self.known:
+                self.known[key] = self._distances(queries)
+            return self.known[key]
+
+        def _distances(self, queries):
+            flat = self.windows.reshape(-1, queries.shape[1]).astype(np.float64)
+            norms = np.einsum("ij,ij->i", flat, flat)
+            out = np.empty(len(queries))
+            for i in range(0, len(queries), 256):
+                q = np.asarray(queries[i : i + 256], np.float64)
+                d = norms - 2 * q @ flat.T + np.einsum("ij,ij->i", q, q)[:, None]
+                out[i : i + 256] = np.maximum(d.min(axis=1), 0.0)
+            return np.sqrt(out / queries.shape[1])
+
+    reference = reference_of(name)
+    recorded = _recorded_checks(name, reference, seeds, checks)
+    exemplars: dict = {}
+
+    def exemplar(kind, patch):
+        if (kind, patch) not in exemplars:
+            if kind == "exact":
+                exemplars[kind, patch] = Exact(reference, patch=patch)
+            else:
+                eps, candidates = SEARCHES[kind]
+                exemplars[kind, patch] = PatchExemplar(reference, patch=patch, eps=eps,
+                                                       candidates=candidates)
+        return exemplars[kind, patch]
+
+    def measured(kind):
+        maps, worst, seconds = [], [], 0.0
+        for image, borders, reach, patch in recorded:
+            ex = exemplar(kind, patch)
+            ex.own_repeat  # noqa: B018 (computed once, outside the timing)
+            start = time.perf_counter()
+            maps.append(ex.distance_map(image, wrap=False,
+                                        within=borders.within(image.shape[:2]))[0].ravel())
+            seconds += time.perf_counter() - start
+            worst.append(max(structure_ratios(ex, image, borders, reach=reach)))
+        return np.concatenate(maps), np.array(worst), seconds
+
+    exact, exact_worst, _ = measured("exact")
+    rows = []
+    for kind in SEARCHES:
+        d, worst, seconds = measured(kind)
+        excess = d / np.maximum(exact, 1e-9) - 1
+        moved = np.abs(worst - exact_worst)
+        rows.append({"texture": name, "search": kind, "checks": len(recorded),
+                     "ms_per_check": 1e3 * seconds / max(len(recorded), 1),
+                     "excess_mean": float(excess.mean()),
+                     "excess_p99": float(np.percentile(excess, 99)),
+                     "worst_error_mean": float(moved.mean()),
+                     "worst_error_max": float(moved.max())})
+    return {"texture": name, "rows": rows}
+
+
+def search_report(results: list[dict]) -> list[str]:
+    """Markdown table of :func:`search_accuracy` results."""
+    lines = ["| texture | search | checks | search ms a check | patch distance over the exact: "
+             "mean / p99 | check's worst ratio off the exact: mean / max |",
+             "|---|---|---|---|---|---|"]
+    for result in results:
+        for r in result["rows"]:
+            lines.append(f"| {r['texture']} | {r['search']} | {r['checks']} | "
+                         f"{r['ms_per_check']:.0f} | +{100 * r['excess_mean']:.1f}% / "
+                         f"+{100 * r['excess_p99']:.0f}% | {r['worst_error_mean']:.3f} / "
+                         f"{r['worst_error_max']:.3f} |")
+    return lines

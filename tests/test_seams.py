@@ -91,3 +91,18 @@ def test_a_judged_part_needs_an_inside():
     exemplar = PatchExemplar(stripes(32, 32, 8))
     with pytest.raises(ValueError, match="nothing to compare"):
         structure_ratios(exemplar, stripes(20, 20, 8), Borders((10,), (10,)), reach=12)
+
+
+@pytest.mark.slow
+def test_the_search_benchmark_finds_no_patch_nearer_than_the_exact_search():
+    from benchmarks.seams import SEARCHES, search_accuracy, search_report
+
+    result = search_accuracy("gravel", checks=2, seeds=range(1))
+    rows = result["rows"]
+    assert [r["search"] for r in rows] == list(SEARCHES)
+    for r in rows:
+        assert r["checks"] == 2
+        # every search returns the distance of a real patch: never below the exact nearest
+        assert r["excess_mean"] >= 0 and r["excess_p99"] >= 0, r
+        assert 0 <= r["worst_error_mean"] <= r["worst_error_max"] < 0.3, r
+    assert len(search_report([result])) == 2 + len(SEARCHES)
