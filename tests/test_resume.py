@@ -168,13 +168,14 @@ def test_btf_bench_faults_finishes_a_run_after_each_kind_of_fault(tmp_path):
     the client, of a cluster worker, a restart of the S3 server; each run is finished by its
     reruns with the bits of an undisturbed local run."""
     out = tmp_path / "faults.json"
-    done = btf_process("bench", "faults", "--runs", "1", "--seed", str(np.random.SeedSequence(
-        ).entropy % 2**32), "--json", out, timeout=900)
-    assert done.returncode == 0, done.stderr
+    seed = np.random.SeedSequence().entropy % 2**32  # new fault moments every run: say which
+    done = btf_process("bench", "faults", "--runs", "1", "--seed", str(seed), "--json", out,
+                       timeout=900)
+    assert done.returncode == 0, (seed, done.stderr)
     result = json.loads(out.read_text())
     assert [m["mode"] for m in result["modes"]] == ["client", "worker", "s3"]
     for m in result["modes"]:
-        assert m["undisturbed_identical"], m["mode"]
+        assert m["undisturbed_identical"], (seed, m["mode"])
         (row,) = m["runs"]
-        assert row["done"] and row["identical"], (m["mode"], row)
+        assert row["done"] and row["identical"], (seed, m["mode"], row)
     assert "| client | 1 | " in done.stdout and "| s3 | 1 | " in done.stdout
