@@ -6,9 +6,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import scipy.linalg  # noqa: F401  (loads scipy's own BLAS, to be limited below)
+from threadpoolctl import threadpool_limits
 
 from helpers import generate_store
 from pipeline.cli import main
+
+# One BLAS thread in each test process: two pytest workers on two cores, each with OpenBLAS
+# threads of its own, spin against each other (scipy's eigh measured 100x slower with both
+# busy). btf pins its tasks to one BLAS thread itself (session.limit_blas); this is for the
+# work the tests' own process does outside tasks (planning, references). Processes the tests
+# start keep btf's own settings.
+threadpool_limits(limits=1, user_api="blas")
 
 
 @dataclass

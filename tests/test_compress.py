@@ -503,6 +503,7 @@ def test_one_pass_row_side_and_verify_are_identical_on_every_scheduler(
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_tasks_run_with_one_blas_thread(scheduler, request):
     import dask
+    from threadpoolctl import threadpool_limits
 
     from pipeline.session import RuntimeOptions, Session
 
@@ -513,9 +514,13 @@ def test_tasks_run_with_one_blas_thread(scheduler, request):
 
     if scheduler == "cluster":
         scheduler = request.getfixturevalue("local_cluster")
-    with Session(RuntimeOptions(scheduler=scheduler, quiet=True)) as session:
-        with session.blas_pinned_in_tasks():
-            (inside,) = session.compute(dask.delayed(blas_threads)())
+    # two BLAS threads around it (conftest limits the tests' own process to one): the one
+    # inside must come from btf
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert set(blas_threads()) == {2}
+        with Session(RuntimeOptions(scheduler=scheduler, quiet=True)) as session:
+            with session.blas_pinned_in_tasks():
+                (inside,) = session.compute(dask.delayed(blas_threads)())
     assert inside and set(inside) == {1}
 
 
