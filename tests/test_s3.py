@@ -282,23 +282,27 @@ def test_an_object_store_error_inside_zarr_is_one_message_with_the_object_s_url(
     assert storage.explain_request(RuntimeError(text)) is None  # only obstore's errors
 
 
-def test_a_run_rides_out_a_10_s_outage_of_the_object_store(tmp_path, btf, s3, monkeypatch):
-    """Every connection reset, and every new one, for 10 s in the middle of the writes: the
-    run waits it out (obstore's retries) and writes the same store as without the outage."""
+# the issue's 10 s in the slow set; 3 s take the same path (retries with backoff) sooner
+@pytest.mark.parametrize("seconds", [3, pytest.param(10, marks=pytest.mark.slow)])
+def test_a_run_rides_out_an_outage_of_the_object_store(tmp_path, btf, s3, monkeypatch, seconds):
+    """Every connection reset, and every new one, for some seconds in the middle of the
+    writes: the run waits it out (obstore's retries) and writes the same store as without the
+    outage."""
     from urllib.parse import urlparse
 
     from benchmarks.faultproxy import FlakyProxy
 
     server = urlparse(s3.endpoint)
-    url = s3.url("flaky/wood.zarr")
-    with FlakyProxy((server.hostname, server.port), after_requests=12, seconds=10) as proxy:
+    url = s3.url(f"flaky{seconds}/wood.zarr")
+    with FlakyProxy((server.hostname, server.port), after_requests=12,
+                    seconds=seconds) as proxy:
         monkeypatch.setenv("AWS_ENDPOINT_URL", proxy.endpoint)
         start = time.monotonic()
         result = btf("generate", url, *GEN, "--quiet")
         took = time.monotonic() - start
         assert result.code == 0, result.err
         assert len(proxy.outages) == 1 and proxy.reset > 0  # the outage happened, mid-run
-        assert took >= 10, took
+        assert took >= seconds, took
     monkeypatch.setenv("AWS_ENDPOINT_URL", s3.endpoint)
     assert btf("generate", tmp_path / "wood.zarr", *GEN, "--quiet").code == 0
     _same(tmp_path / "wood.zarr", url)
