@@ -11,14 +11,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from helpers import generate_store, quilt
+from helpers import SLOW_PROCESSES, generate_store, quilt
 from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
 from tasks.canvas import TERMS
-from tasks.corner_tiles import SeamError, plan_tiles
+from tasks.corner_tiles import BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
+from tasks.seams import PatchExemplar
 from tasks.svd import reconstruct_layers
 from tasks.transform import Transform
 
@@ -29,6 +30,20 @@ ANY_SEAM = {"max_seam": 1e9}
 
 def _quilt(src, out, *args):
     return quilt(src, out, *PARAMS, *args)
+
+
+def _exemplar(reference: np.ndarray, params: QuiltParams) -> PatchExemplar:
+    """The border check's patches of ``reference`` for ``params``' block, as plan_tiles makes
+    them: made once for several plans on one reference (their PCA basis and k-d tree are a
+    good part of a small plan's time, and they do not depend on the plan)."""
+    return PatchExemplar(np.asarray(reference, np.float32), patch=BorderCheck.patch(params))
+
+
+@pytest.fixture(scope="module")
+def noise() -> tuple[np.ndarray, PatchExemplar]:
+    """A 50 x 54 noise reference and its border check's patches for blocks of 12."""
+    reference = np.random.default_rng(5).random((50, 54, 3))
+    return reference, _exemplar(reference, QuiltParams(12, 3, 3, 1, (18, 18)))
 
 
 def neighbour_difference(img: np.ndarray, axis: int) -> float:
@@ -102,16 +117,16 @@ def test_the_cut_never_runs_along_a_window_edge_beside_filled_canvas():
 
 
 @pytest.mark.parametrize("steps", [2, 3])
-def test_a_tiles_border_bands_are_exactly_its_edge_strips(steps):
+def test_a_tiles_border_bands_are_exactly_its_edge_strips(noise, steps):
     # The bands no interior patch reaches (B/2 - O wide) hold the edge strips as planned, in
     # every row and column: the corner quadrants re-blend the vertical strip's patches over
     # the horizontal strip only where the horizontal strip is the corner patch alone.
     block, overlap = 12, 3
     half, band, step = block // 2, block // 2 - overlap, block - overlap
     size = step * steps
-    reference = np.random.default_rng(5).random((50, 54, 3))
+    reference, exemplar = noise
     plan = plan_tiles(reference, QuiltParams(block, overlap, 3, 2, (size, size), **ANY_SEAM),
-                      seed=2)
+                      seed=2, exemplar=exemplar)
     for tile, (tl, tr, bl, br) in zip(plan.tiles, plan.corners, strict=True):
         pieces = [
             (np.s_[:band, :], plan.strips[("horizontal", tl, tr)], np.s_[half : half + band,
@@ -238,13 +253,14 @@ def test_no_two_neighbouring_output_pixels_join_two_patches_without_a_blend(smoo
     if smooth:  # cheap errors everywhere: the cut is free to wander
         reference = ndimage.gaussian_filter(reference, (3, 3, 0))
     step = block - overlap
+    single = QuiltParams(block, overlap, 4, 1, (step * steps,) * 2, **ANY_SEAM)
+    exemplar = _exemplar(reference, single)  # the same structure patches for every plan
     for seed in range(3):
-        one = plan_tiles(reference, QuiltParams(block, overlap, 4, 1, (step * steps,) * 2,
-                                                **ANY_SEAM), seed=seed).tiles[0]
+        one = plan_tiles(reference, single, seed=seed, exemplar=exemplar).tiles[0]
         bad, total = _hard_seams(one.index, one.weight, 64, wrap=True)
         assert total > 0 and bad == 0, (seed, bad, total)
         two = plan_tiles(reference, QuiltParams(block, overlap, 4, 2, (step * steps,) * 2,
-                                                **ANY_SEAM), seed=seed)
+                                                **ANY_SEAM), seed=seed, exemplar=exemplar)
         types = np.random.default_rng(seed).integers(0, 2, (4, 4))
         bad, total = _hard_seams(*_tile_mosaic(two, types), 64, wrap=False)
         assert total > 0 and bad == 0, (seed, bad, total)
@@ -312,12 +328,16 @@ def test_prescription_rows_sum_to_one_and_index_valid_sample_pixels(block_overla
                            tile.value.reshape(-1, 3), atol=1e-4)
 
 
+# processes (a fresh interpreter per worker, seconds each) in the slow set; the default set
+# quilts on a cluster's worker processes (tests/test_s3.py, the cluster config: the bits of a
+# synchronous run)
+@pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES])
 def test_the_same_seed_gives_the_same_tile_set_and_another_seed_another(tmp_path, btf,
-                                                                       samples):
+                                                                       samples, scheduler):
     sample = samples["stone"]
     a = _quilt(sample, tmp_path / "a.zarr", "--seed", "4", "--size", "36,36")
     b = _quilt(sample, tmp_path / "b.zarr", "--seed", "4", "--size", "36,36",
-               "--scheduler", "processes")
+               "--scheduler", scheduler)
     c = _quilt(sample, tmp_path / "c.zarr", "--seed", "5", "--size", "36,36")
     assert np.array_equal(a[RADIANCE][:], b[RADIANCE][:])
     assert np.array_equal(a["prescription_index"][:], b["prescription_index"][:])
@@ -422,16 +442,23 @@ def test_the_block_size_follows_the_detected_period():
     assert (block, overlap) == (32, 8) and "no clear lattice" in why
 
 
-def test_btf_quilt_without_a_block_takes_one_period_and_says_so(tmp_path, btf):
-    tiles = generate_store(tmp_path / "tiles.zarr", "--material", "tiles", "--size", "160",
-                           "--scale", "40", "--sampling", "abtf:4,2", "--chunk", "32")
-    result = btf("quilt", tiles, tmp_path / "q.zarr", "--candidates", "3")
+@pytest.fixture(scope="module")
+def big_tiles(tmp_path_factory):
+    """A 160 x 160 tiles sample whose lattice has a 40-texel period, for the tests that
+    read it."""
+    return generate_store(tmp_path_factory.mktemp("tiles") / "tiles.zarr", "--material",
+                          "tiles", "--size", "160", "--scale", "40", "--sampling", "abtf:4,2",
+                          "--chunk", "32")
+
+
+def test_btf_quilt_without_a_block_takes_one_period_and_says_so(tmp_path, btf, big_tiles,
+                                                                samples):
+    result = btf("quilt", big_tiles, tmp_path / "q.zarr", "--candidates", "3")
     assert result.code == 0, result.err
     assert "block 40, overlap 10: one period of the detected lattice (" in result.err
     quilt = zarr.open_group(tmp_path / "q.zarr", mode="r").attrs["quilt"]
     assert (quilt["block"], quilt["overlap"]) == (40, 10)
-    stone = generate_store(tmp_path / "stone.zarr", "--material", "stone", "--size", "96",
-                           "--sampling", "abtf:4,2")
+    stone = samples["stone"]  # a sample without a lattice
     result = btf("quilt", stone, tmp_path / "s.zarr", "--candidates", "3")
     assert result.code == 0 and "block 32, overlap 8: no clear lattice" in result.err
     result = btf("quilt", stone, tmp_path / "bad.zarr", "--overlap", "20", "--quiet")
@@ -547,30 +574,30 @@ def test_positions_in_phase_are_lattice_vectors_to_the_texel():
         assert near.min() <= 0.5**0.5 and (near <= 1.0).sum() <= 4
 
 
-def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent():
-    reference = np.random.default_rng(5).random((50, 54, 3))
+def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent(noise):
+    reference, exemplar = noise
     lines = []
     strict = QuiltParams(12, 3, 3, 2, (18, 18), max_seam=1e-3, attempts=2)
     with pytest.raises(SeamError):
-        plan_tiles(reference, strict, seed=2, progress=lines.append)
+        plan_tiles(reference, strict, seed=2, exemplar=exemplar, progress=lines.append)
     assert len(lines) == 2, lines
     assert lines[0].startswith("block 12, 16 tile(s) of 18 x 18: round 1 of at most 2: ")
     assert lines[0].endswith("strips again (48 interior plan(s) so far)"), lines
     assert "round 2 of at most 2: 0 of 16 tile(s) within the bound (" in lines[1], lines
     lines.clear()
     plan_tiles(reference, QuiltParams(12, 3, 3, 2, (18, 18), **ANY_SEAM), seed=2,
-               progress=lines.append)
+               exemplar=exemplar, progress=lines.append)
     assert lines == []
 
 
 def test_the_border_check_refuses_a_tile_that_breaks_the_pattern():
     from benchmarks.seams import reference_of
-    from tasks.corner_tiles import BorderCheck
 
     reference = reference_of("tiles")  # strictly periodic, 64 texels
     params = QuiltParams(64, 16, 5, 1, (192, 192))
-    plan = plan_tiles(reference, params, seed=3)
-    check = BorderCheck(reference, params)
+    exemplar = _exemplar(reference, params)  # the planner's check and this one: one made
+    plan = plan_tiles(reference, params, seed=3, exemplar=exemplar)
+    check = BorderCheck(reference, params, exemplar)
     assert check.figures(plan.tiles[0], *[None] * 4).worst <= 1.3
     broken = plan.tiles[0]
     broken.value[:, 96:] = np.roll(broken.value[:, 96:], 20, axis=0)  # half shifted by 20 rows
@@ -578,7 +605,7 @@ def test_the_border_check_refuses_a_tile_that_breaks_the_pattern():
 
 
 def test_the_default_tile_holds_whole_periods_and_a_given_one_that_does_not_is_named(
-        tmp_path, btf):
+        tmp_path, btf, big_tiles):
     from benchmarks.seams import reference_of
     from tasks.quilt_layout import default_tile, sample_lattice, tile_mismatch
 
@@ -586,9 +613,7 @@ def test_the_default_tile_holds_whole_periods_and_a_given_one_that_does_not_is_n
     tile = default_tile((256, 256), 12, lattice)
     assert max(tile_mismatch(tile, lattice)) <= 1.0 and all(n % 12 == 0 for n in tile), tile
     assert max(tile_mismatch((252, 252), lattice)) > 1.0  # the previous default: 15.75 periods
-    tiles = generate_store(tmp_path / "tiles.zarr", "--material", "tiles", "--size", "160",
-                           "--scale", "40", "--sampling", "abtf:4,2", "--chunk", "32")
-    result = btf("quilt", tiles, tmp_path / "q.zarr", "--block", "40", "--overlap", "10",
+    result = btf("quilt", big_tiles, tmp_path / "q.zarr", "--block", "40", "--overlap", "10",
                  "--size", "150,150", "--max-seam", "10")
     assert result.code == 0, result.err
     assert "out of phase with the sample's lattice" in result.err
@@ -597,7 +622,10 @@ def test_the_default_tile_holds_whole_periods_and_a_given_one_that_does_not_is_n
 
 def test_a_plan_that_cannot_pass_stops_with_the_tile_and_its_figure(tmp_path, btf, samples):
     out = tmp_path / "q.zarr"
-    result = btf("quilt", samples["stone"], out, *PARAMS, "--max-seam", "0.3")
+    # the smallest tile (two steps): it fails every round as a whole sample's tile does, in a
+    # sixth of the time
+    result = btf("quilt", samples["stone"], out, *PARAMS, "--max-seam", "0.3", "--size",
+                 "24,24")
     assert result.code == 1
     assert "tile 0000: after" in result.err and "stands out" in result.err
     assert "bound 0.3" in result.err and not out.exists()

@@ -128,6 +128,24 @@ def _roller(btf, store, out, *args):
     return zarr.open_group(out, mode="r")
 
 
+@pytest.fixture(scope="module")
+def rolled(stores, tmp_path_factory):
+    """``rolled(name, *options)``: the path of the roller's tile set of ``stores[name]``, made
+    once for the tests that only read it (a plan and its border check each)."""
+    from pipeline.cli import main
+
+    made = {}
+
+    def get(name: str, *options: str):
+        if (name, options) not in made:
+            out = tmp_path_factory.mktemp("rolled") / f"{name}.zarr"
+            assert main(["roller", str(stores[name]), str(out), "--quiet", *options]) == 0
+            made[name, options] = out
+        return made[name, options]
+
+    return get
+
+
 def _cells(group, size, origin=(0, 0)):
     lat = group.attrs["lattice"]
     return lattice_cells(*origin, *size, hnf=tuple(lat["hnf"]),
@@ -155,12 +173,12 @@ TOLERANCE = 1.5
 
 
 @pytest.mark.parametrize("name", ["tiles", "rotated-30", "sheared"])
-def test_roller_output_is_seamless_and_a_naive_repeat_is_not(btf, stores, tmp_path, name):
-    group = _roller(btf, stores[name], tmp_path / "t.zarr")
+def test_roller_output_is_seamless_and_a_naive_repeat_is_not(stores, rolled, name):
+    group = zarr.open_group(rolled(name), mode="r")
     sample = open_radiance(stores[name])[RADIANCE].values[0]
     size = (300, 340)
     for light in (0, 5):
-        img = lazy_layer(tmp_path / "t.zarr", view=0, light=light, size=size).compute()
+        img = lazy_layer(rolled(name), view=0, light=light, size=size).compute()
         seams = _pair_differences(img, _seams(_cells(group, size)))
         assert seams.size > 100
         ratio = seams.mean() / _sample_roughness(sample[light])
@@ -175,12 +193,17 @@ def test_roller_output_is_seamless_and_a_naive_repeat_is_not(btf, stores, tmp_pa
     assert ratio > TOLERANCE
 
 
-def test_every_layer_uses_the_same_cut(btf, stores, tmp_path):
-    group = _roller(btf, stores["sheared"], tmp_path / "t.zarr", "--tiles", "2")
+# Three tiles of the constructed texture, seed 5: several tiles (their interiors differ).
+SEVERAL = ("--tiles", "3", "--seed", "5")
+
+
+def test_every_layer_uses_the_same_cut(stores, rolled):
+    group = zarr.open_group(rolled("sheared", *SEVERAL), mode="r")
     sample = open_radiance(stores["sheared"])[RADIANCE].values[0]
     ny, nx = sample.shape[1:3]
     out = group[RADIANCE][:]
-    for t in range(2):
+    assert out.shape[0] == 3
+    for t in range(3):
         index = group["prescription_index"][t]
         weight = group["prescription_weight"][t]
         assert check(index, weight, ny * nx) == []
@@ -190,16 +213,17 @@ def test_every_layer_uses_the_same_cut(btf, stores, tmp_path):
             np.testing.assert_allclose(out[t, 0, light], expected, rtol=1e-5, atol=1e-6)
 
 
-def test_multiple_tiles_share_their_borders_exactly_and_seeds_reproduce(btf, stores, tmp_path):
+def test_multiple_tiles_share_their_borders_exactly_and_seeds_reproduce(stores, rolled):
     # the constructed texture has noise: rhomboids one period apart differ (the generated tiles
     # material is exactly periodic, so its extra tiles would equal the first)
-    group = _roller(btf, stores["sheared"], tmp_path / "t.zarr", "--tiles", "3", "--seed", "5")
+    path = rolled("sheared", *SEVERAL)
+    group = zarr.open_group(path, mode="r")
     tiles = group[RADIANCE][:, 0, 2]
     assert not np.array_equal(tiles[0], tiles[1]) and not np.array_equal(tiles[1], tiles[2])
     size = (260, 300)
 
     def render(seed):
-        return lazy_layer(tmp_path / "t.zarr", view=0, light=2, size=size, seed=seed).compute()
+        return lazy_layer(path, view=0, light=2, size=size, seed=seed).compute()
 
     a, b = render(1), render(2)
     assert np.array_equal(a, render(1))
@@ -215,9 +239,10 @@ def test_multiple_tiles_share_their_borders_exactly_and_seeds_reproduce(btf, sto
     assert seams / _sample_roughness(sample) < TOLERANCE
 
 
-def test_inspect_reports_the_lattice_and_the_ratio(btf, stores, tmp_path):
-    group = _roller(btf, stores["rotated-30"], tmp_path / "t.zarr")
-    result = btf("inspect", tmp_path / "t.zarr", "--json")
+def test_inspect_reports_the_lattice_and_the_ratio(btf, rolled):
+    tiles = rolled("rotated-30")
+    group = zarr.open_group(tiles, mode="r")
+    result = btf("inspect", tiles, "--json")
     assert result.code == 0, result.err
     report = json.loads(result.out)["tileset"]
     lattice = group.attrs["lattice"]
@@ -227,20 +252,20 @@ def test_inspect_reports_the_lattice_and_the_ratio(btf, stores, tmp_path):
     assert report["tiles"] == group["radiance"].shape[0] == 1
     assert report["tile_shape"] == [h, w] == list(group["radiance"].shape[3:5])
     assert report["size_vs_source"] == pytest.approx(h * w / np.prod(report["sample_shape"]))
-    text = btf("inspect", tmp_path / "t.zarr").out
+    text = btf("inspect", tiles).out
     assert f"stored as {h} x {w} (Hermite layout, shear {lattice['hnf'][2]})" in text
     assert f"size relative to the sample: 1 : {1 / report['size_vs_source']:.2f}" in text
 
 
-def test_render_a_roller_tile_set_into_an_exr(btf, stores, tmp_path):
-    _roller(btf, stores["sheared"], tmp_path / "t.zarr")
+def test_render_a_roller_tile_set_into_an_exr(btf, rolled, tmp_path):
+    tiles = rolled("sheared")
     out = tmp_path / "surface.exr"
-    result = btf("render", tmp_path / "t.zarr", out, "--light", "1", "--size", "200,333",
+    result = btf("render", tiles, out, "--light", "1", "--size", "200,333",
                  "--origin=-17,40", "--quiet")
     assert result.code == 0, result.err
     pixels, channels = read_image(out)
     assert channels == ("R", "G", "B") and pixels.shape == (200, 333, 3)
-    expected = lazy_layer(tmp_path / "t.zarr", view=0, light=1, size=(200, 333),
+    expected = lazy_layer(tiles, view=0, light=1, size=(200, 333),
                           origin=(-17, 40)).compute(scheduler="synchronous")
     assert pixels.dtype == expected.dtype == np.float32
     assert expected.std() > 0  # a textured region, not a constant any shift would match
