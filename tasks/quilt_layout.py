@@ -168,7 +168,9 @@ def choose_block(reference: np.ndarray, min_confidence: float = MIN_CONFIDENCE,
     if tile is None:
         return wanted, overlap_for(wanted), why
     reach = max(2, int(period / 4))
-    for block in sorted(range(max(low, wanted - reach), min(high, wanted + reach) + 1, 2),
+    first = max(low, wanted - reach)
+    first += first % 2  # even blocks, as the wanted one is (an odd reach gave odd ones only)
+    for block in sorted(range(first, min(high, wanted + reach) + 1, 2),
                         key=lambda b: (abs(b - wanted), b)):
         step = block - overlap_for(block)
         if all(n % step == 0 and n >= 2 * step for n in tile):

@@ -18,6 +18,7 @@ from pipeline.stores.radiance import open_radiance
 from tasks.canvas import TERMS
 from tasks.corner_tiles import BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
+from tasks.quilt_layout import overlap_for
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.seams import PatchExemplar
 from tasks.svd import reconstruct_layers
@@ -440,6 +441,21 @@ def test_the_block_size_follows_the_detected_period():
         assert block % 2 == 0 and 2 <= overlap < block // 2 and "period" in why
     block, overlap, why = choose_block(stochastic_texture(rng, "fbm"))
     assert (block, overlap) == (32, 8) and "no clear lattice" in why
+
+
+@pytest.mark.parametrize("period", [39.8, 40.0, 38.3])
+def test_a_given_tile_takes_the_even_block_nearest_the_period_whose_step_divides_it(period):
+    # a period of 39.8 (reach 9) once searched odd blocks only (31-49) and fell back to the
+    # default, though block 40 (step 30) divides a 60 or 90 texel tile
+    from tasks.periodicity import Lattice
+    from tasks.quilt_layout import choose_block
+
+    lattice = Lattice((period, 0.0), (0.0, period), 1.0)
+    for tile in ((60, 60), (90, 90), (60, 90)):
+        block, overlap, why = choose_block(np.zeros((160, 160)), tile=tile, lattice=lattice)
+        assert (block, overlap) == (40, 10), (tile, why)
+    block, _, why = choose_block(np.zeros((160, 160)), tile=(56, 56), lattice=lattice)
+    assert block % 2 == 0 and 56 % (block - overlap_for(block)) == 0, why
 
 
 @pytest.fixture(scope="module")
