@@ -9,8 +9,8 @@ matrix's row blocks (or texel tiles), for one of these kinds:
 - ``"power"``: ``sums["w"] = A^T (A x)`` for the texels x columns sketch ``x``;
 - ``"project"``: ``rows["z"] = A x`` and ``frobenius2 = ||A||_F^2``;
 - ``"sketch"``: the one-view sketch of the sizes ``sketch`` (:class:`tasks.svd.Sketch`), its
-  test matrices made from ``seed`` where they are used (:func:`tasks.svd.sparse_sign` and
-  :func:`tasks.svd.tile_test_matrix` by texel tiles, :func:`tasks.svd.co_range_test` by
+  test matrices made from ``seed`` where they are used (:func:`tasks.svd.sign_map` and
+  :func:`tasks.svd.tile_test_matrix` by texel tiles, :func:`tasks.svd.co_range_rows` by
   rows): ``sums["y"] = A Omega`` (absent
   for an exact range), ``sums["z"] = A Phi``, and of the co-range sketch ``W = Psi A``, kept
   tile by tile where the pass runs, ``sums["g"] = W W^T`` and ``sums["wphi"] = W Phi``;

@@ -307,11 +307,14 @@ class Sketch:
 SPARSITY = 8  # nonzeros per texel row of Omega and per matrix-row column of Psi
 
 
-def sparse_sign(seed: int, stream: int, key: tuple[int, ...], n: int, width: int):
-    """An ``n x width`` sparse sign matrix (scipy CSR, float32), made from a seed.
+def sign_map(seed: int, stream: int, key: tuple[int, ...], n: int, width: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """An ``n x width`` sparse sign matrix, made from a seed, as its entries row by row.
 
     In each row, :data:`SPARSITY` entries +-1 at distinct random columns (all ``width`` if
-    fewer), the rest 0.
+    fewer), the rest 0. Returns ``cols`` (``n x z`` int64, ascending in each row) and
+    ``signs`` (``n x z`` float32, +-1): the form the compiled products of
+    :mod:`tasks.sketch_kernel` take.
 
     Tropp et al. (2019, section 3.3) recommend such maps for streaming sketches: they work as
     well as Gaussian ones (measured here: the same errors to 1%, bench store and ranks 16-64)
@@ -319,8 +322,6 @@ def sparse_sign(seed: int, stream: int, key: tuple[int, ...], n: int, width: int
     multiply-adds. ``key`` names the block of rows (a tile's first texel, a group of matrix
     rows), so every task makes its rows alone and the same rows on every scheduler.
     """
-    import scipy.sparse
-
     rng = np.random.default_rng([seed, stream, *key])
     z = min(SPARSITY, width)
     if width <= 4 * z:  # few columns: a random choice of z per row, by permutation
@@ -333,8 +334,7 @@ def sparse_sign(seed: int, stream: int, key: tuple[int, ...], n: int, width: int
             cols[repeated] = redrawn
             repeated = repeated[np.any(redrawn[:, 1:] == redrawn[:, :-1], axis=1)]
     signs = rng.integers(0, 2, (n, z)).astype(np.float32) * 2 - 1
-    return scipy.sparse.csr_matrix((signs.ravel(), cols.ravel(), np.arange(0, n * z + 1, z)),
-                                   shape=(n, width))
+    return cols.astype(np.int64), signs
 
 
 def tile_test_matrix(seed: int, stream: int, key: tuple[int, ...], texels: int, cols: int
@@ -348,19 +348,32 @@ def tile_test_matrix(seed: int, stream: int, key: tuple[int, ...], texels: int, 
     return rng.standard_normal((texels, cols), dtype=np.float32)
 
 
-def co_range_test(seed: int, s: int, r0: int, r1: int):
-    """Columns ``r0:r1`` of the ``s x rows`` co-range test matrix ``Psi`` (sparse, float32).
+def co_range_rows(seed: int, s: int, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``r0:r1`` of ``Psi^T``, the co-range test matrix transposed, as sign-map entries.
 
-    ``Psi^T`` is a sparse sign matrix (:func:`sparse_sign`) made in groups of
+    ``Psi^T`` (``rows x s``, entries as :func:`sign_map` gives them) is made in groups of
     :data:`PSI_GROUP` rows, each from its own seed stream, so any range of rows is the same
     whichever task (or the client) makes it.
     """
+    g0, g1 = r0 // PSI_GROUP, (r1 - 1) // PSI_GROUP + 1
+    groups = [sign_map(seed, 3, (g,), PSI_GROUP, s) for g in range(g0, g1)]
+    rows = slice(r0 - g0 * PSI_GROUP, r1 - g0 * PSI_GROUP)
+    return (np.concatenate([c for c, _ in groups])[rows],
+            np.concatenate([x for _, x in groups])[rows])
+
+
+def co_range_test(seed: int, s: int, r0: int, r1: int):
+    """Columns ``r0:r1`` of the ``s x rows`` co-range test matrix ``Psi`` (scipy CSR, float32).
+
+    The same entries as :func:`co_range_rows`, for products on the client (:func:`psi_times`).
+    """
     import scipy.sparse
 
-    g0, g1 = r0 // PSI_GROUP, (r1 - 1) // PSI_GROUP + 1
-    groups = scipy.sparse.vstack([sparse_sign(seed, 3, (g,), PSI_GROUP, s)
-                                  for g in range(g0, g1)], format="csr")
-    return groups[r0 - g0 * PSI_GROUP : r1 - g0 * PSI_GROUP].T.tocsr()
+    cols, signs = co_range_rows(seed, s, r0, r1)
+    z = cols.shape[1]
+    return scipy.sparse.csr_matrix((signs.ravel(), cols.ravel(),
+                                    np.arange(0, cols.size + 1, z)),
+                                   shape=(r1 - r0, s)).T.tocsr()
 
 
 def psi_times(q: np.ndarray, seed: int, s: int) -> np.ndarray:
@@ -372,25 +385,6 @@ def psi_times(q: np.ndarray, seed: int, s: int) -> np.ndarray:
     return out
 
 
-def sketch_rows(a: np.ndarray, omega, phi: np.ndarray, psi
-                ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-    """A block's share of a one-view sketch (the block: some rows, some texel columns).
-
-    Returns ``a omega`` (the block's rows of the range sketch, float32 sums of +-values; None
-    for an exact range), ``a phi`` (the error sketch,
-    float64) and ``psi a`` (float32; ``a`` itself for an exact co-range). ``omega``
-    (sparse) and ``phi`` (dense, Gaussian) hold the block's texels' rows, ``psi`` (sparse) its
-    rows' columns. Sparse products are fixed-order loops: the same bits on every scheduler.
-    """
-    a = blas_ready(a)
-    y = None
-    if omega is not None:  # by runs of texels: scipy copies the (transposed) dense operand
-        y = np.zeros((a.shape[0], omega.shape[1]), np.float32)
-        for t in range(0, a.shape[1], TILE):
-            y += np.asarray(a[:, t : t + TILE] @ omega[t : t + TILE], np.float32)
-    return y, project(a, phi), a if psi is None else np.asarray(psi @ a, np.float32)
-
-
 class TileSketch:
     """One texel tile's share of a one-view sketch, accumulated row block by row block.
 
@@ -398,15 +392,14 @@ class TileSketch:
     ``sums()`` gives the tile's ``y = A_t Omega_t`` (unless the range is exact),
     ``z = A_t Phi_t``, and ``g = W_t W_t^T`` and ``wphi = W_t Phi_t`` of its co-range sketch
     ``w = W_t = Psi A_t`` (float32, ``s x texels``), which the caller keeps (stores) as it is.
-    ``Omega_t`` (sparse signs, :func:`sparse_sign`) and ``Phi_t`` (Gaussian, as the error
+    ``Omega_t`` (sparse signs, :func:`sign_map`) and ``Phi_t`` (Gaussian, as the error
     estimate needs: :func:`tile_test_matrix`) come from ``seed`` and the tile's ``key``,
-    ``Psi``'s columns from ``seed`` and the rows (:func:`co_range_test`).
+    ``Psi``'s columns from ``seed`` and the rows (:func:`co_range_rows`).
     """
 
     def __init__(self, sketch: Sketch, seed: int, key: tuple[int, ...], texels: int):
         self.sketch, self.seed = sketch, seed
-        self.omega = None if sketch.exact_range else sparse_sign(seed, 1, key, texels,
-                                                                 sketch.k)
+        self.omega = None if sketch.exact_range else sign_map(seed, 1, key, texels, sketch.k)
         self.phi = tile_test_matrix(seed, 2, key, texels, sketch.t)
         # float32 (summed over tiles in float64): rows x k is the one sum that grows with rows
         self.y = None if self.omega is None else np.zeros((sketch.rows, sketch.k), np.float32)
@@ -414,17 +407,26 @@ class TileSketch:
         self.w = np.zeros((sketch.s, texels), np.float32)
 
     def add(self, row0: int, a: np.ndarray) -> None:
-        """Add the rows ``row0 : row0 + len(a)`` of the tile."""
+        """Add the rows ``row0 : row0 + len(a)`` of the tile (each row once).
+
+        The sparse products are :mod:`tasks.sketch_kernel`'s fixed-order loops (the same bits
+        on every scheduler): ``y``'s rows summed in float64, ``w`` in float32 as it is stored.
+        Exact sketches (few rows) need neither, nor numba (about 50 MB of memory).
+        """
+        a = blas_ready(a)
         rows = slice(row0, row0 + a.shape[0])
-        psi = None if self.sketch.exact_co_range else co_range_test(
-            self.seed, self.sketch.s, rows.start, rows.stop)
-        y, self.z[rows], w = sketch_rows(a, self.omega, self.phi, psi)
-        if y is not None:
-            self.y[rows] = y
-        if psi is None:
-            self.w[rows] = w
+        if self.omega is not None:
+            from tasks.sketch_kernel import add_sign_columns
+
+            add_sign_columns(a, *self.omega, self.y[rows])
+        self.z[rows] = project(a, self.phi)
+        if self.sketch.exact_co_range:
+            self.w[rows] = a
         else:
-            self.w += w
+            from tasks.sketch_kernel import add_sign_rows
+
+            add_sign_rows(a, *co_range_rows(self.seed, self.sketch.s, rows.start, rows.stop),
+                          self.w)
 
     def sums(self) -> dict[str, np.ndarray]:
         """The tile's sums of the pass (see the class)."""
@@ -433,22 +435,27 @@ class TileSketch:
                                                          else {"y": self.y})
 
 
-def co_range_sums(w: np.ndarray, phi: np.ndarray, *, tile: int = TILE
+GRAM_RUN = 2048  # texels of a co-range sketch converted to float64 at once (cache-sized)
+
+
+def co_range_sums(w: np.ndarray, phi: np.ndarray, *, tile: int = GRAM_RUN
                   ) -> tuple[np.ndarray, np.ndarray]:
     """``w w^T`` and ``w phi`` (float64) of a tile's stored co-range sketch ``w`` (float32).
 
     ``w`` is ``s x texels``, ``phi`` the tile's rows of the error test matrix. The products are
     float64 (over runs of ``tile`` texels, to bound the copies), so the Gram matrix is that of
     the stored values to float64 precision, and the eigentextures made from the same values
-    come out orthonormal.
+    come out orthonormal. A run's float64 copy keeps ``w``'s row order and goes to BLAS's
+    ``dsyrk`` as the transpose it is (a Fortran copy cost as much as the product, 0.19 s per
+    16384 texels at s = 771).
     """
     from scipy.linalg.blas import dsyrk
 
     gram = np.zeros((w.shape[0],) * 2)
     w_phi = np.zeros((w.shape[0], phi.shape[1]))
     for t in range(0, w.shape[1], tile):
-        part = np.asfortranarray(w[:, t : t + tile], np.float64)  # what dsyrk takes
-        gram = dsyrk(1.0, part, beta=1.0, c=gram, overwrite_c=True)
+        part = np.array(w[:, t : t + tile], np.float64)  # s x run, C order
+        gram = dsyrk(1.0, part.T, beta=1.0, c=gram, trans=1, overwrite_c=True)
         w_phi += part @ np.asarray(phi[t : t + tile], np.float64)
     return np.triu(gram) + np.triu(gram, 1).T, w_phi
 

@@ -171,6 +171,52 @@ def test_the_co_range_test_matrix_is_the_same_whoever_makes_which_rows():
     assert np.count_nonzero(co_range_test(5, 3, 0, 10).toarray(), axis=0).tolist() == [3] * 10
 
 
+@pytest.mark.parametrize("rows,texels,width", [
+    (1, 1, 3),  # a single value; fewer columns than entries per row (3 of 8)
+    (37, 1000, 193),  # rows and texels off the loops' group and run lengths
+    (64, 640, 9),  # whole groups and runs; barely more columns than entries
+])
+def test_the_compiled_sign_products_are_the_sparse_products(rows, texels, width):
+    from tasks.sketch_kernel import add_sign_columns, add_sign_rows
+    from tasks.svd import sign_map
+
+    rng = np.random.default_rng(rows)
+    a = (rng.standard_normal((rows, 2 * texels)) * np.logspace(-3, 3, 2 * texels)
+         ).astype(np.float32)[:, ::2]  # a strided view, values over six decades
+    omega = sign_map(7, 1, (0, 0), texels, width)
+    dense = np.zeros((texels, width))
+    np.put_along_axis(dense, omega[0], omega[1], axis=1)
+    start = rng.standard_normal((rows, width)).astype(np.float32)
+    y = start.copy()
+    add_sign_columns(a, *omega, y)
+    exact = start + a.astype(np.float64) @ dense
+    assert np.abs(y - exact).max() <= 1e-6 * np.abs(exact).max()
+    psi = sign_map(8, 3, (0,), rows, width)  # Psi^T: a row per matrix row
+    dense_psi = np.zeros((rows, width))
+    np.put_along_axis(dense_psi, psi[0], psi[1], axis=1)
+    w = np.zeros((width, texels), np.float32)
+    add_sign_rows(a, *psi, w)
+    exact = dense_psi.T @ a.astype(np.float64)
+    assert np.abs(w - exact).max() <= 1e-5 * np.abs(exact).max()
+    again = np.zeros_like(w)
+    add_sign_rows(np.ascontiguousarray(a), *psi, again)
+    assert np.array_equal(w, again)  # fixed order: a copy of the input gives the same bits
+
+
+def test_the_compiled_sign_products_refuse_what_does_not_fit():
+    from tasks.sketch_kernel import add_sign_columns, add_sign_rows
+    from tasks.svd import sign_map
+
+    a = np.ones((4, 10), np.float32)
+    cols, signs = sign_map(1, 1, (0,), 10, 12)
+    with pytest.raises(ValueError, match="outside its 11 columns"):
+        add_sign_columns(a, cols, signs, np.zeros((4, 11), np.float32))
+    with pytest.raises(ValueError, match="a sign map of 4 rows"):
+        add_sign_rows(a, cols, signs, np.zeros((12, 10), np.float32))
+    with pytest.raises(TypeError, match="y must be a C-contiguous float32 matrix"):
+        add_sign_columns(a, cols, signs, np.zeros((4, 12)))
+
+
 def test_the_same_seed_gives_the_same_factors_whatever_the_blocks():
     a = _matrix(60, 200, lambda i: np.exp(-i / 4.0))
     results = []
