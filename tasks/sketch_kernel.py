@@ -16,8 +16,8 @@ float32). Two products use them on every value the one pass reads:
 Both are fixed-order loops (the same bits on every scheduler and thread count) that release
 the GIL (``nogil``), so dask's threads run tiles in parallel; neither uses numba's own
 threads. Compiled code is kept in numba's on-disk cache, as :mod:`tasks.csr_kernel`'s.
-scipy's sparse products, which they replace, ran 2-3.5x slower on one thread (BENCHMARKS.md,
-"One pass over a terabyte").
+scipy's sparse products, which they replace, took about 3x as long on one thread
+(BENCHMARKS.md, "The one pass's products compiled").
 """
 
 from __future__ import annotations
