@@ -63,7 +63,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sketch-multiples", default="2,3,4,6,8",
                         help="range sketch sizes k = c K + 1 of the sketch-size table")
     parser.add_argument("--parts", default="timed,errors,sketch,scaling,texels",
-                        help="which tables to measure (comma-separated)")
+                        help="which tables to measure (comma-separated; also 'disk', not run "
+                             "by default: a store larger than memory, see --disk-gigabytes)")
+    parser.add_argument("--disk-gigabytes", type=float, default=0.0,
+                        help="disk part: the store's float32 size in GB (default 0: 1.5x this "
+                             "machine's memory, e.g. 36 GB on 24 GiB: minutes to generate and "
+                             "about 1.2x that on disk)")
+    parser.add_argument("--disk-size", type=int, default=512,
+                        help="disk part: texels per side of the large store (its sampling is "
+                             "the hemi:N that reaches --disk-gigabytes)")
+    parser.add_argument("--disk-small-size", type=int, default=128,
+                        help="disk part: texels per side of the same material and sampling "
+                             "compressed for comparison (it fits memory)")
     parser.add_argument("--repeat", type=int, default=3,
                         help="runs of btf compress and of the bound's parts, interleaved so "
                              "that both see the same machine (best kept; default 3); other "
@@ -149,6 +160,77 @@ def one_read(store: Path) -> float:
     (imports included): the floor of a mode that reads the store once."""
     return measure(_py(f"from benchmarks.compress import read_pass; read_pass({str(store)!r})")
                    ).seconds
+
+
+def memory_bytes() -> int:
+    """This machine's physical memory."""
+    import os
+
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def store_bytes(store: Path) -> int:
+    """Bytes the store's files take on disk."""
+    return sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+
+
+def drop_page_cache() -> bool:
+    """Write dirty pages and drop the page cache (Linux, as root); whether it was dropped."""
+    subprocess.run(["sync"], check=False)
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+    except OSError:
+        return False
+    return True
+
+
+def disk(args, data: Path, tmp: Path) -> dict:
+    """``btf compress`` of a store larger than memory, read from the disk: the default and the
+    one pass against one read of the store, and their errors against the same material and
+    sampling at ``--disk-small-size`` (which fits memory).
+
+    Before each timed run the page cache is dropped where this process may (Linux, root); a
+    store larger than memory cannot stay in it anyway, being read in order.
+    """
+    import zarr
+
+    memory = memory_bytes()
+    gigabytes = args.disk_gigabytes or 1.5 * memory / 1e9
+    n = max(2, math.ceil(math.sqrt(gigabytes * 1e9 / (4 * 3 * args.disk_size**2))))
+    sampling = f"hemi:{n}"
+    started = time.perf_counter()
+    store = ensure_store(data, args.material, args.disk_size, sampling)
+    generated = time.perf_counter() - started
+    m_rows, n_cols = matrix_shape(store)
+    out = {"memory": memory, "store": str(store), "rows": m_rows, "cols": n_cols,
+           "gigabytes": m_rows * n_cols * 4 / 1e9, "on_disk": store_bytes(store),
+           "sampling": sampling, "prepared_seconds": generated, "runs": []}
+    larger = out["on_disk"] > memory
+    dropped = []
+    dropped.append(larger and drop_page_cache())
+    out["one_read"] = one_read(store)
+    small = ensure_store(data, args.material, args.disk_small_size, sampling)
+    for mode, options in (("default", ["--oversample", str(args.oversample),
+                                       "--power-iters", str(args.power_iters)]),
+                          ("one pass", ["--passes", "1"])):
+        errors = {}
+        for name, source in (("large", store), ("small", small)):
+            path = tmp / f"disk-{name}.zarr"
+            if name == "large":
+                dropped.append(larger and drop_page_cache())
+            m = measure([btf_executable(), "compress", str(source), str(path), "--rank",
+                         str(args.rank), *options, "--quiet", "--overwrite"])
+            attrs = zarr.open_group(path, mode="r").attrs
+            errors[name] = attrs["error"]["log_relative_frobenius"]
+            if name == "large":
+                run = {"mode": mode, "seconds": m.seconds, "peak_rss": m.peak_rss,
+                       "passes": attrs["svd"]["passes"], "one_read": out["one_read"]}
+        out["runs"].append(run | {"error": errors["large"], "small_error": errors["small"]})
+    out["page_cache"] = ("dropped before each run" if all(dropped) else
+                         "not dropped (not root?); the store is larger than memory" if larger
+                         else "not dropped: the store fits memory (a small form)")
+    out["small_shape"] = matrix_shape(small)
+    return out
 
 
 def products_pass(store: str, rank: int, oversample: int, kind: str) -> None:
@@ -425,6 +507,8 @@ def run(args: argparse.Namespace) -> dict:
             result["scaling"] = scaling(args, data, tmp)
         if "texels" in parts and args.texel_scaling:
             result["texel_scaling"] = texel_scaling(args, data, tmp)
+        if "disk" in parts:
+            result["disk"] = disk(args, data, tmp)
         result["bench_seconds"] = time.perf_counter() - started
     return result
 
@@ -484,7 +568,27 @@ def report(result: dict) -> str:
                          f"{r['peak_rss'] / gib:.2f} GiB | "
                          f"{r['peak_rss'] / base[r['sketch']]['peak_rss']:.2f}x | "
                          f"{r['error']:.4g} |")
+    if result.get("disk"):
+        lines += ["", *_disk_report(result["disk"])]
     return "\n".join(lines).rstrip()
+
+
+def _disk_report(d: dict) -> list[str]:
+    gib = 1 << 30
+    larger = "larger than memory" if d["on_disk"] > d["memory"] else "that fits memory"
+    lines = [f"A store {larger}: {d['rows']} x {d['cols']} ({d['gigabytes']:.2f} GB of "
+             f"float32, {d['on_disk'] / 1e9:.2f} GB on disk, {d['sampling']}) on a machine of "
+             f"{d['memory'] / gib:.1f} GiB; page cache {d['page_cache']}. One read of it "
+             f"through zarr: {d['one_read']:.1f} s. Errors against the same material and "
+             f"sampling on {d['small_shape'][1]} texels ({d['small_shape'][0]} x "
+             f"{d['small_shape'][1]}):", "",
+             "| mode | passes | wall s | vs one read | peak RSS | log rel. error | the small "
+             "store's |", "|---|---|---|---|---|---|---|"]
+    for r in d["runs"]:
+        lines.append(f"| {r['mode']} | {r['passes']} | {r['seconds']:.1f} | {_floor(r)} | "
+                     f"{r['peak_rss'] / gib:.2f} GiB | {r['error']:.4g} | "
+                     f"{r['small_error']:.4g} |")
+    return lines
 
 
 def _floor(row: dict) -> str:

@@ -559,3 +559,33 @@ def test_passes_may_be_written_as_a_number_in_a_config(tmp_path, btf, monkeypatc
     result = btf("run", "run.yaml", "--quiet")
     assert result.code == 0, result.err
     assert zarr.open_group(tmp_path / "c.zarr").attrs["svd"]["passes"] == 1
+
+
+@pytest.mark.slow
+def test_btf_bench_compress_disk_part_times_both_modes_against_one_read(tmp_path):
+    """The small form of the store-larger-than-memory part (`--parts disk`): both modes timed
+    beside one read of the store, with their errors and those of a smaller store of the same
+    material and sampling; a store that fits memory says so and keeps the page cache."""
+    import argparse
+
+    from benchmarks import compress as suite
+
+    parser = argparse.ArgumentParser()
+    suite.add_arguments(parser)
+    args = parser.parse_args(["--parts", "disk", "--disk-gigabytes", "0.01", "--disk-size",
+                              "48", "--disk-small-size", "24", "--rank", "4", "--data-dir",
+                              str(tmp_path / "data")])
+    result = suite.run(args)
+    d = result["disk"]
+    n = int(d["sampling"].removeprefix("hemi:"))  # the smallest hemi:N reaching 0.01 GB
+    assert (d["rows"], d["cols"]) == (3 * n * n, 48 * 48)
+    assert d["gigabytes"] >= 0.01 > 3 * (n - 1) ** 2 * 48 * 48 * 4 / 1e9
+    assert d["small_shape"] == (d["rows"], 24 * 24) and d["on_disk"] < d["memory"]
+    assert d["page_cache"] == "not dropped: the store fits memory (a small form)"
+    assert [(r["mode"], r["passes"]) for r in d["runs"]] == [("default", 3), ("one pass", 1)]
+    for r in d["runs"]:
+        assert r["seconds"] > 0 and r["peak_rss"] > 0 and r["one_read"] == d["one_read"] > 0
+        assert 0 < r["error"] < 1 and 0 < r["small_error"] < 1
+    text = suite.report(result)
+    assert f"A store that fits memory: {d['rows']} x 2304" in text
+    assert "| one pass | 1 | " in text and "x (" in text
