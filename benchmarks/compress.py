@@ -157,7 +157,9 @@ def read_pass(store: str) -> None:
 
 def one_read(store: Path) -> float:
     """Seconds of :func:`read_pass` over ``store`` in a fresh process, as ``btf compress`` runs
-    (imports included): the floor of a mode that reads the store once."""
+    (imports included): the floor of a mode that reads the store once from the page cache.
+    From a disk, zarr's chunk-by-chunk read may be slower than the disk (BENCHMARKS.md, "A
+    store larger than memory")."""
     return measure(_py(f"from benchmarks.compress import read_pass; read_pass({str(store)!r})")
                    ).seconds
 
@@ -184,6 +186,13 @@ def drop_page_cache() -> bool:
     return True
 
 
+def _modes(args) -> list[tuple[str, list[str]]]:
+    """The default mode (the suite's P and Q) and the one pass (its default sketch)."""
+    return [("default", ["--oversample", str(args.oversample), "--power-iters",
+                         str(args.power_iters)]),
+            ("one pass", ["--passes", "1"])]
+
+
 def disk(args, data: Path, tmp: Path) -> dict:
     """``btf compress`` of a store larger than memory, read from the disk: the default and the
     one pass against one read of the store, and their errors against the same material and
@@ -206,26 +215,24 @@ def disk(args, data: Path, tmp: Path) -> dict:
            "gigabytes": m_rows * n_cols * 4 / 1e9, "on_disk": store_bytes(store),
            "sampling": sampling, "prepared_seconds": generated, "runs": []}
     larger = out["on_disk"] > memory
-    dropped = []
-    dropped.append(larger and drop_page_cache())
+    dropped = [larger and drop_page_cache()]
     out["one_read"] = one_read(store)
     small = ensure_store(data, args.material, args.disk_small_size, sampling)
-    for mode, options in (("default", ["--oversample", str(args.oversample),
-                                       "--power-iters", str(args.power_iters)]),
-                          ("one pass", ["--passes", "1"])):
-        errors = {}
-        for name, source in (("large", store), ("small", small)):
-            path = tmp / f"disk-{name}.zarr"
-            if name == "large":
-                dropped.append(larger and drop_page_cache())
-            m = measure([btf_executable(), "compress", str(source), str(path), "--rank",
-                         str(args.rank), *options, "--quiet", "--overwrite"])
-            attrs = zarr.open_group(path, mode="r").attrs
-            errors[name] = attrs["error"]["log_relative_frobenius"]
-            if name == "large":
-                run = {"mode": mode, "seconds": m.seconds, "peak_rss": m.peak_rss,
-                       "passes": attrs["svd"]["passes"], "one_read": out["one_read"]}
-        out["runs"].append(run | {"error": errors["large"], "small_error": errors["small"]})
+
+    def compress(source: Path, options: list[str]):
+        path = tmp / "disk.zarr"
+        m = measure([btf_executable(), "compress", str(source), str(path), "--rank",
+                     str(args.rank), *options, "--quiet", "--overwrite"])
+        return m, zarr.open_group(path, mode="r").attrs
+
+    for mode, options in _modes(args):
+        dropped.append(larger and drop_page_cache())
+        m, attrs = compress(store, options)
+        _, small_attrs = compress(small, options)
+        out["runs"].append({"mode": mode, "seconds": m.seconds, "peak_rss": m.peak_rss,
+                            "passes": attrs["svd"]["passes"], "one_read": out["one_read"],
+                            "error": attrs["error"]["log_relative_frobenius"],
+                            "small_error": small_attrs["error"]["log_relative_frobenius"]})
     out["page_cache"] = ("dropped before each run" if all(dropped) else
                          "not dropped (not root?); the store is larger than memory" if larger
                          else "not dropped: the store fits memory (a small form)")
@@ -398,9 +405,7 @@ def scaling(args, data: Path, tmp: Path) -> list[dict]:
         store = ensure_store(data, args.material, args.size, f"hemi:{n}")
         m_rows, n_cols = matrix_shape(store)
         floor = one_read(store)
-        for mode, options in (("default", ["--oversample", str(args.oversample),
-                                           "--power-iters", str(args.power_iters)]),
-                              ("one pass", ["--passes", "1"])):
+        for mode, options in _modes(args):
             m = measure([btf_executable(), "compress", str(store), str(tmp / "scale.zarr"),
                          "--rank", str(args.rank), *options, "--quiet", "--overwrite"])
             rows.append({"gigabytes": m_rows * n_cols * 4 / 1e9, "rows": m_rows,
