@@ -141,9 +141,37 @@ def arrays(root: str) -> dict[str, np.ndarray]:
 
 def same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
     """Whether two outputs hold the same arrays, bit for bit (NaN equal to NaN)."""
-    return a.keys() == b.keys() and all(
-        a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f")
-        for k in a)
+    return a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
+
+
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+
+
+def differences(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[str]:
+    """What differs between outputs ``a`` (a faulted run's) and ``b`` (the reference).
+
+    A line per array: how many values differ, how many of those read as NaN in ``a`` where
+    ``b`` has a number (what a float array's missing chunk reads as), and the box that holds
+    them (index ranges, ends exclusive), to set against the array's chunks.
+    """
+    lines = [f"{k}: only in the {'faulted run' if k in a else 'reference'}"
+             for k in sorted(a.keys() ^ b.keys())]
+    for k in sorted(a.keys() & b.keys()):
+        x, y = a[k], b[k]
+        if _equal(x, y):
+            continue
+        if x.shape != y.shape or x.dtype != y.dtype:
+            lines.append(f"{k}: {x.dtype}{x.shape} against {y.dtype}{y.shape}")
+            continue
+        floats = x.dtype.kind == "f"
+        differ = ~((x == y) | (np.isnan(x) & np.isnan(y))) if floats else x != y
+        fill = int((np.isnan(x) & ~np.isnan(y)).sum()) if floats else 0
+        where = np.argwhere(differ)
+        box = ", ".join(f"{lo}:{hi + 1}" for lo, hi in zip(where.min(0), where.max(0), strict=True))
+        lines.append(f"{k}{list(x.shape)}: {len(where)} value(s) differ, {fill} of them NaN in "
+                     f"the faulted run, within [{box}]")
+    return lines
 
 
 class Cluster:
@@ -290,9 +318,16 @@ def _faulted(setting: _Setting, i: int, moment: float, args, reference: dict) ->
         tries.append(attempt(argv, setting.folder / f"{name}.rerun{len(tries)}.log",
                              setting.env))
     done = tries[-1].code == 0
+    found = arrays(setting.root(name)) if done else {}
+    identical = done and same(found, reference)
+    diagnosis = []
+    if done and not identical:  # what differs, and whether a second read sees the same
+        diagnosis = differences(found, reference)
+        diagnosis.append("a second read gives the same arrays" if same(
+            arrays(setting.root(name)), found) else "a second read gives other arrays")
     return {"run": i, "moment": moment, "fired": first.fired,
             "codes": [t.code for t in tries], "reruns": len(tries) - 1, "done": done,
-            "identical": done and same(arrays(setting.root(name)), reference),
+            "identical": identical, "differences": diagnosis,
             "seconds": sum(t.seconds for t in tries), "attempts": [t.seconds for t in tries],
             "outage": outage[0] if outage else None}
 
@@ -332,7 +367,8 @@ def _mode(mode: str, args, work: Path, reference: dict | None, rng) -> dict:
                   + f"), exit codes {row['codes']}, "
                   + ("identical" if row["identical"] else "NOT IDENTICAL")
                   + f", {row['lost']:+.1f} s"
-                  + (f" (server down {row['outage']:.1f} s)" if row["outage"] else ""),
+                  + (f" (server down {row['outage']:.1f} s)" if row["outage"] else "")
+                  + "".join(f"\n  {line}" for line in row["differences"]),
                   file=sys.stderr, flush=True)
         return {"mode": mode, "undisturbed_seconds": total, "stages": stages,
                 "start_up": undisturbed.stages[0][1] if undisturbed.stages else 0.0,

@@ -135,3 +135,25 @@ def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch
     expected, got = _arrays(ref, names), _arrays(out, names)
     for n in names:
         assert np.array_equal(expected[n], got[n]), n
+
+
+def test_the_fault_campaign_says_what_differs_in_a_run_that_is_not_identical():
+    """A faulted run's outputs against the reference: the arrays that differ, how many values,
+    how many of them read as NaN (a missing chunk), and the box that holds them."""
+    from benchmarks.faults import differences, same
+
+    ref = {"m.zarr/radiance": np.arange(24, dtype="float32").reshape(2, 3, 4),
+           "m.zarr/light": np.arange(3), "s.zarr/x": np.zeros(2, "float32")}
+    run = {k: v.copy() for k, v in ref.items()}
+    assert same(run, ref) and differences(run, ref) == []
+    run["m.zarr/radiance"][1, 1:3, 2:4] = np.nan
+    run["m.zarr/radiance"][1, 2, 3] = -1.0
+    run["m.zarr/light"] = np.arange(4)
+    del run["s.zarr/x"]
+    run["t.zarr/y"] = np.ones(1)
+    assert not same(run, ref)
+    assert differences(run, ref) == [
+        "s.zarr/x: only in the reference", "t.zarr/y: only in the faulted run",
+        "m.zarr/light: int64(4,) against int64(3,)",
+        "m.zarr/radiance[2, 3, 4]: 4 value(s) differ, 3 of them NaN in the faulted run, "
+        "within [1:2, 1:3, 2:4]"]
