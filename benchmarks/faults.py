@@ -19,7 +19,10 @@ Modes:
   of a local cluster (loopback); a new worker takes its place before the next run;
 - ``s3``: outputs in a SeaweedFS bucket on loopback (:mod:`benchmarks.s3server`), whose
   server is stopped (SIGTERM) at the moment and started again on the same ports and data
-  ``--down`` seconds later.
+  ``--down`` seconds later;
+- ``cluster-client``: SIGKILL of ``btf run`` while it drives the local cluster of ``worker``
+  (outputs on the local disk): its workers live on, and the tasks they were running may still
+  write into the partial output while the rerun starts.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ import numpy as np
 from benchmarks.harness import btf_executable, git_revision, machine, stop_processes
 
 SUITE = "faults"
-MODES = ("client", "worker", "s3")
+MODES = ("client", "worker", "s3", "cluster-client")
 STORES = ("m.zarr", "sample.zarr", "photo.zarr", "sample_svd.zarr", "m_svd.zarr",
           "enlarged.zarr", "tiles.zarr", "scene.zarr")
 STAGE_LINE = re.compile(r"^\[(\d+)/(\d+)\] (\w+)", re.M)
@@ -284,7 +287,7 @@ class _Setting:
 
     def fault(self, down: float, restarts: list, outage: list):
         """The mode's fault, a function of the run's process."""
-        if self.mode == "client":
+        if self.mode in ("client", "cluster-client"):
             return lambda proc: proc.send_signal(signal.SIGKILL)
         if self.mode == "worker":
             return self.cluster.kill_one
@@ -344,7 +347,7 @@ def _mode(mode: str, args, work: Path, reference: dict | None, rng) -> dict:
             setting.server = s3server.start(setting.folder / "s3")
             setting.env.update(setting.server.environment)
             os.environ.update(setting.server.environment)  # to read the outputs here
-        if mode == "worker":
+        if mode in ("worker", "cluster-client"):
             setting.cluster = Cluster(setting.folder)
         undisturbed = _undisturbed(setting)
         bits = arrays(setting.root("undisturbed"))

@@ -165,17 +165,17 @@ def test_tiled_enlargement_resumes_after_kill_9(tmp_path):
 @pytest.mark.distributed
 def test_btf_bench_faults_finishes_a_run_after_each_kind_of_fault(tmp_path):
     """The fault campaign's small form (``btf bench faults``, one run per mode): kill -9 of
-    the client, of a cluster worker, a restart of the S3 server; each run is finished by its
-    reruns with the bits of an undisturbed local run."""
+    the client, of a cluster worker, a restart of the S3 server, kill -9 of a cluster's
+    client; each run is finished by its reruns with the bits of an undisturbed local run."""
     out = tmp_path / "faults.json"
     seed = np.random.SeedSequence().entropy % 2**32  # new fault moments every run: say which
     done = btf_process("bench", "faults", "--runs", "1", "--seed", str(seed), "--json", out,
                        timeout=900)
     assert done.returncode == 0, (seed, done.stderr)
     result = json.loads(out.read_text())
-    assert [m["mode"] for m in result["modes"]] == ["client", "worker", "s3"]
+    assert [m["mode"] for m in result["modes"]] == ["client", "worker", "s3", "cluster-client"]
     for m in result["modes"]:
         assert m["undisturbed_identical"], (seed, m["mode"])
         (row,) = m["runs"]
         assert row["done"] and row["identical"], (seed, m["mode"], row)
-    assert "| client | 1 | " in done.stdout and "| s3 | 1 | " in done.stdout
+    assert "| client | 1 | " in done.stdout and "| cluster-client | 1 | " in done.stdout
