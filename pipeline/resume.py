@@ -5,8 +5,11 @@ A stage that may be resumed writes into a partial output named after its provena
 ``kill -9`` or the out-of-memory killer finds it again. (Chunk files are not fsynced: after a
 power loss a marker may outlive its unit's data. Blocks written by
 :func:`pipeline.graphs.blocks.store_aligned` are read back and written again if a chunk fails
-its checksum (``redo`` of :meth:`Progress.pending`); other units are trusted, so resuming them
-is for killed processes, not for crashed machines.) One run at a time writes a partial output:
+its checksum (``redo`` of :meth:`Progress.pending`); the stages whose units write elsewhere
+(tile sets, enlargement, staged images) read back the whole partial output and, if a chunk
+fails, do every unit again (:meth:`Progress.distrust_damaged`). A chunk that never reached the
+disk at all reads as its fill value, which no checksum can see: resuming is for killed
+processes, and only mostly for crashed machines.) One run at a time writes a partial output:
 it holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished
 unit of work (a block of a store, a pass of the SVD) in ``.btf-done/``. A marker is written
 only after its unit's data is written, so a unit cut off in the middle is simply done again;
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -70,6 +74,45 @@ class Progress:
 
         return zarr.open_group(storage.store(storage.parent(self.dir)), mode="r+",
                                use_consolidated=False)
+
+    def distrust_damaged(self, say: Callable[[str], Any]) -> list[str]:
+        """Forget every finished unit if a chunk of the partial output fails its checksum.
+
+        For stages whose units cannot be told from their chunks: every array of the partial
+        output is read back (a resume reads what the killed run wrote once more), and if one
+        chunk fails, it is removed (its shard, in a sharded array), the markers go and every
+        unit is done again (the skeleton is kept), which ``say`` is told in one line.
+        Returns the bad chunks, as ``ARRAY chunk (i, j, ..) [ranges]``; empty when all read
+        back or nothing was kept.
+        """
+        if not self.count():
+            return []
+        import zarr
+
+        from pipeline import checksums
+
+        group = zarr.open_group(storage.store(storage.parent(self.dir)), mode="r",
+                                use_consolidated=False)
+        with warnings.catch_warnings():  # the markers' folder is no zarr node: zarr says so
+            warnings.filterwarnings("ignore", "Object at .* is not recognized")
+            arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
+        root, bad = storage.parent(self.dir), []
+        for array in arrays:
+            damaged = _damaged(array)
+            bad += [f"{array.path} chunk {checksums.chunk_name(array, c)}" for c in damaged]
+            # gone, so that no unit done again reads them to write a part of them
+            unit = array.shards or array.chunks
+            for key in {array.metadata.encode_chunk_key(tuple(
+                    i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
+                    for index in damaged}:
+                storage.remove(storage.join(root, array.path, key))
+        if bad:
+            for name in self._names() - {CREATED}:
+                storage.remove(storage.join(self.dir, name))
+            more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+            say(f"resuming: {bad[0]}{more} of the killed run fails its checksum: every unit "
+                "is done again")
+        return bad
 
     def done(self, name: str) -> bool:
         """Whether unit ``name`` is finished."""
@@ -133,6 +176,34 @@ class Progress:
         value = compute()
         _keep(value, marker)
         return value, False
+
+
+def _damaged(array) -> list[tuple[int, ...]]:
+    """The chunks of ``array`` that fail their checksum.
+
+    Read a write unit (a shard, or a chunk) at a time on threads; a failing unit then chunk by
+    chunk.
+    """
+    import itertools
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pipeline.checksums import ChecksumError, bad_chunks
+
+    unit = array.shards or array.chunks
+    regions = [tuple(slice(i * u, min((i + 1) * u, n)) for i, u, n in zip(
+        index, unit, array.shape, strict=True)) for index in itertools.product(
+        *(range(-(-n // u)) for n, u in zip(array.shape, unit, strict=True)))]
+
+    def fails(region) -> bool:
+        try:
+            array[region]
+        except ChecksumError:
+            return True
+        return False
+
+    with ThreadPoolExecutor(4) as pool:
+        failing = [r for r, f in zip(regions, pool.map(fails, regions), strict=True) if f]
+    return [c for region in failing for c in bad_chunks(array, region)]
 
 
 def _file(name: str) -> str:

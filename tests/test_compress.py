@@ -524,6 +524,49 @@ def test_tasks_run_with_one_blas_thread(scheduler, request):
     assert inside and set(inside) == {1}
 
 
+def test_a_resumed_one_pass_whose_kept_sketch_changed_starts_over(tmp_path, monkeypatch,
+                                                                   capsys):
+    """The one pass keeps its co-range sketch in the partial output: after a kill, the rerun
+    keeps the pass; but if a chunk of the sketch fails its checksum, it does every unit again,
+    to the same bits."""
+    import pipeline.resume as resume
+    from pipeline.cli import main
+
+    class Crash(Exception):
+        pass
+
+    store = store_from_log_matrix(tmp_path / "s.zarr",
+                                  spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE)
+    args = ["compress", str(store), None, "--rank", "6", "--passes", "1", "--scheduler",
+            "synchronous"]
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    assert main([*args[:2], str(ref), *args[3:], "--quiet"]) == 0
+    original = resume._keep
+
+    def keep(result, marker):
+        if "sketch-vectors" in marker:
+            raise Crash("killed")
+        return original(result, marker)
+
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        m.setattr(resume, "_keep", keep)
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main([*args[:2], str(out), *args[3:], "--quiet"])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    scratch = sorted(c for c in (partial / "sketch-scratch").rglob("*") if c.is_file()
+                     and "c" in c.relative_to(partial).parts)
+    assert scratch
+    data = bytearray(scratch[0].read_bytes())
+    data[len(data) // 2] ^= 0x10
+    scratch[0].write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main([*args[:2], str(out), *args[3:]]) == 0
+    assert "compress: resuming: sketch-scratch" in capsys.readouterr().err
+    a, b = zarr.open_group(ref, mode="r"), zarr.open_group(out, mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
 def test_an_unreadable_chunk_is_named(tmp_path, btf):
     store = store_from_log_matrix(tmp_path / "s.zarr",
                                   spectrum_matrix(144, 768, np.exp(-np.arange(10.0))), SHAPE)

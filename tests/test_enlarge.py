@@ -216,6 +216,48 @@ def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tm
     assert not any(k.startswith("_") for k in b.array_keys())  # scratch arrays are gone
 
 
+def test_a_resumed_tiled_enlargement_whose_kept_chunk_changed_starts_over(
+        inputs, tiled, tmp_path, monkeypatch, capsys):
+    """A tiled enlargement resumes with the tiles left (kill -9: tests/test_resume.py); but if
+    a chunk the killed run wrote fails its checksum, every unit is done again, to the same
+    bits."""
+    import pipeline.resume as resume
+    from pipeline.cli import main
+
+    class Crash(Exception):
+        pass
+
+    out = tmp_path / "out.zarr"
+    args = ["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out), "--tile", "32",
+            "--statistics", "--scheduler", "synchronous"]
+    original, kept = resume._keep, []
+
+    def keep(result, marker):
+        if len(kept) == 3:
+            raise Crash("killed")
+        kept.append(marker)
+        return original(result, marker)
+
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        m.setattr(resume, "_keep", keep)
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main([*args, "--quiet"])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    chunks = sorted(c for c in partial.glob("_*/c/**/*") if c.is_file())
+    assert chunks  # what the kept tiles wrote, in the scratch levels
+    data = bytearray(chunks[0].read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunks[0].write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main(args) == 0
+    said = capsys.readouterr().err
+    assert "enlarge: resuming: _" in said and "fails its checksum: every unit is done " \
+        "again" in said, said
+    a, b = zarr.open_group(tiled["tiled"], mode="r"), zarr.open_group(out, mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
 @pytest.mark.slow  # two enlargements of 128^2 -> 256^2 (about 2 minutes)
 def test_tile_borders_of_a_larger_target_are_no_rougher_than_the_whole(tmp_path):
     from pipeline.cli import main

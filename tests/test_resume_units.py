@@ -102,6 +102,32 @@ def test_ingest_resumes_with_the_images_and_blocks_left(tmp_path, monkeypatch, c
                                     "--scheduler", "synchronous"], ("radiance",))
 
 
+def test_a_staged_image_whose_chunk_changed_is_staged_again(tmp_path, monkeypatch, capsys,
+                                                            small_abtf, small_tasks):
+    """Ingest stages images too large for a task block, then copies them in blocks; a staged
+    image of the killed run whose chunk fails its checksum is not trusted: the rerun stages
+    every image again and gives the bits of an uninterrupted run."""
+    layers = tmp_path / "layers"
+    assert main(["export", str(small_abtf), str(layers), "--quiet"]) == 0
+    args = ["ingest", str(layers), None, "--chunk", "8", "--scheduler", "synchronous"]
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    assert main([*args[:2], str(ref), *args[3:], "--quiet"]) == 0
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        _writes(m, fail_after=2)
+        main([*args[:2], str(out), *args[3:], "--quiet"])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    staged = sorted(c for c in partial.glob("_*/c/**/*") if c.is_file())
+    assert staged  # every image was staged before the crash
+    data = bytearray(staged[-1].read_bytes())
+    data[len(data) // 2] ^= 0x10
+    staged[-1].write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main([*args[:2], str(out), *args[3:]]) == 0
+    assert "fails its checksum: every unit is done again" in capsys.readouterr().err
+    assert np.array_equal(_arrays(ref, ["radiance"])["radiance"],
+                          _arrays(out, ["radiance"])["radiance"])
+
+
 def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch, small_tasks):
     """A marker whose data did not survive (a machine crash, bit rot) is not trusted."""
     ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
@@ -157,3 +183,49 @@ def test_the_fault_campaign_says_what_differs_in_a_run_that_is_not_identical():
         "m.zarr/light: int64(4,) against int64(3,)",
         "m.zarr/radiance[2, 3, 4]: 4 value(s) differ, 3 of them NaN in the faulted run, "
         "within [1:2, 1:3, 2:4]"]
+
+
+def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, monkeypatch,
+                                                                     capsys):
+    """Quilting resumes with the groups of writes left; but if a chunk the killed run wrote
+    fails its checksum (a machine crash, bit rot), every group is written again, so the tile
+    set still has the bits of an uninterrupted run."""
+    import pipeline.resume as resume
+
+    sample = tmp_path / "stone.zarr"
+    assert main(["generate", str(sample), "--material", "stone", "--size", "64", "--sampling",
+                 "hemi:3", "--chunk", "32", "--dir-chunk", "2", "--quiet"]) == 0
+    args = ["quilt", str(sample), "--block", "16", "--overlap", "4", "--candidates",
+            "4", "--seed", "3", "--scheduler", "synchronous", "--quiet"]
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    assert main([*args[:2], str(ref), *args[2:]]) == 0
+    original, kept = resume._keep, []
+
+    def keep(result, marker):
+        if "write-" in marker and len(kept) == 2:
+            raise Crash("killed")
+        kept.append(marker)
+        return original(result, marker)
+
+    with monkeypatch.context() as m, pytest.raises(Crash):
+        m.setattr(resume, "_keep", keep)
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main([*args[:2], str(out), *args[2:]])
+    (partial,) = tmp_path.glob(".out.resume-*")
+    assert len([p for p in (partial / DONE).iterdir() if p.name != CREATED]) == 2
+    ref_group = zarr.open_group(ref, mode="r")
+    arrays = {p: a for p, a in ref_group.members(max_depth=None) if isinstance(a, zarr.Array)}
+    # a chunk of the radiance the first group wrote (view 0), one byte flipped
+    name = next(p for p in arrays if p.endswith("radiance"))
+    chunk = next(c for c in sorted((partial / name / "c").rglob("*")) if c.is_file())
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunk.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main([*args[:2], str(out), *args[2:-1]]) == 0
+    said = capsys.readouterr().err
+    assert f"quilt: resuming: {name} chunk (" in said and "fails its checksum: every unit is " \
+        "done again" in said, said
+    got = zarr.open_group(out, mode="r")
+    for p, a in arrays.items():
+        assert np.array_equal(a[...], got[p][...], equal_nan=a.dtype.kind == "f"), p

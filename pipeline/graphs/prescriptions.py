@@ -144,7 +144,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
     (:func:`pipeline.stores.tileset.write_tileset_store`) in a partial output, filled by
     :func:`apply_tileset` on the session's scheduler, and moved to ``out``. A run killed while
     it applies the plan resumes with the groups of writes it had not finished
-    (:mod:`pipeline.resume`; the plan is made again, deterministically, by the rerun).
+    (:mod:`pipeline.resume`; the plan is made again, deterministically, by the rerun), unless
+    a chunk the killed run wrote fails its checksum: then every group is written again.
     """
     from pipeline.atomic import atomic_output
     from pipeline.resume import Progress
@@ -157,6 +158,7 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
         progress = Progress(tmp)
         progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
                                                       source_group=group))
+        progress.distrust_damaged(lambda line: session.log(f"{label}: {line}"))
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism,
                                      needs=needs)

@@ -200,6 +200,7 @@ class _Passes:
         self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
         self.scratch = storage.join(out, SCRATCH)
         self.progress = Progress(out)
+        self.progress.distrust_damaged(lambda line: session.log(f"compress: {line}"))
         self.count = 0
 
     def __call__(self, kind: str, **arrays) -> PassPart:

@@ -437,6 +437,7 @@ def _enlarge_tiled(params: EnlargeParams, session: Session, out, tmp, constraint
 
     ``u`` is the sample's ``U`` as ``(rows, rank)``.
     """
+    Progress(tmp).distrust_damaged(lambda line: session.log(f"enlarge: {line}"))
     report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
                         sample_values, params=params.enlargement(),
                         guide_weight=float(np.sqrt(lam)), seed=params.seed,
