@@ -6,8 +6,8 @@ A stage that may be resumed writes into a partial output named after its provena
 power loss a marker may outlive its unit's data. Blocks written by
 :func:`pipeline.graphs.blocks.store_aligned` are read back and written again if a chunk fails
 its checksum (``redo`` of :meth:`Progress.pending`); the stages whose units write elsewhere
-(tile sets, enlargement, staged images) read back the whole partial output and, if a chunk
-fails, do every unit again (:meth:`Progress.distrust_damaged`). A chunk that never reached the
+(tile sets, enlargement, compression, staged images) read back the whole partial output and,
+if a chunk fails, start over (:meth:`Progress.distrust_damaged`). A chunk that never reached the
 disk at all reads as its fill value, which no checksum can see: resuming is for killed
 processes, and only mostly for crashed machines.) One run at a time writes a partial output:
 it holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished
@@ -75,43 +75,51 @@ class Progress:
         return zarr.open_group(storage.store(storage.parent(self.dir)), mode="r+",
                                use_consolidated=False)
 
-    def distrust_damaged(self, say: Callable[[str], Any]) -> list[str]:
-        """Forget every finished unit if a chunk of the partial output fails its checksum.
+    def distrust_damaged(self, say: Callable[[str], Any],
+                         only: Iterable[str] | None = None) -> list[str]:
+        """What a killed run left, read back: if a chunk fails its checksum, it is not kept.
 
-        For stages whose units cannot be told from their chunks: every array of the partial
-        output is read back (a resume reads what the killed run wrote once more), and if one
-        chunk fails, it is removed (its shard, in a sharded array), the markers go and every
-        unit is done again (the skeleton is kept), which ``say`` is told in one line.
-        Returns the bad chunks, as ``ARRAY chunk (i, j, ..) [ranges]``; empty when all read
-        back or nothing was kept.
+        For stages whose units cannot be told from their chunks. Every array of the partial
+        output is read back (what the killed run wrote, once more), and if a chunk fails, the
+        partial output is emptied: the stage makes its skeleton again (call this before
+        :meth:`skeleton`) and does every unit again. With ``only`` (array paths written by
+        units alone, none by the skeleton), just those arrays are read, and on a failure their
+        bad chunks (their shards, if sharded) and the units' markers go, the skeleton stays.
+        ``say`` is told in one line. Returns the bad chunks, as ``ARRAY chunk (i, j, ..)
+        [ranges]``; empty when all read back or nothing was kept.
         """
-        if not self.count():
+        if not (self.count() if only is not None else self.created):
             return []
         import zarr
 
         from pipeline import checksums
 
-        group = zarr.open_group(storage.store(storage.parent(self.dir)), mode="r",
-                                use_consolidated=False)
+        root = storage.parent(self.dir)
+        group = zarr.open_group(storage.store(root), mode="r", use_consolidated=False)
         with warnings.catch_warnings():  # the markers' folder is no zarr node: zarr says so
             warnings.filterwarnings("ignore", "Object at .* is not recognized")
-            arrays = [a for _, a in group.members(max_depth=None) if isinstance(a, zarr.Array)]
-        root, bad = storage.parent(self.dir), []
-        for array in arrays:
-            damaged = _damaged(array)
-            bad += [f"{array.path} chunk {checksums.chunk_name(array, c)}" for c in damaged]
-            # gone, so that no unit done again reads them to write a part of them
-            unit = array.shards or array.chunks
-            for key in {array.metadata.encode_chunk_key(tuple(
-                    i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
-                    for index in damaged}:
-                storage.remove(storage.join(root, array.path, key))
-        if bad:
+            arrays = [a for p, a in group.members(max_depth=None)
+                      if isinstance(a, zarr.Array) and (only is None or p in only)]
+        damaged = {array.path: _damaged(array) for array in arrays}
+        bad = [f"{array.path} chunk {checksums.chunk_name(array, c)}" for array in arrays
+               for c in damaged[array.path]]
+        if not bad:
+            return []
+        if only is None:
+            for child in storage.children(root):
+                storage.remove(storage.join(root, child))
+        else:
+            for array in arrays:  # gone, so that no unit done again reads them to add to them
+                unit = array.shards or array.chunks
+                for key in {array.metadata.encode_chunk_key(tuple(
+                        i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
+                        for index in damaged[array.path]}:
+                    storage.remove(storage.join(root, array.path, key))
             for name in self._names() - {CREATED}:
                 storage.remove(storage.join(self.dir, name))
-            more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
-            say(f"resuming: {bad[0]}{more} of the killed run fails its checksum: every unit "
-                "is done again")
+        more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
+        say(f"resuming: {bad[0]}{more} of the killed run fails its checksum: "
+            + ("starting over" if only is None else "every unit is done again"))
         return bad
 
     def done(self, name: str) -> bool:

@@ -145,7 +145,7 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
     :func:`apply_tileset` on the session's scheduler, and moved to ``out``. A run killed while
     it applies the plan resumes with the groups of writes it had not finished
     (:mod:`pipeline.resume`; the plan is made again, deterministically, by the rerun), unless
-    a chunk the killed run wrote fails its checksum: then every group is written again.
+    a chunk the killed run wrote fails its checksum: then it starts over.
     """
     from pipeline.atomic import atomic_output
     from pipeline.resume import Progress
@@ -156,9 +156,9 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
     with atomic_output(out, directory=True, overwrite=overwrite,
                        resume=tiles.attrs.get("provenance")) as tmp:
         progress = Progress(tmp)
+        progress.distrust_damaged(lambda line: session.log(f"{label}: {line}"))
         progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
                                                       source_group=group))
-        progress.distrust_damaged(lambda line: session.log(f"{label}: {line}"))
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism,
                                      needs=needs)

@@ -200,7 +200,6 @@ class _Passes:
         self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
         self.scratch = storage.join(out, SCRATCH)
         self.progress = Progress(out)
-        self.progress.distrust_damaged(lambda line: session.log(f"compress: {line}"))
         self.count = 0
 
     def __call__(self, kind: str, **arrays) -> PassPart:
@@ -359,7 +358,9 @@ def compress(params: CompressParams, session: Session) -> Path:
         + params.verify
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp, session.blas_pinned_in_tasks():
-        out = Progress(tmp).skeleton(lambda: create_compressed_store(  # passes: see _Passes
+        progress = Progress(tmp)
+        progress.distrust_damaged(lambda line: session.log(f"compress: {line}"))
+        out = progress.skeleton(lambda: create_compressed_store(  # passes: see _Passes
             tmp, directions=read_directions(group), channels=read_channels(group),
             ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs))
         passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),

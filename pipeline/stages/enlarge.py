@@ -437,7 +437,6 @@ def _enlarge_tiled(params: EnlargeParams, session: Session, out, tmp, constraint
 
     ``u`` is the sample's ``U`` as ``(rows, rank)``.
     """
-    Progress(tmp).distrust_damaged(lambda line: session.log(f"enlarge: {line}"))
     report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
                         sample_values, params=params.enlargement(),
                         guide_weight=float(np.sqrt(lam)), seed=params.seed,
@@ -500,7 +499,8 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
-        # a killed tiled run's finished tiles are kept (see synthesize)
+        # a killed tiled run's finished tiles are kept (see synthesize), if they read back
+        Progress(tmp).distrust_damaged(lambda line: session.log(f"enlarge: {line}"))
         out = _create_output(tmp, sample_group, attrs, big_h, big_w, rank, tile)
         if tile:
             report, new_u, new_s = _enlarge_tiled(params, session, out, tmp, constraints,

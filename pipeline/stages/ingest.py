@@ -206,7 +206,7 @@ def _staged(source: LayerSource, group, tmp, progress: Progress, session: Sessio
                  location(tmp), v, li, source.reader, _task_key(e.key), info=source.info,
                  first=first))
              for v, row in enumerate(source.grid) for li, e in enumerate(row)]
-    progress.distrust_damaged(lambda line: session.log(f"ingest: {line}"))
+    progress.distrust_damaged(lambda line: session.log(f"ingest: {line}"), only=(STAGING,))
     todo, _ = progress.pending(stage)
     session.compute(*todo)
     staged = da.from_zarr(group[STAGING], chunks=aligned_chunks(radiance))
