@@ -183,6 +183,47 @@ def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp
     _same(url, whole)
 
 
+def test_a_resume_starts_over_when_a_chunk_the_killed_run_wrote_fails_its_checksum(
+        btf, s3, monkeypatch, capsys):
+    """Quilting resumes in place on S3; a chunk object of the killed run with a changed byte
+    is not kept: the rerun starts over and gives the bits of an uninterrupted run."""
+    import pipeline.resume as resume
+    from pipeline.cli import main
+
+    sample, ref, out = (s3.url(f"distrust/{n}.zarr") for n in ("stone", "ref", "out"))
+    assert btf("generate", sample, "--material", "stone", "--size", "64", "--sampling",
+               "hemi:3", "--chunk", "32", "--dir-chunk", "2", "--quiet").code == 0
+    args = ["--block", "16", "--overlap", "4", "--candidates", "4", "--seed", "3",
+            "--scheduler", "synchronous"]
+    assert btf("quilt", sample, ref, *args, "--quiet").code == 0
+    original, real_remove, kept = resume._keep, storage.remove, []
+
+    class Crash(Exception):
+        pass
+
+    def keep(result, marker):
+        if "write-" in marker and len(kept) == 2:
+            raise Crash("killed")
+        kept.append(marker)
+        return original(result, marker)
+
+    with monkeypatch.context() as m, pytest.raises(Crash):  # killed: nothing cleaned up
+        m.setattr(resume, "_keep", keep)
+        m.setattr(storage, "remove", lambda at: None if at == out else real_remove(at))
+        main(["quilt", sample, out, *args, "--quiet"])
+    chunk = storage.join(out, next(k for k in sorted(storage.list_below(out))
+                                   if "radiance/c/" in k))
+    data = bytearray(storage.read(chunk))
+    data[len(data) // 2] ^= 0x10
+    storage.write(chunk, bytes(data))
+    capsys.readouterr()
+    assert main(["quilt", sample, out, *args]) == 0
+    said = capsys.readouterr().err
+    assert "quilt: resuming: " in said and "radiance chunk (" in said, said
+    assert "of the killed run fails its checksum: starting over" in said, said
+    _same(out, ref)
+
+
 def test_overwrite_keeps_the_old_output_until_the_new_one_is_complete(tmp_path, btf, s3,
                                                                        monkeypatch):
     url = s3.url("over/wood.zarr")
