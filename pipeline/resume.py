@@ -110,11 +110,7 @@ class Progress:
                 storage.remove(storage.join(root, child))
         else:
             for array in arrays:  # gone, so that no unit done again reads them to add to them
-                unit = array.shards or array.chunks
-                for key in {array.metadata.encode_chunk_key(tuple(
-                        i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
-                        for index in damaged[array.path]}:
-                    storage.remove(storage.join(root, array.path, key))
+                _remove_chunks(root, array, damaged[array.path])
             for name in self._names() - {CREATED}:
                 storage.remove(storage.join(self.dir, name))
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
@@ -212,6 +208,15 @@ def _damaged(array) -> list[tuple[int, ...]]:
     with ThreadPoolExecutor(4) as pool:
         failing = [r for r, f in zip(regions, pool.map(fails, regions), strict=True) if f]
     return [c for region in failing for c in bad_chunks(array, region)]
+
+
+def _remove_chunks(root: str, array, chunks: list[tuple[int, ...]]) -> None:
+    """Remove ``chunks`` (grid indices) of ``array`` under ``root``: their shards, if sharded."""
+    unit = array.shards or array.chunks
+    for key in {array.metadata.encode_chunk_key(tuple(
+            i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
+            for index in chunks}:
+        storage.remove(storage.join(root, array.path, key))
 
 
 def _file(name: str) -> str:
