@@ -98,8 +98,9 @@ class Progress:
         group = zarr.open_group(storage.store(root), mode="r", use_consolidated=False)
         with warnings.catch_warnings():  # the markers' folder is no zarr node: zarr says so
             warnings.filterwarnings("ignore", "Object at .* is not recognized")
-            arrays = [a for p, a in group.members(max_depth=None)
-                      if isinstance(a, zarr.Array) and (only is None or p in only)]
+            arrays = sorted((a for p, a in group.members(max_depth=None)
+                             if isinstance(a, zarr.Array) and (only is None or p in only)),
+                            key=lambda a: a.path)  # zarr lists them in no fixed order
         damaged = {array.path: _damaged(array) for array in arrays}
         bad = [f"{array.path} chunk {checksums.chunk_name(array, c)}" for array in arrays
                for c in damaged[array.path]]

@@ -226,7 +226,7 @@ def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, 
     capsys.readouterr()
     assert main([*args[:2], str(out), *args[2:-1]]) == 0
     said = capsys.readouterr().err
-    assert "quilt: resuming: theta_light chunk (0) [0:3] (and 1 more)" in said, said
+    assert f"quilt: resuming: {name} chunk (" in said, said  # the first, by path
     assert "(and 1 more) of the killed run fails its checksum: starting over" in said, said
     got = zarr.open_group(out, mode="r")
     for p, a in arrays.items():
