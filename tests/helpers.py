@@ -46,6 +46,29 @@ def btf_process(*args, env: dict | None = None, cwd: Path | None = None,
                           cwd=cwd, timeout=timeout)
 
 
+class Killed(Exception):
+    """A run stopped in the middle, in-process (see :func:`killed_before_unit`)."""
+
+
+def killed_before_unit(monkeypatch, unit: int, marker: str = "") -> None:
+    """Make a run raise :class:`Killed` where it would mark its unit number ``unit`` (from 0;
+    only units whose marker's name holds ``marker`` count) done, as a ``kill -9`` would stop it
+    there. Its partial output stays only if the caller also stops the cleanup.
+    """
+    import pipeline.resume as resume
+
+    original, kept = resume._keep, []
+
+    def keep(result, at):
+        if marker in at:
+            if len(kept) == unit:
+                raise Killed("killed")
+            kept.append(at)
+        return original(result, at)
+
+    monkeypatch.setattr(resume, "_keep", keep)
+
+
 def chromium() -> str:
     """Debian's chromium; skips the test where there is none, fails if BTF_REQUIRE_BROWSER."""
     found = shutil.which("chromium") or shutil.which("chromium-browser")

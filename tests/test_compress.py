@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import pipeline.graphs.tile_passes as tile_passes
-from helpers import SLOW_PROCESSES
+from helpers import SLOW_PROCESSES, Killed, killed_before_unit
 from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks, spans
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
@@ -529,11 +529,7 @@ def test_a_resumed_one_pass_whose_kept_sketch_changed_starts_over(tmp_path, monk
     """The one pass keeps its co-range sketch in the partial output: after a kill, the rerun
     keeps the pass; but if a chunk of the sketch fails its checksum, it does every unit again,
     to the same bits."""
-    import pipeline.resume as resume
     from pipeline.cli import main
-
-    class Crash(Exception):
-        pass
 
     store = store_from_log_matrix(tmp_path / "s.zarr",
                                   spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE)
@@ -541,15 +537,8 @@ def test_a_resumed_one_pass_whose_kept_sketch_changed_starts_over(tmp_path, monk
             "synchronous"]
     ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
     assert main([*args[:2], str(ref), *args[3:], "--quiet"]) == 0
-    original = resume._keep
-
-    def keep(result, marker):
-        if "sketch-vectors" in marker:
-            raise Crash("killed")
-        return original(result, marker)
-
-    with monkeypatch.context() as m, pytest.raises(Crash):
-        m.setattr(resume, "_keep", keep)
+    with monkeypatch.context() as m, pytest.raises(Killed):  # the pass kept, V not yet
+        killed_before_unit(m, 0, "sketch-vectors")
         m.setattr("pipeline.atomic._remove", lambda path: None)
         main([*args[:2], str(out), *args[3:], "--quiet"])
     (partial,) = tmp_path.glob(".out.resume-*")

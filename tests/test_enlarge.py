@@ -7,7 +7,7 @@ import pytest
 import zarr
 
 from benchmarks.enlarge import abrdf_error, lookup_baseline, truth_rows
-from helpers import SLOW_PROCESSES, generate_store, no_partial_outputs
+from helpers import SLOW_PROCESSES, Killed, generate_store, killed_before_unit, no_partial_outputs
 from pipeline.stores.compressed import open_compressed
 from tasks.transform import Transform
 
@@ -221,25 +221,13 @@ def test_a_resumed_tiled_enlargement_whose_kept_chunk_changed_starts_over(
     """A tiled enlargement resumes with the tiles left (kill -9: tests/test_resume.py); but if
     a chunk the killed run wrote fails its checksum, every unit is done again, to the same
     bits."""
-    import pipeline.resume as resume
     from pipeline.cli import main
-
-    class Crash(Exception):
-        pass
 
     out = tmp_path / "out.zarr"
     args = ["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out), "--tile", "32",
             "--statistics", "--scheduler", "synchronous"]
-    original, kept = resume._keep, []
-
-    def keep(result, marker):
-        if len(kept) == 3:
-            raise Crash("killed")
-        kept.append(marker)
-        return original(result, marker)
-
-    with monkeypatch.context() as m, pytest.raises(Crash):
-        m.setattr(resume, "_keep", keep)
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        killed_before_unit(m, 3)
         m.setattr("pipeline.atomic._remove", lambda path: None)
         main([*args, "--quiet"])
     (partial,) = tmp_path.glob(".out.resume-*")

@@ -15,6 +15,7 @@ import pytest
 import zarr
 
 import pipeline.graphs.blocks as blocks
+from helpers import Killed, killed_before_unit
 from pipeline.cli import main
 from pipeline.resume import CREATED, DONE
 
@@ -190,8 +191,6 @@ def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, 
     """Quilting resumes with the groups of writes left; but if a chunk the killed run wrote
     fails its checksum (a machine crash, bit rot), it starts over, so the tile set still has
     the bits of an uninterrupted run."""
-    import pipeline.resume as resume
-
     sample = tmp_path / "stone.zarr"
     assert main(["generate", str(sample), "--material", "stone", "--size", "64", "--sampling",
                  "hemi:3", "--chunk", "32", "--dir-chunk", "2", "--quiet"]) == 0
@@ -199,16 +198,8 @@ def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, 
             "4", "--seed", "3", "--scheduler", "synchronous", "--quiet"]
     ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
     assert main([*args[:2], str(ref), *args[2:]]) == 0
-    original, kept = resume._keep, []
-
-    def keep(result, marker):
-        if "write-" in marker and len(kept) == 2:
-            raise Crash("killed")
-        kept.append(marker)
-        return original(result, marker)
-
-    with monkeypatch.context() as m, pytest.raises(Crash):
-        m.setattr(resume, "_keep", keep)
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        killed_before_unit(m, 2, "write-")
         m.setattr("pipeline.atomic._remove", lambda path: None)
         main([*args[:2], str(out), *args[2:]])
     (partial,) = tmp_path.glob(".out.resume-*")

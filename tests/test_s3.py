@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import btf_process, dask_cluster
+from helpers import Killed, btf_process, dask_cluster, killed_before_unit
 from pipeline import storage
 
 BIN = Path(sys.executable).parent
@@ -187,7 +187,6 @@ def test_a_resume_starts_over_when_a_chunk_the_killed_run_wrote_fails_its_checks
         btf, s3, monkeypatch, capsys):
     """Quilting resumes in place on S3; a chunk object of the killed run with a changed byte
     is not kept: the rerun starts over and gives the bits of an uninterrupted run."""
-    import pipeline.resume as resume
     from pipeline.cli import main
 
     sample, ref, out = (s3.url(f"distrust/{n}.zarr") for n in ("stone", "ref", "out"))
@@ -196,19 +195,9 @@ def test_a_resume_starts_over_when_a_chunk_the_killed_run_wrote_fails_its_checks
     args = ["--block", "16", "--overlap", "4", "--candidates", "4", "--seed", "3",
             "--scheduler", "synchronous"]
     assert btf("quilt", sample, ref, *args, "--quiet").code == 0
-    original, real_remove, kept = resume._keep, storage.remove, []
-
-    class Crash(Exception):
-        pass
-
-    def keep(result, marker):
-        if "write-" in marker and len(kept) == 2:
-            raise Crash("killed")
-        kept.append(marker)
-        return original(result, marker)
-
-    with monkeypatch.context() as m, pytest.raises(Crash):  # killed: nothing cleaned up
-        m.setattr(resume, "_keep", keep)
+    real_remove = storage.remove
+    with monkeypatch.context() as m, pytest.raises(Killed):  # killed: nothing cleaned up
+        killed_before_unit(m, 2, "write-")
         m.setattr(storage, "remove", lambda at: None if at == out else real_remove(at))
         main(["quilt", sample, out, *args, "--quiet"])
     chunk = storage.join(out, next(k for k in sorted(storage.list_below(out))
