@@ -98,10 +98,15 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     if progress is None and keep is None:
         return da.store(sources, targets, lock=False, compute=False)
     units, regions = [], {}
+    # each block written by the task that computes it (as da.store does), not by a task of
+    # its own: the processes scheduler would move every block to the client and out again;
     # optimised together, as da.store would: work the sources share stays shared
-    for source, target in zip(dask.optimize(*sources), targets, strict=True):
+    writes = [source.map_blocks(_write_here, target=target, chunks=(1,) * source.ndim,
+                                dtype=np.int8, meta=np.empty((0,) * source.ndim, np.int8))
+              for source, target in zip(sources, targets, strict=True)]
+    for source, written, target in zip(sources, dask.optimize(*writes), targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
-        blocks = source.to_delayed(optimize_graph=False)
+        blocks = written.to_delayed(optimize_graph=False)
         for index in np.ndindex(blocks.shape):
             region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
                                                                            strict=True))
@@ -109,8 +114,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                 continue
             name = f"{target.path}/{'.'.join(map(str, index))}"
             regions[name] = (target, region)
-            units.append((name, dask.delayed(_write_block, pure=False)(blocks[index], target,
-                                                                        region)))
+            units.append((name, blocks[index]))
     if progress is None:
         todo = [w for _, w in units]
     else:  # read back what a killed run kept, on threads here: redo blocks that do not read
@@ -135,6 +139,13 @@ def _intact(target, region: tuple[slice, ...]) -> bool:
 
 def _write_block(block: np.ndarray, target, region: tuple[slice, ...]) -> None:
     target[region] = block
+
+
+def _write_here(block: np.ndarray, *, target, block_info=None) -> np.ndarray:
+    """Write a block where it lies in ``target``; a one-element array stands for it."""
+    region = tuple(slice(a, b) for a, b in block_info[0]["array-location"])
+    _write_block(block, target, region)
+    return np.zeros((1,) * block.ndim, np.int8)
 
 
 def _count(done: list) -> int:
