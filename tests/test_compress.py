@@ -527,8 +527,8 @@ def test_tasks_run_with_one_blas_thread(scheduler, request):
 def test_a_resumed_one_pass_whose_kept_sketch_changed_starts_over(tmp_path, monkeypatch,
                                                                    capsys):
     """The one pass keeps its co-range sketch in the partial output: after a kill, the rerun
-    keeps the pass; but if a chunk of the sketch fails its checksum, it does every unit again,
-    to the same bits."""
+    keeps the pass; but if a chunk of the sketch fails its checksum, it starts over, to the
+    same bits."""
     from pipeline.cli import main
 
     store = store_from_log_matrix(tmp_path / "s.zarr",

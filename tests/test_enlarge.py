@@ -219,8 +219,7 @@ def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tm
 def test_a_resumed_tiled_enlargement_whose_kept_chunk_changed_starts_over(
         inputs, tiled, tmp_path, monkeypatch, capsys):
     """A tiled enlargement resumes with the tiles left (kill -9: tests/test_resume.py); but if
-    a chunk the killed run wrote fails its checksum, every unit is done again, to the same
-    bits."""
+    a chunk the killed run wrote fails its checksum, it starts over, to the same bits."""
     from pipeline.cli import main
 
     out = tmp_path / "out.zarr"

@@ -206,7 +206,7 @@ def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, 
     assert len([p for p in (partial / DONE).iterdir() if p.name != CREATED]) == 2
     ref_group = zarr.open_group(ref, mode="r")
     arrays = {p: a for p, a in ref_group.members(max_depth=None) if isinstance(a, zarr.Array)}
-    # a chunk of the radiance the first group wrote (view 0), one byte flipped
+    # a chunk of the radiance a kept group wrote, one byte flipped
     name = next(p for p in arrays if p.endswith("radiance"))
     chunk = next(c for c in sorted((partial / name / "c").rglob("*")) if c.is_file())
     # and one the skeleton wrote (a coordinate): starting over makes it again too
