@@ -49,6 +49,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pipeline import storage
+from pipeline.checksums import MissingChunkError
 from pipeline.errors import BTFError
 from pipeline.locks import lock as output_lock
 from pipeline.resume import DONE, Progress
@@ -251,6 +252,13 @@ def _fill(tmp: Path, path: Path, shown: Path, directory: bool, *,
     if directory:
         _remove(tmp / DONE)
     if directory and (tmp / "zarr.json").is_file():
+        from pipeline import completeness
+
+        try:
+            completeness.seal(str(tmp), str(shown))
+        except MissingChunkError:
+            _remove(tmp)
+            raise
         consolidate(tmp)
     if not (path.exists() or path.is_symlink()):
         tmp.rename(path)
@@ -287,10 +295,18 @@ def atomic_subtree(root: str, name: str) -> Iterator[str]:
         storage.remove(storage.join(root, partial))
         raise
     target, new = storage.join(root, name), storage.join(root, partial)
+    from pipeline.completeness import missing_error
+
+    if (error := missing_error(new, f"{storage.shown(root)}: group {name!r}")) is not None:
+        storage.remove(new)
+        raise error
     if storage.is_url(root):
         storage.remove(target)
         storage.copy_tree(new, target)
         storage.remove(new)
+        if (error := missing_error(target, f"{storage.shown(root)}: group {name!r}")):
+            storage.remove(target)  # as a run killed during the swap leaves it (above)
+            raise error
         return
     old = storage.join(root, f".{name}.old-{uuid.uuid4().hex[:8]}")
     if Path(target).exists():
@@ -413,6 +429,15 @@ def _fill_object(tmp: str, shown: str, *, in_place: bool = False) -> Iterator[st
     if not storage.any_below(tmp):
         raise BTFError(f"{shown}: the stage finished without writing its output")
     storage.remove(storage.join(tmp, DONE))
+    from pipeline import completeness
+
+    try:
+        completeness.seal(tmp, shown)
+    except MissingChunkError:
+        storage.remove(tmp)
+        if in_place:
+            storage.remove(_record(tmp))
+        raise
     if not in_place:
         consolidate(tmp)
         return

@@ -33,6 +33,10 @@ class ChecksumError(BTFError):
     """A stored chunk whose bytes do not match their checksum."""
 
 
+class MissingChunkError(BTFError):
+    """A chunk object that a complete (sealed) store lacks (:mod:`pipeline.completeness`)."""
+
+
 def codec():
     """The checksum codec every array btf writes ends with (bytes to bytes, 4 bytes a chunk)."""
     install()
@@ -135,8 +139,11 @@ def named(store: str, variable: str, array, region: tuple[slice, ...],
           error: BaseException) -> BTFError | None:
     """For a read of ``region`` that failed a checksum: an error naming the bad chunks.
 
-    None for any other failure (the caller names it as it does).
+    A missing chunk's error (:class:`MissingChunkError`) names its chunk already and is
+    returned as it is; None for any other failure (the caller names it).
     """
+    if isinstance(error, MissingChunkError):
+        return error
     if not isinstance(error, ChecksumError):
         return None
     bad = bad_chunks(array, region)

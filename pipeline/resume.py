@@ -213,11 +213,10 @@ def _damaged(array) -> list[tuple[int, ...]]:
 
 def _remove_chunks(root: str, array, chunks: list[tuple[int, ...]]) -> None:
     """Remove ``chunks`` (grid indices) of ``array`` under ``root``: their shards, if sharded."""
-    unit = array.shards or array.chunks
-    for key in {array.metadata.encode_chunk_key(tuple(
-            i * c // u for i, c, u in zip(index, array.chunks, unit, strict=True)))
-            for index in chunks}:
-        storage.remove(storage.join(root, array.path, key))
+    from pipeline.completeness import object_key
+
+    for key in {object_key(array, index) for index in chunks}:
+        storage.remove(storage.join(root, key))
 
 
 def _file(name: str) -> str:

@@ -268,15 +268,118 @@ def store(location: str | os.PathLike):
 
     A partial output written in place (:func:`hide_root`) keeps its root ``zarr.json`` under
     :data:`ASIDE` until it is committed, so that nothing opens it before it is complete.
-    Every store opens with chunk checksums checked by :mod:`pipeline.checksums`.
+    Every store opens with chunk checksums checked by :mod:`pipeline.checksums`, writes every
+    chunk, even one equal to the fill value, and reads a sealed store strictly (a missing chunk
+    is an error, see :mod:`pipeline.completeness`): a :class:`Strict` store.
     """
+    import zarr
+
     from pipeline import checksums
 
     checksums.install()
+    if not zarr.config.get("array.write_empty_chunks"):
+        zarr.config.set({"array.write_empty_chunks": True})
     location = str(location)
     if not is_url(location):
-        return location
-    return _object_store(location, location in _hidden_roots, _environment())
+        from zarr.storage import LocalStore
+
+        return _strict_class()(LocalStore(location), location)
+    return _strict_class()(_object_store(location, location in _hidden_roots, _environment()),
+                           location)
+
+
+SEALED = "btf_every_chunk"  # root attribute: every chunk of every array was there when sealed
+
+
+def chunk_key(key: str) -> tuple[str, str] | None:
+    """``(array path, chunk key)`` of a chunk object's key; None for metadata and hidden keys.
+
+    Keys are zarr v3's default encoding, ``ARRAY/c/i/j/...``. Keys under a hidden name
+    (``.NAME``: a partial group being written, resume markers) are never a sealed store's.
+    """
+    parts = key.split("/")
+    if any(p.startswith(".") for p in parts):
+        return None
+    for i in range(len(parts) - 1, -1, -1):
+        if parts[i] == "c":
+            if all(p.isdigit() for p in parts[i + 1 :]):
+                return "/".join(parts[:i]), "/".join(parts[i:])
+            return None
+    return None
+
+
+def _strict_class() -> type:
+    """``Strict``: a store whose read-only opens raise for a sealed store's missing chunks.
+
+    Whether the store is sealed (root attribute :data:`SEALED`) is read from its root metadata
+    at the first chunk not found, once per instance; writable opens never look (a stage that
+    writes a chunk for the first time reads it as missing). Made on first use, so that
+    importing this module loads no zarr.
+    """
+    made = globals().get("Strict")
+    if made is not None:
+        return made
+    import json
+
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.storage import WrapperStore
+
+    from pipeline.checksums import MissingChunkError
+
+    class Strict(WrapperStore):
+        def __init__(self, store, location: str = "") -> None:
+            super().__init__(store)
+            self.location = location
+            self._sealed: bool | None = None
+
+        def _with_store(self, store):
+            return type(self)(store, self.location)
+
+        def __getstate__(self) -> dict:
+            return {"_store": self._store, "location": self.location}
+
+        def __setstate__(self, state: dict) -> None:
+            self.__init__(state["_store"], state["location"])
+
+        async def _check(self, key: str) -> None:
+            if not self.read_only or (found := chunk_key(key)) is None:
+                return
+            if self._sealed is None:
+                root = await self._store.get(ROOT, default_buffer_prototype())
+                attrs = json.loads(root.to_bytes()).get("attributes", {}) if root else {}
+                self._sealed = bool(attrs.get(SEALED))
+            if self._sealed:
+                array, chunk = found
+                raise MissingChunkError(
+                    f"{shown(self.location)}: array {array or '/'!r} has no object for chunk "
+                    f"{chunk} although every chunk of this store was written: an object was "
+                    "lost or deleted after btf wrote it, or the storage did not find it; "
+                    "restore the store from a good copy or write it again (`btf inspect "
+                    "STORE --scan` lists every missing chunk)")
+
+        async def get(self, key, prototype, byte_range=None):
+            value = await self._store.get(key, prototype, byte_range)
+            if value is None:
+                await self._check(key)
+            return value
+
+        async def get_partial_values(self, prototype, key_ranges):
+            key_ranges = list(key_ranges)
+            values = await self._store.get_partial_values(prototype, key_ranges)
+            for (key, _), value in zip(key_ranges, values, strict=True):
+                if value is None:
+                    await self._check(key)
+            return values
+
+    Strict.__module__, Strict.__qualname__ = __name__, "Strict"
+    globals()["Strict"] = Strict  # where pickle looks it up
+    return Strict
+
+
+def __getattr__(name: str):
+    if name == "Strict":  # pickle's lookup in a process that has not made it yet
+        return _strict_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _root_aside_store():

@@ -213,6 +213,39 @@ def test_a_resume_starts_over_when_a_chunk_the_killed_run_wrote_fails_its_checks
     _same(out, ref)
 
 
+def test_a_lost_chunk_write_fails_the_commit_and_a_lost_object_fails_its_reader(btf, s3,
+                                                                               monkeypatch):
+    """A chunk PUT acknowledged and never stored is found before the commit (nothing is left,
+    the rerun gives the bits); an object deleted from a committed store is an error naming it,
+    not NaN (pipeline.completeness)."""
+    from zarr.storage import ObjectStore
+
+    url, ref = s3.url("lost/wood.zarr"), s3.url("lost/ref.zarr")
+    assert btf("generate", ref, *GEN, "--quiet").code == 0
+    put, dropped = ObjectStore.set, []
+
+    async def lose_one(self, key, value):
+        if storage.chunk_key(key) and key.startswith("radiance/") and not dropped:
+            dropped.append(key)
+            return None
+        return await put(self, key, value)
+
+    with monkeypatch.context() as m:
+        m.setattr(ObjectStore, "set", lose_one)
+        lost = btf("generate", url, *GEN, "--quiet")
+    assert lost.code == 1 and dropped and dropped[0] in lost.err, lost.err
+    assert "1 chunk object(s) are missing once the stage finished" in lost.err
+    assert not storage.any_below(url) and not storage.exists(storage.join(
+        storage.parent(url), ".wood.zarr.record"))
+    assert btf("generate", url, *GEN, "--quiet").code == 0
+    _same(url, ref)
+    storage.remove(storage.join(url, dropped[0]))
+    cropped = btf("crop", url, s3.url("lost/crop.zarr"), "--region", "0:48,0:48")
+    assert cropped.code == 1, cropped.err
+    assert f"{url}: array 'radiance' has no object for chunk " in cropped.err, cropped.err
+    assert not storage.any_below(s3.url("lost/crop.zarr"))
+
+
 def test_overwrite_keeps_the_old_output_until_the_new_one_is_complete(tmp_path, btf, s3,
                                                                        monkeypatch):
     url = s3.url("over/wood.zarr")

@@ -26,7 +26,7 @@ from pipeline.params import option
 from pipeline.session import Session
 from pipeline.stage import Stage
 from pipeline.stores import KINDS, kind_of
-from pipeline.stores.base import DIRECTION_COORDS, open_group, read_directions
+from pipeline.stores.base import DIRECTION_COORDS, location, open_group, read_directions
 from pipeline.stores.compressed import NAME as COMPRESSED
 from pipeline.stores.compressed import total_energy
 from pipeline.stores.levels import levels_of
@@ -111,13 +111,24 @@ def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
     session.log(f"scan: {len(names)} variable(s) of {path}")
     try:
         (lazy,) = session.compute({n: statistics(read_array(path, n)) for n in names})
-    except ChecksumError:
-        session.log("scan: a chunk failed its checksum; reading every chunk to list the bad ones")
+    except BTFError as exc:
+        from pipeline import completeness
+
+        missing = isinstance(exc, checksums.MissingChunkError)
+        if not (missing or isinstance(exc, ChecksumError)):
+            raise
+        session.log(f"scan: a chunk {'is missing' if missing else 'failed its checksum'}; "
+                    "reading every chunk to list the bad ones")
         (bad,) = session.compute(bad_chunks(path, names))
-        listed = [f"  {n} {checksums.chunk_name(group[n], c)}" for n in names for c in bad[n]]
-        raise BTFError(f"{path}: {len(listed)} chunk(s) fail their checksum or cannot be "
-                       f"decoded (variable, chunk grid index and the values it holds):\n"
-                       + "\n".join(listed) + f"\n{checksums.RESTORE}") from None
+        lacking = {k for keys in completeness.missing(location(path)).values() for k in keys}
+        listed = [f"  {n} {checksums.chunk_name(group[n], c)}"
+                  + (" (missing)" if completeness.object_key(group[n], c) in lacking else "")
+                  for n in names for c in bad[n]]
+        raise BTFError(f"{path}: {len(listed)} chunk(s) fail their checksum, cannot be decoded "
+                       f"or are missing (variable, chunk grid index and the values it holds):\n"
+                       + "\n".join(listed) + "\n" + (checksums.RESTORE if not lacking else (
+                           "chunks changed or were lost after btf wrote them: restore the "
+                           "store from a good copy or write it again"))) from None
     out = {}
     for name in names:
         s = {k: float(v) for k, v in lazy[name].items()}
