@@ -142,6 +142,16 @@ def arrays(root: str) -> dict[str, np.ndarray]:
     return out
 
 
+def _outputs(root: str) -> tuple[dict[str, np.ndarray], str | None]:
+    """:func:`arrays`, or the error that stopped reading them (a missing or damaged chunk)."""
+    from pipeline.errors import BTFError
+
+    try:
+        return arrays(root), None
+    except BTFError as exc:
+        return {}, str(exc)
+
+
 def same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
     """Whether two outputs hold the same arrays, bit for bit (NaN equal to NaN)."""
     return a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
@@ -321,10 +331,12 @@ def _faulted(setting: _Setting, i: int, moment: float, args, reference: dict) ->
         tries.append(attempt(argv, setting.folder / f"{name}.rerun{len(tries)}.log",
                              setting.env))
     done = tries[-1].code == 0
-    found = arrays(setting.root(name)) if done else {}
-    identical = done and same(found, reference)
+    found, unreadable = _outputs(setting.root(name)) if done else ({}, None)
+    identical = done and unreadable is None and same(found, reference)
     diagnosis = []
-    if done and not identical:  # what differs, and whether a second read sees the same
+    if unreadable is not None:  # a missing chunk or a failed checksum of a finished output
+        diagnosis = [f"the outputs do not read: {unreadable}"]
+    elif done and not identical:  # what differs, and whether a second read sees the same
         diagnosis = differences(found, reference)
         diagnosis.append("a second read gives the same arrays" if same(
             arrays(setting.root(name)), found) else "a second read gives other arrays")
