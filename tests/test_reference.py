@@ -61,3 +61,28 @@ def test_light_sums_of_blocks_combine_to_the_sums_over_all_lights():
         twice = combine_light_sums(np.stack([combine_light_sums(parts[:2]),
                                              combine_light_sums(parts[2:])]))
         assert np.allclose(twice, whole, rtol=1e-6, atol=1e-6)
+
+
+def test_a_view_s_light_sums_read_block_by_block_equal_the_whole_view_s(tmp_path, small_tasks):
+    """Several blocks of lights, rows and columns (odd sizes at the edges), each read in its
+    own task: the combined sums are those of the whole view at once."""
+    import dask
+
+    from pipeline.graphs.reductions import light_sums
+    from pipeline.stores.base import Directions
+    from tasks.reference import light_sums as whole_sums
+    from tasks.sampling import direction_vectors
+
+    path = generate_store(tmp_path / "g.zarr", "--material", "stone", "--size", "37",
+                          "--sampling", "hemi:5", "--chunk", "8", "--dir-chunk", "2")
+    ds = open_radiance(path)
+    d = Directions.of(ds)
+    lights = direction_vectors(d.theta_light, d.phi_light)
+    assert d.theta_view.size > 1
+    for view in (0, d.theta_view.size - 1):
+        sums, blocks = light_sums(path, view, lights)
+        assert blocks[0] > 1 and blocks[1] > 1 and blocks[2] > 1, blocks
+        (got,) = dask.compute(sums, scheduler="threads")
+        want = whole_sums(ds["radiance"].values[view], lights)
+        assert got.shape == want.shape == (37, 37, want.shape[-1])
+        assert np.allclose(got, want, rtol=1e-6, atol=1e-6)

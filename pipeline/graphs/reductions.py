@@ -12,21 +12,27 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks
-from pipeline.stores.base import location
+from pipeline.stores.base import RADIANCE, location
 from tasks.reference import SUMS, combine_light_sums
 from tasks.reference import light_sums as block_light_sums
 
 
 def _read_region(block_info=None, *, store: str, variable: str) -> np.ndarray:
+    region = tuple(slice(a, b) for a, b in block_info[None]["array-location"])
+    return _read(store, variable, region)
+
+
+def _read(store: str, variable: str, region: tuple[slice, ...]) -> np.ndarray:
+    """``region`` of a variable; an error names the store, the variable and the block."""
     import zarr
 
-    region = tuple(slice(a, b) for a, b in block_info[None]["array-location"])
     array = zarr.open_array(storage.store(store), path=variable, mode="r")
     try:
         return array[region]
@@ -95,7 +101,17 @@ def statistics(x) -> dict:
             "sum": da.where(finite, x, 0).sum(dtype=np.float64)}
 
 
-def _block_sums(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
+def _block_sums(block_info=None, *, store: str, view: int, edges: tuple[np.ndarray, ...],
+                lights: np.ndarray) -> np.ndarray:
+    """The light sums of one block of lights and texels of a view, read here."""
+    index = block_info[None]["chunk-location"]
+    region = tuple(slice(int(e[i]), int(e[i + 1])) for e, i in zip(edges, index[:3],
+                                                                    strict=True))
+    layers = _read(store, RADIANCE, (slice(view, view + 1), *region))[0]
+    return block_light_sums(layers, lights[region[0]])[None]
+
+
+def _sums_of(layers: np.ndarray, lights: np.ndarray) -> np.ndarray:
     return block_light_sums(layers, lights)[None]
 
 
@@ -108,21 +124,49 @@ def _combine(parts: np.ndarray, axis, keepdims: bool) -> np.ndarray:
     return out[None] if keepdims else out
 
 
-def light_sums(radiance, lights: np.ndarray):
-    """Per-texel sums over all lights, ``(y, x, len(SUMS))`` float64, of one view's radiance.
+def light_sums(path: str | Path, view: int, lights: np.ndarray) -> tuple[Any, tuple[int, ...]]:
+    """Per-texel sums over all lights of one view's radiance, and its task blocks.
 
-    ``radiance`` is a dask array ``(light, y, x, channel)``, ``lights`` the unit light vectors
-    ``(light, 3)``. Each block of lights is summed on its own, then the blocks are combined by
-    :func:`tasks.reference.combine_light_sums` (which rescales their weights to a common
-    maximum) in a tree, so any number of lights is reduced in memory bounded by a few blocks.
+    The sums are a dask array ``(y, x, len(SUMS))`` of float64; the blocks are counted along
+    lights, rows and columns. ``lights`` are the unit light vectors ``(light, 3)``. Each task
+    block of lights and texels is read and summed in one task (only its sums leave it: on the
+    ``processes`` scheduler a read of its own would send the block's radiance through the
+    client), then the blocks are combined by :func:`tasks.reference.combine_light_sums` (which
+    rescales their weights to a common maximum) in a tree, so any number of lights is reduced
+    in memory bounded by a few blocks.
+    """
+    import dask.array as da
+    import zarr
+
+    store = location(path)
+    radiance = zarr.open_array(storage.store(store), path=RADIANCE, mode="r")
+    chunks = aligned_chunks(radiance)[1:4]
+    edges = tuple(np.concatenate([[0], np.cumsum(c)]) for c in chunks)
+    per_block = da.map_blocks(
+        _block_sums, chunks=((1,) * len(chunks[0]), chunks[1], chunks[2], (len(SUMS),)),
+        dtype=np.float64, meta=np.empty((0,) * 4, np.float64), store=store, view=view,
+        edges=edges, lights=np.asarray(lights, np.float64))
+    return _combined(per_block), tuple(len(c) for c in chunks)
+
+
+def layer_light_sums(layers, lights: np.ndarray) -> tuple[Any, tuple[int, ...]]:
+    """:func:`light_sums` of layers given as a dask array ``(light, y, x, channel)``.
+
+    For layers that are computed, not read: a compressed store's reconstruction.
     """
     import dask.array as da
 
-    vectors = da.from_array(np.asarray(lights, np.float64), chunks=(radiance.chunks[0], 3))
+    vectors = da.from_array(np.asarray(lights, np.float64), chunks=(layers.chunks[0], 3))
     per_block = da.blockwise(
-        _block_sums, "lyxs", radiance, "lyxc", vectors, "ld", new_axes={"s": len(SUMS)},
+        _sums_of, "lyxs", layers, "lyxc", vectors, "ld", new_axes={"s": len(SUMS)},
         adjust_chunks={"l": 1}, concatenate=True, dtype=np.float64,
         meta=np.empty((0,) * 4, np.float64))
-    return da.reduction(per_block, chunk=_keep, combine=_combine,
-                        aggregate=_combine, axis=0, dtype=np.float64, concatenate=True,
-                        meta=np.empty((0,) * 3, np.float64))
+    return _combined(per_block), tuple(len(c) for c in layers.chunks[:3])
+
+
+def _combined(per_block):
+    """Light sums of blocks ``(block, y, x, sums)`` combined over the blocks, in a tree."""
+    import dask.array as da
+
+    return da.reduction(per_block, chunk=_keep, combine=_combine, aggregate=_combine, axis=0,
+                        dtype=np.float64, concatenate=True, meta=np.empty((0,) * 3, np.float64))

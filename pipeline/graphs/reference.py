@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import BTFError
-from pipeline.graphs.reductions import light_sums
+from pipeline.graphs.reductions import layer_light_sums, light_sums
 from pipeline.params import ParamError
 from pipeline.session import Session
 from pipeline.stores import open_layers
-from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores.base import RADIANCE, Directions, open_group
+from pipeline.stores.compressed import NAME as COMPRESSED
 from tasks.reference import ReferenceMaps, reference_maps
 from tasks.sampling import direction_vectors
 
@@ -53,10 +54,14 @@ def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
     elif not 0 <= view < d.theta_view.size:
         raise BTFError(f"{path}: --view {view} is out of range (the store has "
                        f"{d.theta_view.size} views)")
-    rad = ds[RADIANCE].data[view]
-    session.log(f"reference: {len(rad.chunks[1]) * len(rad.chunks[2])} spatial blocks x "
-                f"{len(rad.chunks[0])} light blocks of view {view} of {path}")
-    (sums,) = session.compute(light_sums(rad, direction_vectors(d.theta_light, d.phi_light)))
+    lights = direction_vectors(d.theta_light, d.phi_light)
+    if open_group(path).attrs.get("btf_kind") == COMPRESSED:  # layers reconstructed in tasks
+        sums, blocks = layer_light_sums(ds[RADIANCE].data[view], lights)
+    else:
+        sums, blocks = light_sums(path, view, lights)
+    session.log(f"reference: {blocks[1] * blocks[2]} spatial blocks x {blocks[0]} light blocks "
+                f"of view {view} of {path}")
+    (sums,) = session.compute(sums)
     if not np.isfinite(sums).all():
         raise BTFError(f"{path}: variable 'radiance' has NaN or Inf values in view {view}")
     return reference_maps(sums, weights=weights), view
