@@ -235,3 +235,19 @@ def test_a_photo_renders_the_same_in_one_block_or_many(tmp_path, monkeypatch):
     a, b = _arrays(one), _arrays(many)
     for name in VARIABLES:
         assert np.array_equal(a[name], b[name]), name
+
+
+@pytest.mark.slow
+def test_btf_bench_scaling_times_every_stage_under_every_configuration():
+    import argparse
+
+    from benchmarks import scaling as suite
+
+    result = suite.run(argparse.Namespace(size=64, sampling="abtf:4,2", repeat=1,
+                                          stages="generate,compress,enlarge,quilt"))
+    seen = {(r["stage"], r["config"]) for r in result["runs"]}
+    assert seen == {(s, c) for s in suite.STAGES for c in suite.CONFIGS}
+    assert all(r["seconds"] > 0 and r["peak_rss"] > 0 for r in result["runs"])
+    text = suite.report(result)
+    for stage in suite.STAGES:
+        assert f"| {stage} | " in text and f"- {stage}: `btf {stage} " in text
