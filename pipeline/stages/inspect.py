@@ -40,7 +40,9 @@ class InspectParams:
     json: bool = option(False, help="print one JSON object instead of text")
     scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
                                     "and negative counts per variable; every chunk's checksum "
-                                    "is verified and the bad chunks listed (exit status 1)")
+                                    "is verified, and in a store btf completed every chunk "
+                                    "must be there: bad or missing chunks are listed (exit "
+                                    "status 1)")
     plot: str | None = option(None, path="out", metavar="FILE",
                               help="draw the direction sampling on the hemisphere (a PNG file; "
                                    "an existing file is replaced)")
