@@ -222,3 +222,37 @@ def test_a_resumed_tile_set_whose_kept_chunk_changed_is_written_again(tmp_path, 
     got = zarr.open_group(out, mode="r")
     for p, a in arrays.items():
         assert np.array_equal(a[...], got[p][...], equal_nan=a.dtype.kind == "f"), p
+
+
+def test_a_resumed_quilt_keeps_the_plan_the_killed_run_stored(tmp_path, monkeypatch, capsys):
+    """A quilt killed while it applies its plan resumes without planning again (the plan is
+    read back from the partial output) and gives the bits of an uninterrupted run."""
+    sample = tmp_path / "stone.zarr"
+    assert main(["generate", str(sample), "--material", "stone", "--size", "64", "--sampling",
+                 "hemi:3", "--chunk", "32", "--dir-chunk", "2", "--quiet"]) == 0
+    args = ["--block", "16", "--overlap", "4", "--corners", "2", "--seed", "3",
+            "--scheduler", "synchronous"]
+    ref, out = tmp_path / "ref.zarr", tmp_path / "out.zarr"
+    assert main(["quilt", str(sample), str(ref), *args, "--quiet"]) == 0
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        killed_before_unit(m, 1, "write-")
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main(["quilt", str(sample), str(out), *args, "--quiet"])
+    capsys.readouterr()
+    with monkeypatch.context() as m:
+        def no_planning(*a, **k):
+            raise AssertionError("planned again")
+
+        m.setattr("pipeline.stages.quilt.plan_first", no_planning)
+        m.setattr("pipeline.stages.quilt.compute_reference", no_planning)
+        assert main(["quilt", str(sample), str(out), *args]) == 0
+    said = capsys.readouterr().err
+    assert "quilt: resuming: the plan the killed run stored is kept" in said, said
+    a, b = zarr.open_group(ref, mode="r"), zarr.open_group(out, mode="r")
+    arrays = [p for p, x in a.members(max_depth=None) if isinstance(x, zarr.Array)]
+    assert "radiance" in arrays and "prescription_index" in arrays
+    for p in arrays:
+        assert np.array_equal(a[p][...], b[p][...], equal_nan=a[p].dtype.kind == "f"), p
+    keep = {"provenance", "btf_every_chunk"}
+    assert {k: v for k, v in a.attrs.items() if k not in keep} == \
+        {k: v for k, v in b.attrs.items() if k not in keep}

@@ -137,26 +137,34 @@ def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: 
 
 
 def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
-                  overwrite: bool, needs=None) -> Path:
+                  overwrite: bool, needs=None, record: dict | None = None) -> Path:
     """Write a tile-set store for ``tiles`` planned on ``source``: all or nothing at ``out``.
 
     The one place both tile-set stages (quilting, the roller) end: the store is created
     (:func:`pipeline.stores.tileset.write_tileset_store`) in a partial output, filled by
-    :func:`apply_tileset` on the session's scheduler, and moved to ``out``. A run killed while
-    it applies the plan resumes with the groups of writes it had not finished
-    (:mod:`pipeline.resume`; the plan is made again, deterministically, by the rerun), unless
-    a chunk the killed run wrote fails its checksum: then it starts over.
+    :func:`apply_tileset` on the session's scheduler, and moved to ``out``. ``tiles`` is the
+    :class:`~pipeline.stores.tileset.TileSet`, or a function that plans it, called inside the
+    partial output, with ``record`` the stage's provenance. A run killed after its plan was
+    stored resumes with it (the plan is read back, not made again) and with the groups of
+    writes it had not finished (:mod:`pipeline.resume`), unless a chunk the killed run wrote
+    fails its checksum: then it starts over.
     """
     from pipeline.atomic import atomic_output
     from pipeline.resume import Progress
     from pipeline.stores.base import open_group
-    from pipeline.stores.tileset import write_tileset_store
+    from pipeline.stores.tileset import read_plan, write_tileset_store
 
     group = open_group(source)
     with atomic_output(out, directory=True, overwrite=overwrite,
-                       resume=tiles.attrs.get("provenance")) as tmp:
+                       resume=tiles.attrs.get("provenance") if record is None else record
+                       ) as tmp:
         progress = Progress(tmp)
         progress.distrust_damaged(lambda line: session.log(f"{label}: {line}"))
+        if callable(tiles) and progress.created:
+            session.log(f"{label}: resuming: the plan the killed run stored is kept")
+            tiles = read_plan(tmp)
+        elif callable(tiles):
+            tiles = tiles()
         progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
                                                       source_group=group))
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,

@@ -118,9 +118,21 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     if params.block is not None and min(sample) < params.block:
         raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
                        f"than a block ({params.block})")
-    maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
-                                   view=params.view, session=session)
-    plan, qp = _plan(params, maps.reference, sample, layers.sizes["channel"], session)
+    record = provenance("quilt", params)
+
+    def plan_tiles() -> TileSet:  # not called when a killed run's stored plan is resumed
+        maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
+                                       view=params.view, session=session)
+        plan, qp = _plan(params, maps.reference, sample, layers.sizes["channel"], session)
+        return _tileset(params, plan, qp, maps.reference, view, record, needs)
+
+    return write_tileset(plan_tiles, params.out, source=params.store, session=session,
+                         label="quilt", overwrite=params.overwrite, needs=needs, record=record)
+
+
+def _tileset(params: QuiltStageParams, plan, qp: QuiltParams, reference,
+             view: int, record: dict, needs) -> TileSet:
+    """The planned tile set with the store's record of how it was planned."""
     attrs = {
         "source": "quilt",
         "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
@@ -131,17 +143,14 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
         "placements": [{"canvas": p.canvas, "window": list(p.window),
                         "source": list(p.source), "flags": list(p.flags)}
                        for p in plan.placements],
-        "provenance": provenance("quilt", params),
+        "provenance": record,
     }
     if needs is not None:
         attrs["computed_for_scene"] = needs.record(params.for_scene)
-    tiles = TileSet(index=[t.index.reshape(-1, TERMS) for t in plan.tiles],
-                    weight=[t.weight.reshape(-1, TERMS) for t in plan.tiles],
-                    tile_shape=qp.tile, corners=plan.corners, reference=maps.reference,
-                    attrs=attrs)
-    del plan  # the canvases' values and the strips are not needed any more
-    return write_tileset(tiles, params.out, source=params.store, session=session,
-                         label="quilt", overwrite=params.overwrite, needs=needs)
+    return TileSet(index=[t.index.reshape(-1, TERMS) for t in plan.tiles],
+                   weight=[t.weight.reshape(-1, TERMS) for t in plan.tiles],
+                   tile_shape=qp.tile, corners=plan.corners, reference=reference,
+                   attrs=attrs)
 
 
 def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels: int,

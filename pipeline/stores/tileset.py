@@ -152,6 +152,26 @@ def check_tileset(group, path: str | Path) -> None:
             raise BTFError(f"{path}: variable {name!r} is missing")
 
 
+def read_plan(path) -> TileSet:
+    """The :class:`TileSet` a tile-set store (complete or partial) was created for.
+
+    Everything :func:`write_tileset_store` wrote: prescriptions, corner types, reference, the
+    roller's representatives and the store's attrs (its own keys included).
+    """
+    import zarr
+
+    from pipeline import storage
+
+    group = zarr.open_group(storage.store(str(path)), mode="r", use_consolidated=False)
+    index, weight = group["prescription_index"][...], group["prescription_weight"][...]
+    return TileSet(index=list(index), weight=list(weight),
+                   tile_shape=tuple(group.attrs["tile_shape"]),
+                   corners=group["corners"][...], reference=group["reference"][...],
+                   attrs=dict(group.attrs),
+                   representative=group["representative"][...]
+                   if "representative" in group else None)
+
+
 def open_tileset(path: str | Path):
     """Open a tile-set store (zarr group), checking its kind and variables."""
     group = open_group(path)
