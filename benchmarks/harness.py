@@ -71,6 +71,16 @@ def parse_sizes(text: str, suite: str) -> list[int]:
     return values
 
 
+def chosen_stages(text: str, known: tuple[str, ...], suite: str) -> list[str]:
+    """The comma-separated stages of ``text``; an unknown one stops the suite, naming it."""
+    stages = [s for s in text.split(",") if s]
+    unknown = sorted(set(stages) - set(known))
+    if unknown:
+        raise SystemExit(f"btf bench {suite}: unknown stage(s) {', '.join(unknown)}; choose "
+                         f"from {', '.join(known)}")
+    return stages
+
+
 def btf_executable() -> str:
     """The ``btf`` console script of the running environment."""
     return str(Path(sys.executable).parent / "btf")

@@ -17,7 +17,14 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from benchmarks.harness import btf_executable, generate_store, git_revision, machine, measure
+from benchmarks.harness import (
+    btf_executable,
+    chosen_stages,
+    generate_store,
+    git_revision,
+    machine,
+    measure,
+)
 
 SUITE = "scaling"
 CONFIGS = {"synchronous": ["--scheduler", "synchronous"],
@@ -64,11 +71,7 @@ def run(args: argparse.Namespace) -> dict:
     """Every chosen stage under every configuration, alternating, fastest of ``repeat``."""
     import subprocess
 
-    stages = [s for s in args.stages.split(",") if s]
-    unknown = sorted(set(stages) - set(STAGES))
-    if unknown:
-        raise SystemExit(f"btf bench scaling: unknown stage(s) {', '.join(unknown)}; "
-                         f"choose from {', '.join(STAGES)}")
+    stages = chosen_stages(args.stages, STAGES, SUITE)
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-scaling-"))
     best: dict[tuple[str, str], dict] = {}

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.enlarge import _btf, _factors, abrdf_error, truth_rows
-from benchmarks.harness import git_revision, machine
+from benchmarks.harness import chosen_stages, git_revision, machine
 
 SUITE = "tradeoff"
 STAGES = ("compress", "quilt", "roller", "enlarge")
@@ -190,11 +190,7 @@ def _plot(stage: str, rows: list[dict], path: Path) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     """Sweep every requested stage (see the module)."""
-    stages = [s for s in args.stages.split(",") if s]
-    unknown = sorted(set(stages) - set(STAGES))
-    if unknown:
-        raise SystemExit(f"btf bench tradeoff: unknown stage(s) {unknown}; choose from "
-                         f"{', '.join(STAGES)}")
+    stages = chosen_stages(args.stages, STAGES, SUITE)
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-tradeoff-"))
     result = {"suite": SUITE, "stages": {}, "machine": machine(), "git": git_revision()}
     try:

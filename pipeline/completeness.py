@@ -27,6 +27,7 @@ sealed.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import warnings
@@ -52,11 +53,18 @@ def object_key(array, index: tuple[int, ...]) -> str:
     return prefix + array.metadata.encode_chunk_key(shard)
 
 
+@contextlib.contextmanager
+def _quiet():
+    """Silence the warnings about hidden entries (resume markers), which are no zarr nodes."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Object at .* is not recognized")
+        yield
+
+
 def _open(location: str, mode: str):
     import zarr
 
-    with warnings.catch_warnings():  # hidden entries (resume markers) are no zarr nodes
-        warnings.filterwarnings("ignore", message="Object at .* is not recognized")
+    with _quiet():
         return zarr.open(storage.store(location), mode=mode, use_consolidated=False)
 
 
@@ -65,8 +73,7 @@ def _arrays(node) -> list:
 
     if isinstance(node, zarr.Array):
         return [node]
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Object at .* is not recognized")
+    with _quiet():
         members = list(node.members(max_depth=None))
     return [m for path, m in members if isinstance(m, zarr.Array)
             and not any(p.startswith(".") for p in path.split("/"))]

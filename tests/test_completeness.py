@@ -108,10 +108,10 @@ def test_every_chunk_is_written_even_one_equal_to_the_fill_value(tmp_path):
 
 def test_stores_not_sealed_read_a_missing_chunk_as_fill_values(tmp_path, btf):
     store = generate_store(tmp_path / "g.zarr", *GEN)
-    for root in (store / "zarr.json",):  # as a store written before sealing
-        meta = json.loads(root.read_text())
-        del meta["attributes"][storage.SEALED]
-        root.write_text(json.dumps(meta))
+    root = store / "zarr.json"  # as a store written before sealing
+    meta = json.loads(root.read_text())
+    del meta["attributes"][storage.SEALED]
+    root.write_text(json.dumps(meta))
     gone = _chunk_files(store)[0]
     gone.unlink()
     radiance = zarr.open_array(storage.store(str(store)), path="radiance", mode="r")
