@@ -157,6 +157,34 @@ def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler, sha
     assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], _values(shape))
 
 
+def test_an_input_several_outputs_share_is_computed_once_per_block(tmp_path):
+    """As in ``btf generate``: radiance and four truth arrays from one block of fields each.
+
+    Optimised output by output, dask fused the shared input into each output's tasks, and every
+    block of fields was computed five times.
+    """
+    from pipeline.resume import Progress
+
+    group = zarr.open_group(tmp_path / "s.zarr", mode="w")
+    targets = [group.create_array(f"a{k}", shape=(16, 12), chunks=(8, 4), dtype="f4")
+               for k in range(3)]
+    calls = []
+
+    def fields(block_info=None):
+        calls.append(tuple(block_info[None]["chunk-location"]))
+        return np.full((8, 4, 2), len(calls), np.float32)
+
+    shared = da.map_blocks(fields, chunks=((8, 8), (4, 4, 4), (2,)), dtype=np.float32,
+                           meta=np.empty((0, 0, 0), np.float32))
+    sources = [shared.sum(-1), shared[..., 0], shared[..., 1] * 2]
+    dask.compute(store_aligned(sources, targets, progress=Progress(tmp_path / "s.zarr")),
+                 scheduler="sync")
+    assert len(calls) == len(set(calls)) == 6  # 2 x 3 blocks, each once
+    first = targets[1][:]
+    np.testing.assert_array_equal(targets[0][:], first * 2)
+    np.testing.assert_array_equal(targets[2][:], first * 2)
+
+
 @pytest.mark.distributed
 def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, local_cluster,
                                                                     shard_sized_tasks):

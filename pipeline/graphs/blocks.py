@@ -86,6 +86,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     """
     import dask
     import dask.array as da
+    from dask.delayed import Delayed
 
     for source, target in zip(sources, targets, strict=True):
         for dim, (chunks, unit) in enumerate(zip(source.chunks, write_unit(target), strict=True)):
@@ -99,14 +100,16 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
         return da.store(sources, targets, lock=False, compute=False)
     units, regions = [], {}
     # each block written by the task that computes it (as da.store does), not by a task of
-    # its own: the processes scheduler would move every block to the client and out again;
-    # optimised together, as da.store would: work the sources share stays shared
+    # its own: the processes scheduler would move every block to the client and out again
     writes = [source.map_blocks(_write_here, target=target, chunks=(1,) * source.ndim,
                                 dtype=np.int8, meta=np.empty((0,) * source.ndim, np.int8))
               for source, target in zip(sources, targets, strict=True)]
-    for source, written, target in zip(sources, dask.optimize(*writes), targets, strict=True):
+    graph = _optimized_together(writes)
+    for source, written, target in zip(sources, writes, targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
-        blocks = written.to_delayed(optimize_graph=False)
+        blocks = np.empty(written.numblocks, object)
+        for index in np.ndindex(blocks.shape):
+            blocks[index] = Delayed((written.name, *index), graph)
         for index in np.ndindex(blocks.shape):
             region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
                                                                            strict=True))
@@ -124,6 +127,22 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
         todo = progress.pending(units, redo=[n for n, ok in zip(kept, whole, strict=True)
                                              if not ok])[0]
     return dask.delayed(_count, pure=False)(todo)
+
+
+def _optimized_together(arrays: list):
+    """One graph of ``arrays`` optimised as one, as :func:`dask.array.store` does.
+
+    Blockwise fusion then sees every consumer of a shared input, and fuses it into none: it
+    is computed once. (``dask.optimize(*arrays)`` optimises each array's graph on its own and
+    fuses a shared input into each: ``btf generate`` computed every block's material fields
+    five times, once for the radiance and once per truth array.)
+    """
+    from dask.array.optimization import optimize
+    from dask.core import flatten
+    from dask.highlevelgraph import HighLevelGraph
+
+    graph = HighLevelGraph.merge(*(a.__dask_graph__() for a in arrays))
+    return optimize(graph, [k for a in arrays for k in flatten(a.__dask_keys__())])
 
 
 def _intact(target, region: tuple[slice, ...]) -> bool:
