@@ -110,11 +110,30 @@ def visibility(
     step, rise = dda_step(phi), _rise(theta)
     steps = math.ceil(length / step.length)
     _check_reach(h, r0, c0, ny, nx, steps + 1)
-    top = np.full_like(h0, -np.inf)
-    for t in range(1, steps + 1):
-        ray = np.float32(t * step.length * rise)
-        np.maximum(top, shifted(h, r0, c0, ny, nx, t * step.dy, t * step.dx) - ray, out=top)
+    top = shadow_tops(h, r0, c0, ny, nx, step, steps, rise)
     return smoothstep(-0.5 * penumbra, 0.5 * penumbra, h0 - top).astype(np.float32)
+
+
+def shadow_tops(h: np.ndarray, r0: int, c0: int, ny: int, nx: int, step: Step, steps: int,
+                rise: float) -> np.ndarray:
+    """How far the heights along each texel's ray to the light rise above it, at most.
+
+    The maximum over steps ``t = 1 .. steps`` of ``shifted(h, .., t * step.dy, t * step.dx)``
+    minus the ray's height there, ``t * step.length * rise``, in one compiled loop
+    (:func:`tasks.render_kernels.shadow_tops`): the same bits as those array operations.
+    """
+    from tasks.render_kernels import shadow_tops as loop
+
+    t = np.arange(1, steps + 1)
+    oy, ox = t * step.dy, t * step.dx
+    iy, ix = np.floor(oy), np.floor(ox)
+    fy, fx = oy - iy, ox - ix
+    # shifted() skips a blend whose fraction is under 1e-9, and rounds the others to float32.
+    fy = np.where(fy > 1e-9, fy, 0.0).astype(np.float32)
+    fx = np.where(fx > 1e-9, fx, 0.0).astype(np.float32)
+    ray = np.array([t * step.length * rise for t in range(1, steps + 1)]).astype(np.float32)
+    return loop(np.ascontiguousarray(h, np.float32), r0, c0, ny, nx, iy.astype(np.intp),
+                ix.astype(np.intp), fy, fx, ray, np.empty((ny, nx), np.float32))
 
 
 def parallax_length(theta_deg: float, *, relief: float, reference: float) -> float:

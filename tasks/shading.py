@@ -133,6 +133,42 @@ def shade(surface: Surface, vis: np.ndarray, light: np.ndarray, *, ambient: floa
     return out
 
 
+def light_terms(surface: Surface, lights: np.ndarray, *, ambient: float) -> np.ndarray:
+    """Per-light scalars of :func:`shade`, ``(lights, 8)`` float32, for the compiled loop.
+
+    ``lx, ly, lz``, the half vector ``hx, hy, hz``, Schlick's ``(1 - v.h)^5`` and the ambient
+    irradiance, each computed in float64 and rounded once, as numpy rounds a Python float
+    that meets a float32 array in :func:`shade`.
+    """
+    vx, vy, vz = surface.view
+    terms = np.empty((len(lights), 8), np.float32)
+    for il, light in enumerate(lights):
+        lx, ly, lz = (float(c) for c in light)
+        hx, hy, hz = lx + vx, ly + vy, lz + vz
+        norm = math.sqrt(hx * hx + hy * hy + hz * hz)
+        hx, hy, hz = hx / norm, hy / norm, hz / norm
+        schlick = (1.0 - max(vx * hx + vy * hy + vz * hz, 0.0)) ** 5
+        terms[il] = (lx, ly, lz, hx, hy, hz, schlick, ambient * max(lz, 0.0))
+    return terms
+
+
+def shade_all(surface: Surface, vis: np.ndarray, lights: np.ndarray, *, ambient: float,
+              out: np.ndarray) -> np.ndarray:
+    """:func:`shade` for every light at once ``out[l] = shade(.., vis[l], lights[l], ..)``.
+
+    The same float32 operations in the same order, texel by texel in one compiled loop
+    (:mod:`tasks.render_kernels`) that makes no temporaries and releases the GIL: the same
+    bits, about 3x faster (a 512^2 wood store's shading 1.06 s -> 0.33 s), and threads render
+    in parallel.
+    """
+    from tasks.render_kernels import shade_lights
+
+    nx, ny, nz = surface.normal
+    shade_lights(nx, ny, nz, surface.albedo, surface.a2, surface.f0, surface.masking, vis,
+                 light_terms(surface, lights, ambient=ambient), out)
+    return out
+
+
 STRIP_ROWS = 64  # rows rendered at once: keeps the temporaries in cache (measured ~30% faster)
 
 
@@ -167,17 +203,17 @@ def render_block(
     for r0 in range(0, ny, STRIP_ROWS):
         rows = min(STRIP_ROWS, ny - r0)
         strip = fields.crop(slice(r0, r0 + rows + 2 * halo), slice(None))
-        out[:, :, r0 : r0 + rows] = _render_strip(
-            strip, halo=halo, theta_view=theta_view, phi_view=phi_view,
-            theta_light=theta_light, phi_light=phi_light, model=model)
+        _render_strip(strip, halo=halo, theta_view=theta_view, phi_view=phi_view,
+                      theta_light=theta_light, phi_light=phi_light, model=model,
+                      out=out[:, :, r0 : r0 + rows])
     return out
 
 
 def _render_strip(
     fields: Fields, *, halo: int, theta_view: np.ndarray, phi_view: np.ndarray,
-    theta_light: np.ndarray, phi_light: np.ndarray, model: ShadingModel,
-) -> np.ndarray:
-    """Render every (view, light) layer of a tile (see :func:`render_block`)."""
+    theta_light: np.ndarray, phi_light: np.ndarray, model: ShadingModel, out: np.ndarray,
+) -> None:
+    """Render every (view, light) layer of a strip into ``out`` (see :func:`render_block`)."""
     h = fields.height
     ny, nx = h.shape[0] - 2 * halo, h.shape[1] - 2 * halo
     # Shadows are needed wherever a view ray of this block can land.
@@ -193,7 +229,6 @@ def _render_strip(
     n = normals(h)
     lights = direction_vectors(theta_light, phi_light)
     views = direction_vectors(theta_view, phi_view)
-    out = np.empty((len(views), len(lights), ny, nx, 3), np.float32)
     inner = (slice(halo, halo + ny), slice(halo, halo + nx))
     for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
         if parallax_length(float(t), relief=model.relief, reference=model.reference) == 0.0:
@@ -211,8 +246,6 @@ def _render_strip(
             albedo = bilinear(fields.albedo, halo, halo, oy, ox)
             alpha = bilinear(fields.roughness, halo, halo, oy, ox)
             f0 = bilinear(fields.specular, halo, halo, oy, ox)
-            seen_vis = [bilinear(v, margin, margin, oy, ox) for v in vis]
+            seen_vis = np.stack([bilinear(v, margin, margin, oy, ox) for v in vis])
         surface = Surface.seen_from(normal, albedo, alpha, f0, views[iv])
-        for il, light in enumerate(lights):
-            shade(surface, seen_vis[il], light, ambient=model.ambient, out=out[iv, il])
-    return out
+        shade_all(surface, seen_vis, lights, ambient=model.ambient, out=out[iv])

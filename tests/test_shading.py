@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from tasks.heightfield import parallax_hits, visibility
+from tasks.heightfield import Step, dda_step, parallax_hits, shadow_tops, shifted, visibility
 from tasks.materials import Fields, Material
 from tasks.sampling import direction_vectors, parse_sampling
-from tasks.shading import ShadingModel, render_block
+from tasks.shading import ShadingModel, Surface, render_block, shade, shade_all
 
 
 def _render(fields, halo, model, tv, pv, tl, pl):
@@ -205,3 +205,53 @@ def test_a_window_without_enough_halo_is_refused():
     h = np.zeros((20, 20), np.float32)
     with pytest.raises(ValueError, match="texels around"):
         visibility(h, 2, 2, 16, 16, theta=80, phi=0, relief=4.0, penumbra=0.3, max_length=50)
+
+
+def _numpy_shadow_tops(h, r0, c0, ny, nx, step, steps, rise):
+    """The cast-shadow march as whole-array numpy operations (the compiled loop's reference)."""
+    top = np.full((ny, nx), -np.inf, np.float32)
+    for t in range(1, steps + 1):
+        ray = np.float32(t * step.length * rise)
+        np.maximum(top, shifted(h, r0, c0, ny, nx, t * step.dy, t * step.dx) - ray, out=top)
+    return top
+
+
+@pytest.mark.parametrize("phi", [0.0, 45.0, 90.0, 180.0, 270.0, 17.3, 133.7, 301.9])
+def test_the_compiled_shadow_march_gives_numpy_s_bits(phi):
+    """Every branch of the loop (no, one or two fractional offsets) on rough random heights."""
+    rng = np.random.default_rng(int(phi * 10))
+    h = (rng.random((90, 97)) ** 3 * 12).astype(np.float32)
+    h[40:44, 50:52] = 30.0  # a spike far above the rest
+    # A DDA step moves a whole texel along one axis; the loop also takes two fractions.
+    for step in (dda_step(phi), Step(0.37 * math.cos(phi), -0.61, 0.9)):
+        for theta in (5.0, 50.0, 84.0):
+            rise = math.cos(math.radians(theta)) / math.sin(math.radians(theta))
+            got = shadow_tops(h, 22, 23, 41, 47, step, 20, rise)
+            want = _numpy_shadow_tops(h, 22, 23, 41, 47, step, 20, rise)
+            assert got.dtype == np.float32
+            np.testing.assert_array_equal(got, want)
+
+
+def test_the_compiled_shading_gives_numpy_s_bits_for_every_light():
+    """``shade_all`` against ``shade`` light by light, on random surfaces with extreme values:
+    roughness near 0 and 1, normals at grazing angles, lights below the horizon.
+    """
+    rng = np.random.default_rng(7)
+    ny, nx = 23, 31
+    normal = rng.normal(size=(3, ny, nx)).astype(np.float32)
+    normal[2] = np.abs(normal[2]) * np.where(rng.random((ny, nx)) < 0.2, 1e-3, 1.0)
+    normal /= np.sqrt((normal * normal).sum(0))
+    alpha = rng.choice(np.array([1e-3, 0.05, 0.3, 1.0], np.float32), (ny, nx))
+    f0 = rng.random((ny, nx), dtype=np.float32)
+    albedo = rng.random((ny, nx, 3), dtype=np.float32) * 2
+    theta = np.array([0.0, 10, 45, 80, 89.9, 95, 120])
+    phi = np.array([0.0, 33, 90, 181, 270, 359, 12])
+    lights = direction_vectors(theta, phi)
+    vis = rng.random((len(lights), ny, nx), dtype=np.float32)
+    vis[:, :4] = 0.0
+    for view in direction_vectors(np.array([0.0, 60.0, 85.0]), np.array([0.0, 200.0, 47.0])):
+        surface = Surface.seen_from(tuple(normal), albedo, alpha, f0, view)
+        got = shade_all(surface, vis, lights, ambient=0.04,
+                        out=np.empty((len(lights), ny, nx, 3), np.float32))
+        for il, light in enumerate(lights):
+            np.testing.assert_array_equal(got[il], shade(surface, vis[il], light, ambient=0.04))
