@@ -207,3 +207,17 @@ def bilinear(a: np.ndarray, r0: int, c0: int, oy: np.ndarray, ox: np.ndarray) ->
     top = a[rows, cols] + fx * (a[rows, cols + 1] - a[rows, cols])
     bottom = a[rows + 1, cols] + fx * (a[rows + 1, cols + 1] - a[rows + 1, cols])
     return top + fy * (bottom - top)
+
+
+def bilinear_layers(a: np.ndarray, r0: int, c0: int, oy: np.ndarray, ox: np.ndarray
+                    ) -> np.ndarray:
+    """:func:`bilinear` of every layer of ``a`` ``(layers, h, w)`` at the same offsets.
+
+    In one compiled loop (:func:`tasks.render_kernels.bilinear_layers`) that finds each
+    texel's position and weights once for all layers: the same bits as ``np.stack([bilinear(
+    layer, ..) for layer in a])``.
+    """
+    from tasks.render_kernels import bilinear_layers as loop
+
+    out = np.empty((a.shape[0], *oy.shape), np.result_type(a, oy))
+    return loop(a, r0, c0, oy, ox, out)

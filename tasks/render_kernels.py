@@ -91,3 +91,32 @@ def shadow_tops(h, r0, c0, rows, cols, dy, dx, fy, fx, rise, out):
                 for j in range(cols):
                     top[j] = max(top[j], here[j] - ray)
     return out
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def bilinear_layers(a, r0, c0, oy, ox, out):
+    """Every layer of ``a`` ``(layers, h, w)`` sampled at ``(r0 + i + oy, c0 + j + ox)``.
+
+    :func:`tasks.heightfield.bilinear` for a stack of layers that share the offsets: the
+    positions and weights are found once, then each layer is gathered in turn. ``out``
+    ``(layers, ny, nx)``.
+    """
+    ny, nx = oy.shape
+    rows = np.empty((ny, nx), np.intp)
+    cols = np.empty((ny, nx), np.intp)
+    fy = np.empty((ny, nx), np.float32)
+    fx = np.empty((ny, nx), np.float32)
+    for i in range(ny):
+        for j in range(nx):
+            y, x = np.floor(oy[i, j]), np.floor(ox[i, j])
+            fy[i, j], fx[i, j] = oy[i, j] - y, ox[i, j] - x
+            rows[i, j], cols[i, j] = r0 + i + int(y), c0 + j + int(x)
+    for k in range(a.shape[0]):
+        layer, dest = a[k], out[k]
+        for i in range(ny):
+            for j in range(nx):
+                r, c, wy, wx = rows[i, j], cols[i, j], fy[i, j], fx[i, j]
+                top = layer[r, c] + wx * (layer[r, c + 1] - layer[r, c])
+                bottom = layer[r + 1, c] + wx * (layer[r + 1, c + 1] - layer[r + 1, c])
+                dest[i, j] = top + wy * (bottom - top)
+    return out

@@ -22,7 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.heightfield import bilinear, parallax_hits, parallax_length, shadow_length, visibility
+from tasks.heightfield import (
+    bilinear_layers,
+    parallax_hits,
+    parallax_length,
+    shadow_length,
+    visibility,
+)
 from tasks.materials import Fields
 from tasks.sampling import direction_vectors
 
@@ -230,6 +236,7 @@ def _render_strip(
     lights = direction_vectors(theta_light, phi_light)
     views = direction_vectors(theta_view, phi_view)
     inner = (slice(halo, halo + ny), slice(halo, halo + nx))
+    layers = None
     for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
         if parallax_length(float(t), relief=model.relief, reference=model.reference) == 0.0:
             # A top view sees each texel straight below it: plain slices, no resampling.
@@ -240,12 +247,13 @@ def _render_strip(
         else:
             oy, ox = parallax_hits(h, halo, halo, ny, nx, theta=float(t), phi=float(p),
                                    relief=model.relief, reference=model.reference)
-            gx, gy, gz = (bilinear(c, halo, halo, oy, ox) for c in n)
+            if layers is None:  # the fields every oblique view resamples, as one stack
+                layers = np.stack([*n, fields.roughness, fields.specular,
+                                   *np.moveaxis(fields.albedo, -1, 0)])
+            gx, gy, gz, alpha, f0, *rgb = bilinear_layers(layers, halo, halo, oy, ox)
             inv = 1.0 / np.sqrt(gx * gx + gy * gy + gz * gz)
             normal = (gx * inv, gy * inv, gz * inv)
-            albedo = bilinear(fields.albedo, halo, halo, oy, ox)
-            alpha = bilinear(fields.roughness, halo, halo, oy, ox)
-            f0 = bilinear(fields.specular, halo, halo, oy, ox)
-            seen_vis = np.stack([bilinear(v, margin, margin, oy, ox) for v in vis])
+            albedo = np.stack(rgb, axis=-1)
+            seen_vis = bilinear_layers(vis, margin, margin, oy, ox)
         surface = Surface.seen_from(normal, albedo, alpha, f0, views[iv])
         shade_all(surface, seen_vis, lights, ambient=model.ambient, out=out[iv])

@@ -7,7 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from tasks.heightfield import Step, dda_step, parallax_hits, shadow_tops, shifted, visibility
+from tasks.heightfield import (
+    Step,
+    bilinear,
+    bilinear_layers,
+    dda_step,
+    parallax_hits,
+    shadow_tops,
+    shifted,
+    visibility,
+)
 from tasks.materials import Fields, Material
 from tasks.sampling import direction_vectors, parse_sampling
 from tasks.shading import ShadingModel, Surface, render_block, shade, shade_all
@@ -255,3 +264,21 @@ def test_the_compiled_shading_gives_numpy_s_bits_for_every_light():
                         out=np.empty((len(lights), ny, nx, 3), np.float32))
         for il, light in enumerate(lights):
             np.testing.assert_array_equal(got[il], shade(surface, vis[il], light, ambient=0.04))
+
+
+def test_the_compiled_resampling_gives_numpy_s_bits_for_every_layer():
+    """``bilinear_layers`` against ``bilinear`` layer by layer: offsets of both signs, whole
+    texels, and channels-last fields (albedo) as they are resampled.
+    """
+    rng = np.random.default_rng(11)
+    a = (rng.random((5, 40, 44)) * 3 - 1).astype(np.float32)
+    oy = (rng.random((20, 23)) * 12 - 6).astype(np.float32)
+    ox = (rng.random((20, 23)) * 12 - 6).astype(np.float32)
+    oy[::3] = np.round(oy[::3])
+    ox[:, ::4] = 0.0
+    got = bilinear_layers(a, 9, 10, oy, ox)
+    for k in range(len(a)):
+        np.testing.assert_array_equal(got[k], bilinear(a[k], 9, 10, oy, ox))
+    albedo = np.moveaxis(a[:3], 0, -1)
+    np.testing.assert_array_equal(np.moveaxis(bilinear_layers(a[:3], 9, 10, oy, ox), 0, -1),
+                                  bilinear(albedo, 9, 10, oy, ox))
