@@ -13,7 +13,8 @@ from pipeline import __version__
 from pipeline.errors import BTFError
 from pipeline.params import ParamError, add_arguments, from_namespace
 from pipeline.session import LOCAL_SCHEDULERS, TLS, RuntimeOptions, Session, check_scheduler
-from pipeline.stages import STAGES, Stage
+from pipeline.stage import Stage
+from pipeline.stages import stage as find_stage
 
 EPILOG = """\
 examples:
@@ -150,8 +151,11 @@ def _check_plan(plan, options, session, args) -> None:
     planning.check_memory(plans, limit, threads, source, psutil.virtual_memory().available)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``btf`` with every subcommand."""
+def build_parser(only: Stage | None = None) -> argparse.ArgumentParser:
+    """The argument parser of ``btf`` with every subcommand, or with stage ``only`` alone.
+
+    ``only`` spares a stage's command the imports of every other stage (0.3-0.5 s).
+    """
     parser = argparse.ArgumentParser(
         prog="btf", formatter_class=_Formatter, epilog=EPILOG,
         description="A dataflow pipeline for measured BTFs (bidirectional texture functions) "
@@ -159,11 +163,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"btf {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     runtime = _runtime_parser()
-    for stage in STAGES.values():
+    if only is None:
+        from pipeline.stages import STAGES
+    for stage in [only] if only is not None else STAGES.values():
         p = sub.add_parser(stage.name, parents=[runtime], help=stage.summary,
                            description=stage.description, formatter_class=_Formatter)
         add_arguments(p, stage.params)
         p.set_defaults(handler=partial(_run_stage, stage, p))
+    if only is not None:
+        return parser
     run = sub.add_parser(
         "run", parents=[runtime], formatter_class=_Formatter,
         help="run the stages of a YAML config in order",
@@ -237,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
         if plugin is not None:  # a command with its own parser, options and help
             handler = partial(plugin.load(), argv[1:])
         else:
-            args = build_parser().parse_args(argv)
+            named = find_stage(command) if command and not command.startswith("-") else None
+            args = build_parser(only=named).parse_args(argv)
             command, handler = args.command, partial(args.handler, args)
         return handler()
     except SystemExit as exc:

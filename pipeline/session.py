@@ -281,7 +281,11 @@ class Session:
 
         if self.client is not None:
             return self._compute_distributed(collections)
-        settings: dict[str, Any] = {"scheduler": self.options.scheduler}
+        from dask.base import named_schedulers
+
+        # the scheduler's function, not its name: given a name, dask imports distributed
+        # (0.2 s) to look for a client, on every local run
+        settings: dict[str, Any] = {"scheduler": named_schedulers[self.options.scheduler]}
         workers = self.options.workers
         if workers is None and reads and self.options.scheduler != "synchronous":
             workers = self.options.local_workers(reads=True)

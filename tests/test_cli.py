@@ -45,6 +45,20 @@ def test_main_returns_the_status_of_help_and_usage_errors(capsys):
     assert main(["no-such-command"]) == 2
 
 
+def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed(tmp_path):
+    """Start-up: ``btf generate`` imports its own stage's module alone, and computing on a
+    local scheduler does not import dask.distributed (dask does, given a scheduler's name).
+    """
+    code = ("import sys; from pipeline.cli import main; "
+            f"status = main(['generate', {str(tmp_path / 'g.zarr')!r}, '--material', 'wood', "
+            "'--size', '16', '--sampling', 'abtf:2,1', '--quiet']); "
+            "print(status, sorted(m for m in sys.modules if m.startswith('pipeline.stages.')), "
+            "'distributed' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.split() == ["0", "['pipeline.stages.generate']", "False"], out
+
+
 def test_console_script_is_installed():
     btf = Path(sys.executable).parent / "btf"
     out = subprocess.run([btf, "--version"], capture_output=True, text=True, check=True)

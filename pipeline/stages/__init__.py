@@ -8,7 +8,9 @@ restrict). No stage imports another: what two share lives below them.
 
 This package finds the declarations itself: a new module with a ``STAGE`` is a new stage, with
 no list to edit. :data:`ORDER` only says where the known ones appear in ``btf --help`` (the
-order of a run); others follow, by name.
+order of a run); others follow, by name. :data:`STAGES` imports every stage's module on first
+use; :func:`stage` imports only the one a command names, so that ``btf inspect`` does not pay
+for the imports of quilting or enlargement.
 """
 
 from __future__ import annotations
@@ -23,17 +25,40 @@ ORDER = ("generate", "ingest", "export", "preview", "crop", "compress", "reconst
          "view", "inspect")
 
 
+def _declaration(module: str) -> Stage | None:
+    found = getattr(importlib.import_module(f"{__name__}.{module}"), "STAGE", None)
+    return found if isinstance(found, Stage) else None
+
+
 def _declarations() -> dict[str, Stage]:
     found = {}
     for module in pkgutil.iter_modules(__path__):
-        stage = getattr(importlib.import_module(f"{__name__}.{module.name}"), "STAGE", None)
-        if isinstance(stage, Stage):
-            found[stage.name] = stage
+        declared = _declaration(module.name)
+        if declared is not None:
+            found[declared.name] = declared
     rank = {name: k for k, name in enumerate(ORDER)}
     return dict(sorted(found.items(), key=lambda item: (rank.get(item[0], len(ORDER)),
                                                         item[0])))
 
 
-STAGES: dict[str, Stage] = _declarations()
+def stage(name: str) -> Stage | None:
+    """The stage called ``name``, importing only its module when it is named after it.
 
-__all__ = ["STAGES", "Stage"]
+    None when no stage has that name.
+    """
+    if name.isidentifier() and any(m.name == name for m in pkgutil.iter_modules(__path__)):
+        declared = _declaration(name)
+        if declared is not None and declared.name == name:
+            return declared
+    return __getattr__("STAGES").get(name)
+
+
+def __getattr__(name: str):
+    if name == "STAGES":  # every stage, imported once, on first use
+        if "STAGES" not in globals():
+            globals()["STAGES"] = _declarations()
+        return globals()["STAGES"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["STAGES", "Stage", "stage"]

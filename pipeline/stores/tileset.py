@@ -41,7 +41,6 @@ from pipeline.stores.base import (
     sampling_summary,
 )
 from tasks.placement import corner_code
-from tasks.prescription import to_csr
 
 NAMES = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
@@ -104,6 +103,8 @@ class TileSet:
 
     def matrices(self) -> list:
         """The tiles' prescriptions as CSR matrices (output texels x sample texels)."""
+        from tasks.prescription import to_csr  # scipy.sparse: not for every store's reader
+
         return [to_csr(i, w, self.samples) for i, w in zip(self.index, self.weight, strict=True)]
 
 
