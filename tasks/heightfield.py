@@ -195,7 +195,8 @@ def bilinear(a: np.ndarray, r0: int, c0: int, oy: np.ndarray, ox: np.ndarray) ->
     """Sample ``a`` (2-D, or 3-D with trailing channels) at ``(r0 + i + oy, c0 + j + ox)``.
 
     ``oy`` and ``ox`` are per-texel offsets of an ``ny x nx`` region whose first texel is
-    ``(r0, c0)``; interpolation is bilinear.
+    ``(r0, c0)``; interpolation is bilinear. The renderer runs :func:`bilinear_layers`, which
+    gives these bits for a stack of layers at once; this is its reference.
     """
     ny, nx = oy.shape
     iy, ix = np.floor(oy), np.floor(ox)

@@ -118,6 +118,8 @@ def shade(surface: Surface, vis: np.ndarray, light: np.ndarray, *, ambient: floa
     """Radiance ``(..., 3)`` of a :class:`Surface` lit from the unit vector ``light``.
 
     ``vis`` is the unshadowed fraction of the light at each texel. Returns ``out`` if given.
+    The renderer runs :func:`shade_all`, which gives these bits for every light at once; this
+    is its readable reference (tests/test_shading.py).
     """
     lx, ly, lz = (float(c) for c in light)
     vx, vy, vz = surface.view
