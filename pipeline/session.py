@@ -138,6 +138,20 @@ def limit_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
+def pin_openmp() -> None:
+    """One OpenMP thread (faiss's searches and its OpenMP BLAS) in tasks of this process.
+
+    As in every worker process (:func:`limit_blas`), for two reasons measured on ``btf
+    enlarge``: faiss's distances differ in their last bits with the number of its BLAS
+    threads, so the threads scheduler (two OpenMP threads) and the processes scheduler (one)
+    gave different stores; and OpenMP takes every core for each search, so two dask threads
+    searching ran four threads on two cores, spinning (52 s of CPU on two workers against
+    34 s on one, for the same wall time). libgomp reads ``OMP_NUM_THREADS`` when it is
+    loaded, which in btf is on a task's first search.
+    """
+    os.environ["OMP_NUM_THREADS"] = "1"
+
+
 MMAP_THRESHOLD = 16 << 20  # blocks from this size are mapped, and unmapped when freed
 TRIM_THRESHOLD = 8 << 20  # free memory a heap may keep at its top (see steady_memory)
 
@@ -208,6 +222,8 @@ class Session:
         self.history: list[dict] = []
 
     def __enter__(self) -> Session:
+        if not is_cluster(self.options.scheduler):
+            pin_openmp()
         if is_cluster(self.options.scheduler):
             from distributed import Client
 

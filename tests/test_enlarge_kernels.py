@@ -168,3 +168,51 @@ def test_locate_finds_a_crop_and_scores_a_stranger_low():
     assert (found.y, found.x) == (37, 51) and found.score > 0.999
     other = locate(_smooth_field(rng, (32, 32), 3), image)
     assert other.score < 0.9
+
+
+_SEARCH_IN_A_SESSION = """
+import hashlib, sys
+import dask, numpy as np
+from pipeline.session import RuntimeOptions, Session
+
+def search(n):
+    from tasks.texture_optimization import _flat_index
+    x = np.random.default_rng(0).standard_normal((n, 32)).astype(np.float32)
+    distances, found = _flat_index(x).search(x[:4096], 5)
+    return hashlib.sha1(distances.tobytes() + found.tobytes()).hexdigest()
+
+with Session(RuntimeOptions(scheduler=sys.argv[1], workers=2, quiet=True)) as session:
+    print(session.compute(dask.delayed(search)(8000))[0])
+"""
+
+
+def test_faiss_searches_give_the_same_bits_on_every_local_scheduler():
+    """faiss's distances change in their last bits with its (OpenMP) BLAS threads: the session
+    gives tasks one, as worker processes have. Before, ``btf enlarge`` of a 256^2 sample
+    differed between the threads and the processes scheduler.
+    """
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    runs = {scheduler: subprocess.run([sys.executable, "-c", _SEARCH_IN_A_SESSION, scheduler],
+                                      capture_output=True, text=True, check=True,
+                                      env=env).stdout
+            for scheduler in ("synchronous", "threads", "processes")}
+    assert len(set(runs.values())) == 1, runs
+
+
+@pytest.mark.parametrize("count", [25, 4096 * 2, 4096 * 3 + 11])
+def test_the_coherence_table_searched_in_parts_is_the_one_search(count):
+    """The parts (computed as parallel tasks by ``btf enlarge``) give one search's bits,
+    duplicates included (a neighbourhood whose exact copy hides its own entry).
+    """
+    from tasks.texture_optimization import coherence, coherence_parts, coherence_rows
+
+    x = np.random.default_rng(count).standard_normal((count, 32)).astype(np.float32)
+    x[count // 2] = x[3]  # an exact duplicate
+    whole = coherence_rows(x, 4, 0, count)
+    assert len(coherence_parts(count)) == max(1, count // 4096)
+    np.testing.assert_array_equal(coherence(x, 4), whole)
+    assert whole.shape == (count, 4) and not (whole == np.arange(count)[:, None]).any()
