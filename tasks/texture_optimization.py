@@ -47,6 +47,7 @@ BENCHMARKS.md, enlargement.)
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -198,10 +199,13 @@ class SampleLevel:
 
     Built once per level (the PCA basis is fitted to neighbourhoods drawn with the caller's
     generator) and then usable for any part of the output: it pickles without its search
-    index, which every process rebuilds from the projections on first use.
+    index, which every process rebuilds from the projections on first use. ``table(projected,
+    k)`` makes the k-coherence table (default :func:`coherence`; a caller with workers gives
+    one that computes the same parts in parallel).
     """
 
-    def __init__(self, coefficients, guide, rotation, guide_weight, params, rng):
+    def __init__(self, coefficients, guide, rotation, guide_weight, params, rng, *,
+                 table=None):
         p = params.patch
         self.patch = p
         self.rotation = rotation
@@ -223,7 +227,7 @@ class SampleLevel:
         self.mean = mean.astype(np.float32)
         self.projected = _project(self.features, self.ys, self.xs, p, self.basis, self.mean)
         self._index = None
-        self.coherence = (_coherence(self.projected, params.coherence)
+        self.coherence = ((table or coherence)(self.projected, params.coherence)
                           if params.search == "coherent" and params.coherence else None)
 
     def __getstate__(self):
@@ -241,20 +245,43 @@ class SampleLevel:
         return flat // self.width, flat % self.width
 
 
-def _coherence(projected: np.ndarray, k: int) -> np.ndarray:
-    """For every sample neighbourhood, its ``k`` most similar others (k-coherence's table).
+COHERENCE_QUERIES = 4096  # sample neighbourhoods a part of the k-coherence table searches for
 
-    Exact in the search projection (faiss, flat L2); ``(n, k)`` flat indices, int32.
+
+def coherence_parts(count: int) -> list[tuple[int, int]]:
+    """The parts of the k-coherence table of ``count`` neighbourhoods: ranges of queries.
+
+    Whole blocks of faiss's own query batch (4096), the last one with the rest, so that the
+    parts, searched apart (in parallel), give the bits of one search of all the queries (a
+    search of fewer than 20 queries would take another path, without BLAS).
     """
+    bounds = [k * COHERENCE_QUERIES for k in range(max(1, count // COHERENCE_QUERIES))]
+    bounds.append(count)
+    return [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
+
+
+def coherence_rows(projected: np.ndarray, k: int, start: int, stop: int) -> np.ndarray:
+    """Rows ``start:stop`` of the k-coherence table of ``projected`` (:func:`coherence`)."""
     k = min(k, len(projected) - 1)
     if k < 1:
-        return np.zeros((len(projected), 0), np.int32)
-    _, found = _flat_index(projected).search(np.ascontiguousarray(projected), k + 1)
-    own = np.arange(len(projected))[:, None]
+        return np.zeros((stop - start, 0), np.int32)
+    _, found = _flat_index(projected).search(np.ascontiguousarray(projected[start:stop]), k + 1)
+    own = np.arange(start, stop)[:, None]
     # drop each one's own entry (or, when exact duplicates hide it, the last)
     keep = np.where((found == own).any(axis=1, keepdims=True), found != own,
                     np.arange(k + 1) < k)
-    return found[keep].reshape(len(projected), k).astype(np.int32)
+    return found[keep].reshape(stop - start, k).astype(np.int32)
+
+
+def coherence(projected: np.ndarray, k: int) -> np.ndarray:
+    """For every sample neighbourhood, its ``k`` most similar others (k-coherence's table).
+
+    Exact in the search projection (faiss, flat L2); ``(n, k)`` flat indices, int32. Part by
+    part (:func:`coherence_parts`); a caller with workers may compute the parts in parallel
+    with :func:`coherence_rows` (:class:`SampleLevel`'s ``table``): faiss releases the GIL.
+    """
+    parts = [coherence_rows(projected, k, a, b) for a, b in coherence_parts(len(projected))]
+    return np.concatenate(parts) if parts else np.zeros((0, max(0, k)), np.int32)
 
 
 def coherent_candidates(source: SampleLevel, match: np.ndarray, gy: np.ndarray,
@@ -264,7 +291,7 @@ def coherent_candidates(source: SampleLevel, match: np.ndarray, gy: np.ndarray,
     k-coherence (Tong et al. 2002) on the grid of output neighbourhoods: each of the 3 x 3
     grid neighbours' current matches, shifted by the offset between the two output
     neighbourhoods (so a coherent copy continues), and each of those's ``k`` most similar
-    sample neighbourhoods (:func:`_coherence`). ``(Q, 9 (1 + k))`` flat indices, in the
+    sample neighbourhoods (:func:`coherence`). ``(Q, 9 (1 + k))`` flat indices, in the
     order of ``match`` (row-major over ``gy x gx``); their number does not grow with the
     sample.
     """

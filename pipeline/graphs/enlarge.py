@@ -22,6 +22,7 @@ so the store is the same on every scheduler; memory is bounded by a tile and its
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -291,7 +292,8 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         factor = 2**level
         shape = (-(-big_h // factor), -(-big_w // factor))
         source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
-                             rotation, guide_weight, to, rng)
+                             rotation, guide_weight, to, rng,
+                             table=partial(_coherence_table, session=session))
         name = "_coefficients" if level == 0 else f"_level{level}"
         whole, regions = _level_regions(shape, tile)
         blend = level == 0 and not whole  # the finest level's tiles are blended
@@ -313,6 +315,27 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         coarse, coarse_shape = name, shape
     return {**report, **_finest_report(reports), "sample_constraint_residual_rms": noise,
             "constraint_rank": projector.rank}
+
+
+def _coherence_table(projected: np.ndarray, k: int, *, session) -> np.ndarray:
+    """A level's k-coherence table, its parts searched in parallel on the session's workers.
+
+    The table is one exact search of the sample's neighbourhoods against themselves (7 s for
+    a 256^2 sample's finest level on one core), which the client did alone while every
+    worker waited. The same parts as :func:`tasks.texture_optimization.coherence`: the same
+    bits.
+    """
+    import dask
+
+    from tasks.texture_optimization import coherence_parts, coherence_rows
+
+    parts = coherence_parts(len(projected))
+    if len(parts) < 2:
+        return coherence_rows(projected, k, 0, len(projected))
+    shared = session.share(projected)
+    rows = session.compute(*(dask.delayed(coherence_rows, pure=True)(shared, k, a, b)
+                             for a, b in parts))
+    return np.concatenate(rows)
 
 
 def _level_regions(shape: tuple[int, int], tile: int
