@@ -147,7 +147,8 @@ def pin_openmp() -> None:
     gave different stores; and OpenMP takes every core for each search, so two dask threads
     searching ran four threads on two cores, spinning (52 s of CPU on two workers against
     34 s on one, for the same wall time). libgomp reads ``OMP_NUM_THREADS`` when it is
-    loaded, which in btf is on a task's first search.
+    loaded, which in btf is on a task's first search. A user's own setting is overridden, as
+    in worker processes: the results must not depend on it.
     """
     os.environ["OMP_NUM_THREADS"] = "1"
 
@@ -224,7 +225,7 @@ class Session:
     def __enter__(self) -> Session:
         if not is_cluster(self.options.scheduler):
             pin_openmp()
-        if is_cluster(self.options.scheduler):
+        else:
             from distributed import Client
 
             from pipeline.errors import BTFError
