@@ -232,7 +232,7 @@ def test_the_compiled_shadow_march_gives_numpy_s_bits(phi):
     h = (rng.random((90, 97)) ** 3 * 12).astype(np.float32)
     h[40:44, 50:52] = 30.0  # a spike far above the rest
     # A DDA step moves a whole texel along one axis; the loop also takes two fractions.
-    for step in (dda_step(phi), Step(0.37 * math.cos(phi), -0.61, 0.9)):
+    for step in (dda_step(phi), Step(0.37 + phi / 1000, -0.61, 0.9)):
         for theta in (5.0, 50.0, 84.0):
             rise = math.cos(math.radians(theta)) / math.sin(math.radians(theta))
             got = shadow_tops(h, 22, 23, 41, 47, step, 20, rise)
