@@ -165,7 +165,11 @@ def build_parser(only: Stage | None = None) -> argparse.ArgumentParser:
     runtime = _runtime_parser()
     if only is None:
         from pipeline.stages import STAGES
-    for stage in [only] if only is not None else STAGES.values():
+
+        chosen = list(STAGES.values())
+    else:
+        chosen = [only]
+    for stage in chosen:
         p = sub.add_parser(stage.name, parents=[runtime], help=stage.summary,
                            description=stage.description, formatter_class=_Formatter)
         add_arguments(p, stage.params)

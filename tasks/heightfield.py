@@ -131,7 +131,7 @@ def shadow_tops(h: np.ndarray, r0: int, c0: int, ny: int, nx: int, step: Step, s
     # shifted() skips a blend whose fraction is under 1e-9, and rounds the others to float32.
     fy = np.where(fy > 1e-9, fy, 0.0).astype(np.float32)
     fx = np.where(fx > 1e-9, fx, 0.0).astype(np.float32)
-    ray = np.array([t * step.length * rise for t in range(1, steps + 1)]).astype(np.float32)
+    ray = (t * step.length * rise).astype(np.float32)
     return loop(np.ascontiguousarray(h, np.float32), r0, c0, ny, nx, iy.astype(np.intp),
                 ix.astype(np.intp), fy, fx, ray, np.empty((ny, nx), np.float32))
 

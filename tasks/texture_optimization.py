@@ -281,7 +281,7 @@ def coherence(projected: np.ndarray, k: int) -> np.ndarray:
     with :func:`coherence_rows` (:class:`SampleLevel`'s ``table``): faiss releases the GIL.
     """
     parts = [coherence_rows(projected, k, a, b) for a, b in coherence_parts(len(projected))]
-    return np.concatenate(parts) if parts else np.zeros((0, max(0, k)), np.int32)
+    return np.concatenate(parts) if parts else coherence_rows(projected, k, 0, 0)
 
 
 def coherent_candidates(source: SampleLevel, match: np.ndarray, gy: np.ndarray,

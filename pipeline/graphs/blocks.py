@@ -107,17 +107,14 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     graph = _optimized_together(writes)
     for source, written, target in zip(sources, writes, targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
-        blocks = np.empty(written.numblocks, object)
-        for index in np.ndindex(blocks.shape):
-            blocks[index] = Delayed((written.name, *index), graph)
-        for index in np.ndindex(blocks.shape):
+        for index in np.ndindex(written.numblocks):
             region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, index,
                                                                            strict=True))
             if keep is not None and not keep(region):
                 continue
             name = f"{target.path}/{'.'.join(map(str, index))}"
             regions[name] = (target, region)
-            units.append((name, blocks[index]))
+            units.append((name, Delayed((written.name, *index), graph)))
     if progress is None:
         todo = [w for _, w in units]
     else:  # read back what a killed run kept, on threads here: redo blocks that do not read

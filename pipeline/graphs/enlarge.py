@@ -327,11 +327,11 @@ def _coherence_table(projected: np.ndarray, k: int, *, session) -> np.ndarray:
     """
     import dask
 
-    from tasks.texture_optimization import coherence_parts, coherence_rows
+    from tasks.texture_optimization import coherence, coherence_parts, coherence_rows
 
     parts = coherence_parts(len(projected))
     if len(parts) < 2:
-        return coherence_rows(projected, k, 0, len(projected))
+        return coherence(projected, k)
     shared = session.share(projected)
     rows = session.compute(*(dask.delayed(coherence_rows, pure=True)(shared, k, a, b)
                              for a, b in parts))
