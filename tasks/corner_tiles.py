@@ -4,21 +4,30 @@
 patch per corner type, one edge strip per ordered pair of types and direction, then every tile
 from its four strips inwards (see :mod:`tasks.quilting` for the geometry).
 
-**Why a check.** A tile's interior is filled row by row from its top-left, so its last row and
-column of patches must join the bottom and right strips, planned before it, as well as the
-patches above and to the left. On a structured texture no sample window may fit all of that:
-on scikit-image's brick photo one plan in three (block 48) left a band along the bottom or
-right border where the vertical mortar lines of the interior and of the strip do not meet,
-and re-planning the interior alone with new random choices rarely helped (the strip, not the
-interior, decides what can join it). So every tile is measured once planned
-(:class:`BorderCheck`: the seam and structure ratios of :mod:`tasks.seams` on the tile framed
-by the outer halves of its strips, i.e. what its neighbours show there), and while its worst
-border stands out more than ``max_seam`` times its inside:
+**Why a check.** A tile's interior is filled row by row from one of its corners, so its last
+row and column of patches must join the two strips on the far side, planned before it, as
+well as the patches already placed. On a structured texture no sample window may fit all of
+that: on scikit-image's brick photo one plan in three (block 48) left a band along the far
+border where the vertical mortar lines of the interior and of the strip do not meet. So every
+tile is measured once planned (:class:`BorderCheck`: the seam and structure ratios of
+:mod:`tasks.seams` on the tile framed by the outer halves of its strips, i.e. what its
+neighbours show there), and while its worst border stands out more than ``max_seam`` times
+its inside:
 
-1. its interior is planned again from another random stream, up to ``attempts`` times;
+1. its interior is planned again from another random stream, up to
+   :data:`INTERIOR_ATTEMPTS` times, each plan starting from the next corner (top-left,
+   bottom-right, top-right, bottom-left), so that the last, hardest joins fall on other
+   borders: a border joined last in one plan is joined first, to the strip alone, in another;
 2. if none passes, the strip along its worst border is planned again from another stream
-   (the corner patches stay), and so is every tile that uses that strip; at most
-   ``attempts`` plans per strip.
+   (the corner patches stay), from its other end every second time, for the same reason (a
+   strip's last patch must join the corner patch at its end), and so is every tile that uses
+   that strip; after :data:`STRIP_ATTEMPTS` plans of a strip, the whole set is planned again
+   from new corner patches. A round is one pass over the tiles not yet planned; at most
+   ``attempts`` rounds.
+
+Starting every plan from the top-left, as the paper does, re-planning an interior rarely
+helped (19% of second plans passed on brick, 9% of third plans); see BENCHMARKS.md,
+"Quilting".
 
 The best plan of a tile is kept; when a tile's best still exceeds the bound, planning stops
 with :class:`SeamError` naming the tile, its worst border and the figure. Every stream is
@@ -228,11 +237,14 @@ class _TileSetPlanner:
             canvas.copy_from(self.corners[c].canvas, slice(y, y + b), slice(x, x + b),
                              slice(None), slice(None))
         name = f"{direction} edge {a}{z}"
+        steps = range(1, length // s)
+        if self.generation.get(key, 0) % 2:  # every second plan from the strip's other end
+            steps = steps[::-1]
 
         def place(canvas):
             return [self.planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
                                        border="row" if horizontal else "col")
-                    for k in range(1, length // s)]
+                    for k in steps]
 
         self.strips[key] = self._plan(key, place, canvas)
         for number, types in enumerate(self.types):
@@ -268,10 +280,13 @@ class _TileSetPlanner:
         for blend in right.blends:
             blend.again(canvas, -half, tw - half, quadrants)
         name = "tile " + "".join(map(str, types))
+        rows, cols = range(1, th // s), range(1, tw // s)
+        up, back = FILL_ORDERS[self.generation.get(("tile", number), 0) % len(FILL_ORDERS)]
+        rows, cols = rows[:: -1 if up else 1], cols[:: -1 if back else 1]
 
         def place(canvas):
-            for i in range(1, th // s):
-                for j in range(1, tw // s):
+            for i in rows:
+                for j in cols:
                     self.planner.place(canvas, name, i * s - half, j * s - half)
             if not canvas.filled.all():
                 raise AssertionError("a tile was left with empty pixels")
@@ -314,7 +329,10 @@ class _TileSetPlanner:
                        [self.tiles[i].check for i in range(n)])
 
 
-INTERIOR_ATTEMPTS = 3  # plans of a tile's interior along one set of strips
+INTERIOR_ATTEMPTS = 4  # plans of a tile's interior along one set of strips
+# where each plan of an interior starts, by its generation: (from the bottom, from the right);
+# top-left (the paper's order), bottom-right, top-right, bottom-left
+FILL_ORDERS = ((False, False), (True, True), (False, True), (True, False))
 STRIP_ATTEMPTS = 3  # plans of a strip before the whole tile set is planned again
 
 

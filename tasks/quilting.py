@@ -8,7 +8,8 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
 - **Phases as shared pieces.** Phase 1 (corners), 2 (horizontal edges), 3 (vertical edges) and
   4 (interior) become: one corner patch per corner type, centred on the tile corner; one
   horizontal and one vertical edge strip per ordered pair of corner types, the patches centred
-  on the edge line between the two corner patches; and per tile an interior filled row by row.
+  on the edge line between the two corner patches; and per tile an interior filled row by row
+  (from one of its corners: :mod:`tasks.corner_tiles`).
   A tile starts as the halves of its four edge strips that lie inside it. With one corner type
   (``V = 1``) the single tile's opposite edges are the two halves of the same strip, so it
   wraps seamlessly: the paper's periodic texture. With ``V`` types, the ``V^4`` tiles share

@@ -16,7 +16,7 @@ from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
 from tasks.canvas import TERMS
-from tasks.corner_tiles import BorderCheck, SeamError, plan_tiles
+from tasks.corner_tiles import INTERIOR_ATTEMPTS, BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
 from tasks.quilt_layout import overlap_for
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
@@ -590,6 +590,28 @@ def test_positions_in_phase_are_lattice_vectors_to_the_texel():
         assert near.min() <= 0.5**0.5 and (near <= 1.0).sum() <= 4
 
 
+def test_each_plan_of_an_interior_starts_at_another_corner_and_of_a_strip_at_its_other_end(
+        noise):
+    # the last patches placed must join two strips and two neighbours: each plan puts them
+    # along other borders (tasks.corner_tiles, "Why a check")
+    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _TileSetPlanner
+
+    reference, exemplar = noise
+    plan = _TileSetPlanner(np.asarray(reference, np.float32), QuiltParams(12, 3, 3, 2, (27, 27)),
+                           seed=1, exemplar=exemplar)
+    plan.plan_all()
+    windows = [[p.window for p in plan.fill(5).placements] for _ in range(5)]
+    assert [w[0] for w in windows] == [(3, 3), (12, 12), (3, 12), (12, 3), (3, 3)]
+    assert [w[-1] for w in windows] == [(12, 12), (3, 3), (12, 3), (3, 12), (12, 12)]
+    assert all(sorted(w) == sorted(windows[0]) for w in windows)
+    for key, ends in (((HORIZONTAL, 0, 1), [(0, 9), (0, 18)]),
+                      ((VERTICAL, 1, 1), [(9, 0), (18, 0)])):
+        first = [p.window for p in plan.strips[key].placements]
+        plan.plan_strip(key)
+        again = [p.window for p in plan.strips[key].placements]
+        assert (first, again) == (ends, ends[::-1])
+
+
 def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent(noise):
     reference, exemplar = noise
     lines = []
@@ -598,7 +620,9 @@ def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent(noise):
         plan_tiles(reference, strict, seed=2, exemplar=exemplar, progress=lines.append)
     assert len(lines) == 2, lines
     assert lines[0].startswith("block 12, 16 tile(s) of 18 x 18: round 1 of at most 2: ")
-    assert lines[0].endswith("strips again (48 interior plan(s) so far)"), lines
+    # every tile planned INTERIOR_ATTEMPTS times in the first round
+    assert lines[0].endswith(
+        f"strips again ({16 * INTERIOR_ATTEMPTS} interior plan(s) so far)"), lines
     assert "round 2 of at most 2: 0 of 16 tile(s) within the bound (" in lines[1], lines
     lines.clear()
     plan_tiles(reference, QuiltParams(12, 3, 3, 2, (18, 18), **ANY_SEAM), seed=2,
