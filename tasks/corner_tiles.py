@@ -17,7 +17,8 @@ its inside:
 1. its interior is planned again from another random stream, up to
    :data:`INTERIOR_ATTEMPTS` times, each plan starting from the next corner (top-left,
    bottom-right, top-right, bottom-left), so that the last, hardest joins fall on other
-   borders: a border joined last in one plan is joined first, to the strip alone, in another;
+   borders: a border joined last in one plan, beside patches already placed, is joined
+   first in another, where its patches meet only the strips;
 2. if none passes, the strip along its worst border is planned again from another stream
    (the corner patches stay), from its other end every second time, for the same reason (a
    strip's last patch must join the corner patch at its end), and so is every tile that uses
@@ -280,9 +281,9 @@ class _TileSetPlanner:
         for blend in right.blends:
             blend.again(canvas, -half, tw - half, quadrants)
         name = "tile " + "".join(map(str, types))
-        rows, cols = range(1, th // s), range(1, tw // s)
         up, back = FILL_ORDERS[self.generation.get(("tile", number), 0) % len(FILL_ORDERS)]
-        rows, cols = rows[:: -1 if up else 1], cols[:: -1 if back else 1]
+        rows = range(1, th // s)[::-1] if up else range(1, th // s)
+        cols = range(1, tw // s)[::-1] if back else range(1, tw // s)
 
         def place(canvas):
             for i in rows:
