@@ -22,6 +22,7 @@ All in one run, on generated ABTFs with 24 lights (``abtf:6,4``, one view):
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -78,6 +79,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also time the border check's nearest-patch search against an "
                              "exact brute-force one on N checks recorded per texture "
                              "(benchmarks/seams.py, search_accuracy; default 0: not run)")
+    parser.add_argument("--seam-threads", type=int, default=os.cpu_count() or 1, metavar="N",
+                        help="tiles planned at once, as btf quilt plans them (default: one per "
+                             "core; the plans are the same for any number)")
     parser.add_argument("--seams-only", action="store_true",
                         help="measure the seams only (no planning, application or rendering)")
 
@@ -249,7 +253,7 @@ def _seams(args) -> list[dict]:
         for corners in (int(v) for v in args.seam_corners.split(",")):
             for block in blocks:  # e.g. the automatic choice, and the bug report's 48 / 12
                 rows.append(texture_seams(texture, block=block, seeds=range(args.seam_seeds),
-                                          corners=corners, log=log))
+                                          corners=corners, threads=args.seam_threads, log=log))
     return rows
 
 

@@ -100,7 +100,8 @@ def mosaic_figures(exemplar, image: np.ndarray, tile: tuple[int, int], margin: i
 
 
 def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None,
-                 overlap: int | None, corners: int, seed: int, candidates: int = 5) -> dict:
+                 overlap: int | None, corners: int, seed: int, candidates: int = 5,
+                 threads: int = 1) -> dict:
     """One seed of one texture and setting quilted and measured (see the module)."""
     from tasks.corner_tiles import BorderCheck, SeamError, plan_first
     from tasks.quilt_layout import commensurate_sizes, layouts, phase_lattice
@@ -126,7 +127,7 @@ def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None
 
     start = time.perf_counter()
     try:
-        plan, qp = plan_first(reference, params(), seed=seed)
+        plan, qp = plan_first(reference, params(), seed=seed, threads=threads)
     except SeamError as exc:
         return {"seed": seed, "failed": str(exc), "seconds": time.perf_counter() - start}
     seconds = time.perf_counter() - start
@@ -149,7 +150,7 @@ def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None
 
 
 def texture_seams(name: str, *, block: int | None, seeds, corners: int = 1,
-                  candidates: int = 5, log=None) -> dict:
+                  candidates: int = 5, threads: int = 1, log=None) -> dict:
     """Every seed of one texture and setting (see the module), and the summary."""
     from tasks.quilt_layout import sample_lattice
 
@@ -159,7 +160,8 @@ def texture_seams(name: str, *, block: int | None, seeds, corners: int = 1,
     rows = []
     for seed in seeds:
         rows.append(seed_figures(name, reference, lattice, block=block, overlap=overlap,
-                                 corners=corners, seed=seed, candidates=candidates))
+                                 corners=corners, seed=seed, candidates=candidates,
+                                 threads=threads))
         if log is not None:
             r = rows[-1]
             log(f"seams {name} block {block or 'auto'} V {corners} seed {seed}: "

@@ -40,10 +40,12 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from tasks.canvas import Canvas
 from tasks.periodicity import Lattice
@@ -198,25 +200,29 @@ class _TileSetPlanner:
         self.tiles: dict[int, _Tile] = {}
 
     def _plan(self, key: tuple, place, canvas: Canvas) -> _Piece:
-        """Plan one piece on ``canvas`` with the next stream of ``key``."""
+        """Plan one piece on ``canvas`` with the next stream of ``key``.
+
+        ``place(planner, canvas)`` places the piece's patches with a planner of its own (its
+        stream and placements), so pieces may be planned in threads.
+        """
         generation = self.generation.get(key, 0)
         self.generation[key] = generation + 1
-        self.planner.rng = np.random.default_rng(
-            (self.seed, self.KINDS[key[0]], *key[1:], generation))
-        first = len(self.planner.placements)
-        blends = place(canvas)
-        placed = self.planner.placements[first:]
-        del self.planner.placements[first:]
-        return _Piece(canvas, placed, blends or [])
+        planner = self.planner.with_stream(np.random.default_rng(
+            (self.seed, self.KINDS[key[0]], *key[1:], generation)))
+        blends = place(planner, canvas)
+        return _Piece(canvas, planner.placements, blends or [])
 
     def plan_all(self) -> None:
         """Corner patches (phase 1) and edge strips (phases 2, 3), all of them again."""
         b = self.params.block
         self.corners, phase = [], None
         for c in range(self.params.corners):
-            self.corners.append(self._plan(("corner", c), lambda canvas, c=c, phase=phase: [
-                self.planner.place(canvas, f"corner {c}", 0, 0, border="both",
-                                   allowed=phase)], Canvas.empty(b, b, self.channels)))
+            def place(planner, canvas, c=c, phase=phase):
+                return [planner.place(canvas, f"corner {c}", 0, 0, border="both",
+                                      allowed=phase)]
+
+            self.corners.append(self._plan(("corner", c), place,
+                                           Canvas.empty(b, b, self.channels)))
             if self.params.lattice is not None and phase is None:
                 u, v = self.params.lattice
                 phase = in_phase(self.planner.search.valid,
@@ -242,9 +248,9 @@ class _TileSetPlanner:
         if self.generation.get(key, 0) % 2:  # every second plan from the strip's other end
             steps = steps[::-1]
 
-        def place(canvas):
-            return [self.planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
-                                       border="row" if horizontal else "col")
+        def place(planner, canvas):
+            return [planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
+                                  border="row" if horizontal else "col")
                     for k in steps]
 
         self.strips[key] = self._plan(key, place, canvas)
@@ -285,10 +291,10 @@ class _TileSetPlanner:
         rows = range(1, th // s)[::-1] if up else range(1, th // s)
         cols = range(1, tw // s)[::-1] if back else range(1, tw // s)
 
-        def place(canvas):
+        def place(planner, canvas):
             for i in rows:
                 for j in cols:
-                    self.planner.place(canvas, name, i * s - half, j * s - half)
+                    planner.place(canvas, name, i * s - half, j * s - half)
             if not canvas.filled.all():
                 raise AssertionError("a tile was left with empty pixels")
 
@@ -339,7 +345,7 @@ STRIP_ATTEMPTS = 3  # plans of a strip before the whole tile set is planned agai
 
 def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
                exemplar: PatchExemplar | None = None,
-               progress: Callable[[str], None] | None = None) -> TileSet:
+               progress: Callable[[str], None] | None = None, threads: int = 1) -> TileSet:
     """Plan a corner tile set (``V^4`` tiles; one periodic tile for ``V = 1``), see the module.
 
     Parameters
@@ -358,6 +364,9 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
         Called with a line after every round that leaves tiles beyond the bound (and the
         round that ends it), and within a round of many tiles every
         :data:`PROGRESS_SECONDS`.
+    threads
+        Tiles planned at once within a round. Each tile's plans depend only on its strips
+        and its own streams, so the tile set is the same for any number.
 
     Raises
     ------
@@ -372,30 +381,34 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
     best: TileSet | None = None
     strip_plans: dict[tuple, int] = {}
     plan.plan_all()
-    for round_ in range(params.attempts):
-        for number in range(len(plan.types)):
-            if number not in plan.tiles:
-                plan.tiles[number] = plan.plan_tile(number, INTERIOR_ATTEMPTS)
+    # one BLAS thread: the planner's products are small, and OpenBLAS's own threads spent
+    # a core spinning beside them (half the CPU time of a plan; BENCHMARKS.md, "Quilting")
+    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(max(1, threads)) as pool:
+        for round_ in range(params.attempts):
+            pending = [n for n in range(len(plan.types)) if n not in plan.tiles]
+            planned = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS), pending)
+            for number, tile in zip(pending, planned, strict=True):
+                plan.tiles[number] = tile
                 report.tile(round_)
-        result = plan.result(reference.shape[:2])
-        if best is None or result.worst < best.worst:
-            best = result
-        failed = [n for n, t in plan.tiles.items() if not t.passed]
-        report.round(round_, failed)
-        if not failed:
-            return result
-        if round_ + 1 == params.attempts:
-            break
-        # plan again the strip along each failed tile's worst border (and the tiles along
-        # it); a strip planned too often: the whole set, from new corner patches
-        offending = sorted({plan.worst_strip(n) for n in failed})
-        if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
-            plan.plan_all()
-            strip_plans = {}
-            continue
-        for key in offending:
-            plan.plan_strip(key)
-            strip_plans[key] = strip_plans.get(key, 1) + 1
+            result = plan.result(reference.shape[:2])
+            if best is None or result.worst < best.worst:
+                best = result
+            failed = [n for n, t in plan.tiles.items() if not t.passed]
+            report.round(round_, failed)
+            if not failed:
+                return result
+            if round_ + 1 == params.attempts:
+                break
+            # plan again the strip along each failed tile's worst border (and the tiles along
+            # it); a strip planned too often: the whole set, from new corner patches
+            offending = sorted({plan.worst_strip(n) for n in failed})
+            if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
+                plan.plan_all()
+                strip_plans = {}
+                continue
+            for key in offending:
+                plan.plan_strip(key)
+                strip_plans[key] = strip_plans.get(key, 1) + 1
     worst = max(best.checks, key=lambda c: c.figures.worst)
     raise SeamError(worst, params.max_seam)
 
@@ -439,13 +452,13 @@ class _Progress:
 
 
 def plan_first(reference: np.ndarray, params: Iterable[QuiltParams], *, seed: int,
-               on_failure=None, progress: Callable[[str], None] | None = None
-               ) -> tuple[TileSet, QuiltParams]:
+               on_failure=None, progress: Callable[[str], None] | None = None,
+               threads: int = 1) -> tuple[TileSet, QuiltParams]:
     """The first of ``params`` (e.g. :func:`tasks.quilt_layout.layouts`) whose plan passes.
 
     ``on_failure(error)`` is called with the :class:`SeamError` of each one that does not;
-    when none passes, the last error is raised. ``progress`` as for :func:`plan_tiles`. The
-    border check's patches are made once per structure patch size.
+    when none passes, the last error is raised. ``progress`` and ``threads`` as for
+    :func:`plan_tiles`. The border check's patches are made once per structure patch size.
     """
     failure = None
     exemplars: dict[int, PatchExemplar] = {}
@@ -455,7 +468,7 @@ def plan_first(reference: np.ndarray, params: Iterable[QuiltParams], *, seed: in
             exemplars[patch] = PatchExemplar(np.asarray(reference, np.float32), patch=patch)
         try:
             return plan_tiles(reference, qp, seed=seed, exemplar=exemplars[patch],
-                              progress=progress), qp
+                              progress=progress, threads=threads), qp
         except SeamError as exc:
             failure = exc
             if on_failure is not None:

@@ -42,6 +42,7 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -312,6 +313,16 @@ class Planner:
         self.search = CandidateSearch(self.reference, b)
         self.flat = np.arange(h * w, dtype=np.int32).reshape(h, w)
         self.borders = border_positions(self.reference, b)
+
+    def with_stream(self, rng: np.random.Generator) -> Planner:
+        """A copy with its own generator and no placements, sharing the search.
+
+        Pieces planned by such copies in different threads do not share any state they
+        change, so each piece is the same whichever thread plans it.
+        """
+        planner = copy.copy(self)
+        planner.rng, planner.placements = rng, []
+        return planner
 
     def _patch(self, source: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         sy, sx = source

@@ -45,6 +45,8 @@ STRIDE = 3  # patch grid of the structure measure (texels)
 SEARCH_EPS = 1.0  # the k-d tree's approximation (see the module)
 _REPEAT_CANDIDATES = 32  # exact nearest patches searched for one not overlapping its query
 _BATCH = 4096  # queries (and sample rows) per batch: bounds the gathered patches' memory
+_ONE_THREAD = 1024  # queries searched on the calling thread alone (a tile's check: its own
+# threads cost more than they gain there, and tiles may be checked in threads of their own)
 
 
 @dataclass(frozen=True)
@@ -254,7 +256,7 @@ class PatchExemplar:
         for i in range(0, len(queries), _BATCH):
             q = np.asarray(queries[i : i + _BATCH], np.float32)
             _, found = self.tree.query(self._project(q), k=self.candidates, eps=self.eps,
-                                       workers=-1)
+                                       workers=1 if len(q) <= _ONE_THREAD else -1)
             found = found.reshape(len(q), self.candidates)
             sy, sx = np.divmod(found, self.width)
             near = self.windows[sy, sx].reshape(*found.shape, -1)

@@ -659,6 +659,20 @@ def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
     assert found >= 30
 
 
+def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise):
+    reference, exemplar = noise
+    params = QuiltParams(12, 3, 3, 2, (18, 18), max_seam=1.05, attempts=4)
+    lines = []
+    plans = [plan_tiles(reference, params, seed=2, exemplar=exemplar, threads=threads,
+                        progress=lines.append) for threads in (1, 3)]
+    assert len(lines) == 8  # 4 rounds each: tiles planned along strips planned again too
+    one, other = plans
+    assert one.placements == other.placements
+    for a, b in zip(one.tiles, other.tiles, strict=True):
+        for name in ("index", "weight", "value"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent(noise):
     reference, exemplar = noise
     lines = []

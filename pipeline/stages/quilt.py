@@ -184,7 +184,8 @@ def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels
     try:
         plan, qp = plan_first(reference, candidates(), seed=params.seed,
                               on_failure=lambda exc: session.log(f"quilt: {exc}"),
-                              progress=lambda line: session.log(f"quilt: {line}"))
+                              progress=lambda line: session.log(f"quilt: {line}"),
+                              threads=planning_threads(session))
     except ValueError as exc:  # SeamError too: the last layout's
         raise BTFError(f"{params.store}: {exc}") from None
     worst = max(plan.checks, key=lambda c: c.figures.worst)
@@ -192,6 +193,16 @@ def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels
                 f"(worst {worst.tile}: {worst.figures.worst_line()}; up to "
                 f"{max(c.plans for c in plan.checks)} plan(s) of a tile's interior)")
     return plan, qp
+
+
+def planning_threads(session: Session) -> int:
+    """Tiles the client plans at once: ``--workers``, else one per core; one when synchronous.
+
+    The plan is the same for any number (:func:`tasks.corner_tiles.plan_tiles`).
+    """
+    if session.options.scheduler == "synchronous":
+        return 1
+    return session.options.local_workers()
 
 
 def _check_phase(params: QuiltStageParams, qp: QuiltParams, lattice, session: Session):
