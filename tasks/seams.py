@@ -204,17 +204,15 @@ class PatchExemplar:
         step = max(1, int(np.sqrt(ny * nx / 4096)))
         subset = self.windows[::step, ::step].reshape(-1, self.windows[0, 0].size)
         self.mean = subset.mean(axis=0)
-        centred = (subset - self.mean).astype(np.float64)
+        centred = subset - self.mean
         # the leading eigenvectors of the covariance: its right singular vectors (the
-        # SVD of the subset took 1.2 s for 16^2 x 3 patches; the exemplar 1.9 s, now 0.6 s)
+        # SVD of the subset took 1.2 s for 16^2 x 3 patches; the exemplar 1.9 s, now 0.6 s);
+        # a float32 product (0.04 s, float64's 0.08 s) leaves the leading ones as they were
         n = centred.shape[1]
         keep = min(dims, n, len(centred))
         _, vectors = eigh(centred.T @ centred, subset_by_index=(n - keep, n - 1))
         self.basis = np.ascontiguousarray(vectors[:, ::-1], np.float32)
-        rows = max(1, _BATCH // nx)
-        self.tree = cKDTree(np.concatenate([
-            self._project(self.windows[y : y + rows].reshape(-1, self.mean.size))
-            for y in range(0, ny, rows)]))
+        self.tree = cKDTree(self._project_windows())
         self.width = nx
         contrast = float(np.sqrt(np.mean((sample - sample.mean(axis=(0, 1))) ** 2)))
         self.floor = max(0.02 * contrast, 1e-9)  # below this nothing is visible
@@ -246,6 +244,28 @@ class PatchExemplar:
         d = np.sqrt(np.einsum("qkd,qkd->qk", diff, diff) / flat.shape[1])
         d = np.where(apart, d, np.inf).min(axis=1)
         return float(np.median(d[np.isfinite(d)])) if np.isfinite(d).any() else 0.0
+
+    def _project_windows(self) -> np.ndarray:
+        """Every window's PCA coordinates, ``(ny * nx, dims)`` float32, row by row.
+
+        By FFT correlation of the sample with each basis patch in turn (25 ms on a 256^2
+        photo, against 85 ms for a product with the windows copied out); memory: the
+        sample's spectra and one basis patch's.
+        """
+        from scipy.fft import irfft2, next_fast_len, rfft2
+
+        h, w, channels = self.sample.shape
+        ny, nx = h - self.patch + 1, w - self.patch + 1
+        # a circular correlation of the sample's size wraps only beyond the last window
+        shape = (next_fast_len(h, real=True), next_fast_len(w, real=True))
+        sample = rfft2(np.moveaxis(self.sample, -1, 0).astype(np.float64), shape)
+        kernels = self.basis.T.reshape(-1, channels, self.patch, self.patch)  # (c, p, p) order
+        offsets = self.mean.astype(np.float64) @ self.basis.astype(np.float64)
+        out = np.empty((ny, nx, len(kernels)), np.float32)
+        for k, kernel in enumerate(kernels):
+            spectrum = np.sum(sample * np.conj(rfft2(kernel.astype(np.float64), shape)), axis=0)
+            out[..., k] = irfft2(spectrum, shape)[:ny, :nx] - offsets[k]
+        return out.reshape(ny * nx, -1)
 
     def _project(self, flat: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray((flat - self.mean) @ self.basis, np.float32)
