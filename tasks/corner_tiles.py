@@ -40,7 +40,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -189,6 +189,7 @@ class _TileSetPlanner:
         self.params, self.seed = params, seed
         self.planner = Planner(reference, params, np.random.default_rng(seed))
         self.channels = reference.shape[-1]
+        self.reference_shape = reference.shape[:2]
         self.check = BorderCheck(reference, params, exemplar)
         v = range(params.corners)
         self.types = list(itertools.product(v, repeat=4))
@@ -199,20 +200,22 @@ class _TileSetPlanner:
         self.strips: dict[tuple[str, int, int], _Piece] = {}
         self.tiles: dict[int, _Tile] = {}
 
-    def _plan(self, key: tuple, place, canvas: Canvas) -> _Piece:
-        """Plan one piece on ``canvas`` with the next stream of ``key``.
+    def _plan(self, key: tuple, place, canvas: Canvas, generation: int | None = None
+              ) -> _Piece:
+        """Plan one piece on ``canvas`` with stream ``generation`` of ``key`` (default: next).
 
         ``place(planner, canvas)`` places the piece's patches with a planner of its own (its
         stream and placements), so pieces may be planned in threads.
         """
-        generation = self.generation.get(key, 0)
-        self.generation[key] = generation + 1
+        if generation is None:
+            generation = self.generation.get(key, 0)
+            self.generation[key] = generation + 1
         planner = self.planner.with_stream(np.random.default_rng(
             (self.seed, self.KINDS[key[0]], *key[1:], generation)))
         blends = place(planner, canvas)
         return _Piece(canvas, planner.placements, blends or [])
 
-    def plan_all(self) -> None:
+    def plan_all(self, pool: Executor | None = None) -> None:
         """Corner patches (phase 1) and edge strips (phases 2, 3), all of them again."""
         b = self.params.block
         self.corners, phase = [], None
@@ -227,9 +230,17 @@ class _TileSetPlanner:
                 u, v = self.params.lattice
                 phase = in_phase(self.planner.search.valid,
                                  self.corners[0].placements[0].source, Lattice(u, v, 1.0))
-        for key in self.strip_keys:
-            self.plan_strip(key)
+        self.plan_strips(self.strip_keys, pool)
         self.tiles = {}
+
+    def plan_strips(self, keys: list[tuple[str, int, int]], pool: Executor | None = None
+                    ) -> None:
+        """:meth:`plan_strip` for each of ``keys``, at once on ``pool`` if given.
+
+        Each strip depends only on the corner patches and its own stream.
+        """
+        for _ in (pool.map if pool is not None else map)(self.plan_strip, keys):
+            pass
 
     def plan_strip(self, key: tuple[str, int, int]) -> None:
         """Edge strip ``key`` (phases 2 and 3) again; the tiles along it must be planned again."""
@@ -264,8 +275,16 @@ class _TileSetPlanner:
         return [(HORIZONTAL, tl, tr), (HORIZONTAL, bl, br), (VERTICAL, tl, bl),
                 (VERTICAL, tr, br)]
 
-    def fill(self, number: int) -> _Piece:
-        """Phase 4: tile ``number`` from its edge strips inwards, from the corner of its plan."""
+    def fill(self, number: int, generation: int | None = None) -> _Piece:
+        """Phase 4: tile ``number`` from its edge strips inwards, from the corner of its plan.
+
+        ``generation``: which plan of the tile; by default the next one, counted.
+        """
+        key = ("tile", number)
+        if generation is None:
+            generation = self.generation.get(key, 0)
+            self.generation[key] = generation + 1
+            self.plans[number] += 1
         b, s = self.params.block, self.params.step
         th, tw = self.params.tile
         half = b // 2
@@ -287,7 +306,7 @@ class _TileSetPlanner:
         for blend in right.blends:
             blend.again(canvas, -half, tw - half, quadrants)
         name = "tile " + "".join(map(str, types))
-        up, back = FILL_ORDERS[self.generation.get(("tile", number), 0) % len(FILL_ORDERS)]
+        up, back = FILL_ORDERS[generation % len(FILL_ORDERS)]
         rows = range(1, th // s)[::-1] if up else range(1, th // s)
         cols = range(1, tw // s)[::-1] if back else range(1, tw // s)
 
@@ -298,20 +317,41 @@ class _TileSetPlanner:
             if not canvas.filled.all():
                 raise AssertionError("a tile was left with empty pixels")
 
-        self.plans[number] += 1
-        return self._plan(("tile", number), place, canvas)
+        return self._plan(key, place, canvas, generation)
 
-    def plan_tile(self, number: int, attempts: int) -> _Tile:
-        """A tile's interior, planned until its borders pass, at most ``attempts`` times."""
+    def plan_tile(self, number: int, attempts: int, spare: Executor | None = None,
+                  ahead: int = 0) -> _Tile:
+        """A tile's interior, planned until its borders pass, at most ``attempts`` times.
+
+        With a ``spare`` pool, the ``ahead`` plans after each are made beside it in case it
+        fails; the tile and its count of plans are the same as without.
+        """
+        key = ("tile", number)
+        first = self.generation.get(key, 0)
         strips = [self.strips[k].canvas for k in self.tile_strips(self.types[number])]
-        best = None
-        for _ in range(attempts):
-            piece = self.fill(number)
-            figures = self.check.figures(piece.canvas, *strips)
+
+        def attempt(generation: int) -> tuple[_Piece, BorderFigures]:
+            piece = self.fill(number, generation)
+            return piece, self.check.figures(piece.canvas, *strips)
+
+        early: dict[int, Future] = {}
+        best, used = None, 0
+        for generation in range(first, first + attempts):
+            if spare is not None:
+                for g in range(generation + 1, min(generation + 1 + ahead, first + attempts)):
+                    if g not in early:
+                        early[g] = spare.submit(attempt, g)
+            piece, figures = (early.pop(generation).result() if generation in early
+                              else attempt(generation))
+            used += 1
             if best is None or figures.worst < best[1].worst:
                 best = (piece, figures)
             if figures.worst <= self.params.max_seam:
                 break
+        for future in early.values():  # not needed (one already running ends unused)
+            future.cancel()
+        self.generation[key] = first + used
+        self.plans[number] += used
         name = "tile " + "".join(map(str, self.types[number]))
         check = TileCheck(name, self.plans[number], best[1], self.params.max_seam)
         return _Tile(best[0], check)
@@ -324,14 +364,14 @@ class _TileSetPlanner:
         # a periodic tile's lines are its wrap: rows (its top = bottom strip), columns
         return strips[2 * worst] if len(figures.lines) == 2 else strips[worst]
 
-    def result(self, reference_shape: tuple[int, int]) -> TileSet:
+    def result(self) -> TileSet:
         """The tile set as planned (every tile planned)."""
         n = len(self.types)
         placements = [p for c in self.corners for p in c.placements]
         placements += [p for k in self.strip_keys for p in self.strips[k].placements]
         placements += [p for i in range(n) for p in self.tiles[i].piece.placements]
         return TileSet([self.tiles[i].piece.canvas for i in range(n)],
-                       np.array(self.types, np.int64), placements, reference_shape,
+                       np.array(self.types, np.int64), placements, self.reference_shape,
                        {k: self.strips[k].canvas for k in self.strip_keys},
                        [self.tiles[i].check for i in range(n)])
 
@@ -377,38 +417,51 @@ def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
     if reference.ndim == 2:
         reference = reference[..., None]
     plan = _TileSetPlanner(reference, params, seed, exemplar)
-    report = _Progress(plan, progress)
+    pool = ThreadPoolExecutor(max(1, threads))
+    try:
+        # one BLAS thread: the planner's products are small, and OpenBLAS's own threads spent
+        # a core spinning beside them (half the CPU time of a plan; BENCHMARKS.md, "Quilting")
+        with threadpool_limits(1, user_api="blas"):
+            return _rounds(plan, _Progress(plan, progress), pool, max(1, threads))
+    finally:  # a plan made ahead and not needed is not waited for
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _rounds(plan: _TileSetPlanner, report: _Progress, pool: Executor, threads: int) -> TileSet:
+    """:func:`plan_tiles`' rounds, each tile of a round planned on ``pool``."""
+    params = plan.params
     best: TileSet | None = None
     strip_plans: dict[tuple, int] = {}
-    plan.plan_all()
-    # one BLAS thread: the planner's products are small, and OpenBLAS's own threads spent
-    # a core spinning beside them (half the CPU time of a plan; BENCHMARKS.md, "Quilting")
-    with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(max(1, threads)) as pool:
-        for round_ in range(params.attempts):
-            pending = [n for n in range(len(plan.types)) if n not in plan.tiles]
+    plan.plan_all(pool)
+    for round_ in range(params.attempts):
+        pending = [n for n in range(len(plan.types)) if n not in plan.tiles]
+        if len(pending) == 1 and threads > 1:  # a periodic tile: its next plans beside it
+            planned = [plan.plan_tile(pending[0], INTERIOR_ATTEMPTS, spare=pool,
+                                      ahead=threads - 1)]
+        else:
             planned = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS), pending)
-            for number, tile in zip(pending, planned, strict=True):
-                plan.tiles[number] = tile
-                report.tile(round_)
-            result = plan.result(reference.shape[:2])
-            if best is None or result.worst < best.worst:
-                best = result
-            failed = [n for n, t in plan.tiles.items() if not t.passed]
-            report.round(round_, failed)
-            if not failed:
-                return result
-            if round_ + 1 == params.attempts:
-                break
-            # plan again the strip along each failed tile's worst border (and the tiles along
-            # it); a strip planned too often: the whole set, from new corner patches
-            offending = sorted({plan.worst_strip(n) for n in failed})
-            if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
-                plan.plan_all()
-                strip_plans = {}
-                continue
-            for key in offending:
-                plan.plan_strip(key)
-                strip_plans[key] = strip_plans.get(key, 1) + 1
+        for number, tile in zip(pending, planned, strict=True):
+            plan.tiles[number] = tile
+            report.tile(round_)
+        result = plan.result()
+        if best is None or result.worst < best.worst:
+            best = result
+        failed = [n for n, t in plan.tiles.items() if not t.passed]
+        report.round(round_, failed)
+        if not failed:
+            return result
+        if round_ + 1 == params.attempts:
+            break
+        # plan again the strip along each failed tile's worst border (and the tiles along
+        # it); a strip planned too often: the whole set, from new corner patches
+        offending = sorted({plan.worst_strip(n) for n in failed})
+        if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
+            plan.plan_all(pool)
+            strip_plans = {}
+            continue
+        plan.plan_strips(offending, pool)
+        for key in offending:
+            strip_plans[key] = strip_plans.get(key, 1) + 1
     worst = max(best.checks, key=lambda c: c.figures.worst)
     raise SeamError(worst, params.max_seam)
 

@@ -659,15 +659,21 @@ def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
     assert found >= 30
 
 
-def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise):
+@pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines"), [
+    (2, 18, 1.05, 2, 4),  # 4 rounds: tiles planned along strips planned again too
+    (1, 27, 1.0, 0, 2),  # one tile: its plans made ahead beside each other, 6 in 2 rounds
+])
+def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise, corners, side,
+                                                                     bound, seed, lines):
     reference, exemplar = noise
-    params = QuiltParams(12, 3, 3, 2, (18, 18), max_seam=1.05, attempts=4)
-    lines = []
-    plans = [plan_tiles(reference, params, seed=2, exemplar=exemplar, threads=threads,
-                        progress=lines.append) for threads in (1, 3)]
-    assert len(lines) == 8  # 4 rounds each: tiles planned along strips planned again too
+    params = QuiltParams(12, 3, 3, corners, (side, side), max_seam=bound, attempts=4)
+    said = []
+    plans = [plan_tiles(reference, params, seed=seed, exemplar=exemplar, threads=threads,
+                        progress=said.append) for threads in (1, 3)]
+    assert len(said) == 2 * lines
     one, other = plans
     assert one.placements == other.placements
+    assert one.checks == other.checks  # the same figures and counts of plans
     for a, b in zip(one.tiles, other.tiles, strict=True):
         for name in ("index", "weight", "value"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
