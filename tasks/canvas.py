@@ -66,33 +66,14 @@ class Canvas:
         reference values, ``alpha`` the patch weights (1 wherever the canvas is empty). Parts
         outside the canvas are ignored.
         """
-        h, w = alpha.shape
-        rows, cols = self.window(y0, x0, h, w)
-        py, px = rows - y0, cols - x0
-        a = alpha[np.ix_(py, px)].astype(np.float32)
-        sel = np.ix_(rows, cols)
-        if np.any(~self.filled[sel] & (a < 1.0)):
+        from tasks.quilt_kernels import blend  # numba: not loaded by `btf --help`
+
+        py0, px0 = max(-y0, 0), max(-x0, 0)
+        if not blend(self.index, self.weight, self.value, self.filled,
+                     np.asarray(patch_index, np.int32), np.asarray(patch_value, np.float32),
+                     np.asarray(alpha, np.float32), y0 + py0, x0 + px0, py0, px0,
+                     np.float32(_NEGLIGIBLE)):
             raise ValueError("a patch must cover empty canvas pixels with weight 1")
-        keep = a > 0
-        idx = self.index[sel]
-        wt = self.weight[sel] * (1.0 - a)[..., None]
-        wt[wt < _NEGLIGIBLE] = 0.0
-        idx[wt == 0] = -1
-        slot = np.argmin(np.where(idx >= 0, wt, -1.0), axis=-1)  # a free slot, else the lightest
-        new = patch_index[np.ix_(py, px)]
-        ys, xs = np.nonzero(keep)
-        s = slot[ys, xs]
-        idx[ys, xs, s] = new[ys, xs]
-        wt[ys, xs, s] = a[ys, xs]
-        total = wt.sum(axis=-1, keepdims=True, dtype=np.float64)
-        wt = np.where(total > 0, wt / np.where(total > 0, total, 1.0), 0.0).astype(np.float32)
-        self.index[sel] = idx
-        self.weight[sel] = wt
-        value = self.value[sel]
-        self.value[sel] = np.where(
-            keep[..., None], a[..., None] * patch_value[np.ix_(py, px)] + (1 - a)[..., None]
-            * value, value)
-        self.filled[sel] |= keep
 
     def rows_sum_to_one(self) -> bool:
         """Whether every filled pixel's weights sum to 1 (and empty ones to 0)."""

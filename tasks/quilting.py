@@ -27,7 +27,7 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
   the ``K`` best is drawn at random.
 - **Boundary cut** (section 2.3, Fig. 6): the minimum-error closed path around the patch's
   inner ``(B - 2O)`` square through the error image (4-connected, edge cost the mean of the two
-  pixels' errors), found by Dijkstra's search (:mod:`tasks.cut_kernel`): the ring is cut by
+  pixels' errors), found by Dijkstra's search (:mod:`tasks.quilt_kernels`): the ring is cut by
   a slit above the inner square and the shortest loop crossing it once is kept. Pixels of
   the window that are still empty join the inner region, and the loop may run outside the
   window along them: these are the border flags of Fig. 8, which make the cut enclose the
@@ -243,7 +243,7 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
     inner[1:-1, 1:-1] = keep
     col = n // 2
     top = int(np.argmax(inner[:, col])) if inner[:, col].any() else n // 2
-    from tasks.cut_kernel import cheapest_loop  # numba: not loaded by `btf --help`
+    from tasks.quilt_kernels import cheapest_loop  # numba: not loaded by `btf --help`
 
     # the slit: rows above the keep region, between columns col and col + 1
     loop, found = cheapest_loop(cost, col, top)

@@ -189,7 +189,7 @@ class PatchExemplar:
         from scipy.linalg import eigh
         from scipy.spatial import cKDTree
 
-        sample = np.asarray(sample, np.float32)
+        sample = np.ascontiguousarray(sample, np.float32)
         if sample.ndim == 2:
             sample = sample[..., None]
         self.sample = sample
@@ -272,16 +272,17 @@ class PatchExemplar:
 
     def distances(self, queries: np.ndarray) -> np.ndarray:
         """RMS distance of each flattened ``(channels, p, p)`` query patch to its nearest."""
+        from tasks.quilt_kernels import nearest_ssd  # numba: not loaded by `btf --help`
+
         out = np.empty(len(queries), np.float64)
         for i in range(0, len(queries), _BATCH):
             q = np.asarray(queries[i : i + _BATCH], np.float32)
             _, found = self.tree.query(self._project(q), k=self.candidates, eps=self.eps,
                                        workers=1 if len(q) <= _ONE_THREAD else -1)
-            found = found.reshape(len(q), self.candidates)
-            sy, sx = np.divmod(found, self.width)
-            near = self.windows[sy, sx].reshape(*found.shape, -1)
-            diff = near - q[:, None, :]
-            out[i : i + _BATCH] = np.einsum("qkd,qkd->qk", diff, diff).min(axis=1)
+            sy, sx = np.divmod(found.reshape(len(q), self.candidates), self.width)
+            p, c = self.patch, self.sample.shape[-1]
+            rows_first = np.ascontiguousarray(q.reshape(len(q), c, p, p).transpose(0, 2, 3, 1))
+            out[i : i + _BATCH] = nearest_ssd(self.sample, rows_first, sy, sx)
         return np.sqrt(out / queries.shape[1])
 
     def distance_map(self, image: np.ndarray, *, wrap: bool, stride: int = STRIDE,

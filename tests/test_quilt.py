@@ -15,7 +15,7 @@ from helpers import SLOW_PROCESSES, generate_store, quilt
 from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
-from tasks.canvas import TERMS
+from tasks.canvas import TERMS, Canvas
 from tasks.corner_tiles import INTERIOR_ATTEMPTS, BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
 from tasks.quilt_layout import overlap_for
@@ -617,7 +617,7 @@ def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    from tasks.cut_kernel import cheapest_loop
+    from tasks.quilt_kernels import cheapest_loop
 
     def scipy_best(cost, col, top):  # the sparse graph boundary_cut searched before
         n = len(cost)
@@ -657,6 +657,58 @@ def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
             assert float(cost[loop].sum()) == pytest.approx(expected, rel=1e-12, abs=1e-12)
             assert any(loop[r, col] and loop[r, col + 1] for r in range(top))
     assert found >= 30
+
+
+def _numpy_place(canvas: Canvas, patch_index, patch_value, alpha, y0: int, x0: int) -> None:
+    """Canvas.place as twenty numpy calls (before it was compiled): the reference."""
+    rows, cols = canvas.window(y0, x0, *alpha.shape)
+    py, px = rows - y0, cols - x0
+    a = alpha[np.ix_(py, px)].astype(np.float32)
+    sel = np.ix_(rows, cols)
+    if np.any(~canvas.filled[sel] & (a < 1.0)):
+        raise ValueError("a patch must cover empty canvas pixels with weight 1")
+    keep = a > 0
+    idx = canvas.index[sel]
+    wt = canvas.weight[sel] * (1.0 - a)[..., None]
+    wt[wt < 1e-4] = 0.0
+    idx[wt == 0] = -1
+    slot = np.argmin(np.where(idx >= 0, wt, -1.0), axis=-1)
+    ys, xs = np.nonzero(keep)
+    idx[ys, xs, slot[ys, xs]] = patch_index[np.ix_(py, px)][ys, xs]
+    wt[ys, xs, slot[ys, xs]] = a[ys, xs]
+    total = wt.sum(axis=-1, keepdims=True, dtype=np.float64)
+    canvas.index[sel] = idx
+    canvas.weight[sel] = np.where(total > 0, wt / np.where(total > 0, total, 1.0), 0.0)
+    value = canvas.value[sel]
+    canvas.value[sel] = np.where(keep[..., None], a[..., None] * patch_value[np.ix_(py, px)]
+                                 + (1 - a)[..., None] * value, value)
+    canvas.filled[sel] |= keep
+
+
+def test_the_compiled_blend_gives_the_bits_of_numpys():
+    rng = np.random.default_rng(8)
+    for _ in range(60):
+        h, w, b = (int(n) for n in rng.integers([8, 8, 3], [50, 50, 20]))
+        ours, theirs = Canvas.empty(h, w, 3), Canvas.empty(h, w, 3)
+        for _ in range(10):  # patches overlapping each other and the canvas' edges
+            y0, x0 = int(rng.integers(-b, h)), int(rng.integers(-b, w))
+            alpha = (rng.random((b, b)) ** 2).astype(np.float32)
+            alpha[rng.random((b, b)) < 0.2] = 0.0
+            alpha[rng.random((b, b)) < 0.02] = 5e-5  # a weight dropped once blended
+            rows, cols = ours.window(y0, x0, b, b)
+            empty = np.ones((b, b), bool)
+            empty[np.ix_(rows - y0, cols - x0)] = ~ours.filled[np.ix_(rows, cols)]
+            alpha[empty] = 1.0
+            index = rng.integers(0, 10**6, (b, b)).astype(np.int32)
+            value = rng.random((b, b, 3)).astype(np.float32)
+            ours.place(index, value, alpha, y0, x0)
+            _numpy_place(theirs, index, value, alpha, y0, x0)
+        for name in ("index", "weight", "value", "filled"):
+            np.testing.assert_array_equal(getattr(ours, name), getattr(theirs, name), name)
+        assert ours.rows_sum_to_one()
+    with pytest.raises(ValueError, match="empty canvas pixels with weight 1"):
+        Canvas.empty(4, 4, 3).place(np.zeros((2, 2), np.int32), np.zeros((2, 2, 3), np.float32),
+                                    np.full((2, 2), 0.5, np.float32), 1, 1)
 
 
 @pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines"), [

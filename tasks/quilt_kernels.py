@@ -1,0 +1,216 @@
+"""Compiled loops (numba) of quilting's planning: the cut, the blend, the check's distances.
+
+Threads plan the tiles of a set at once (:func:`tasks.corner_tiles.plan_tiles`); these are the
+steps that held the GIL (or the most memory traffic) per patch, each now one loop that
+releases it (``nogil``) and keeps a fixed order, so the same inputs give the same bits on
+every thread and run. Compiled code is kept in numba's on-disk cache, as
+:mod:`tasks.sketch_kernel`'s. BENCHMARKS.md, "Quilting", has the figures.
+
+- :func:`cheapest_loop`, the boundary cut's search (:func:`tasks.quilting.boundary_cut`). The
+  error image is a grid of node costs (infinite where the cut may not run); the cut is the
+  cheapest closed loop, 4-connected, each step costing the mean of its two nodes, that
+  crosses the slit above the kept square once. A loop crossing it at row ``r`` is the
+  cheapest path from ``(r, col)`` to ``(r, col + 1)`` that does not step across the slit,
+  plus that step: Dijkstra's search from each such row in turn, with a binary heap on
+  arrays, each search stopped once nothing it could still reach beats the best loop so far.
+  It replaces a sparse graph built in Python per patch for scipy's Dijkstra: the same loops,
+  up to the choice among loops of equal cost.
+- :func:`blend`, a patch blended into a canvas (:meth:`tasks.canvas.Canvas.place`), pixel by
+  pixel in the arithmetic of the twenty numpy calls it replaces (float32 products, a float64
+  sum of a pixel's weights): the same bits.
+- :func:`nearest_ssd`, the border check's re-ranking (:meth:`tasks.seams.PatchExemplar.
+  distances`): each query patch's squared distance to the nearest of its candidates, read
+  from the sample in place instead of gathering every candidate's patch (19 MB a check).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(nogil=True, cache=True)
+def _push(heap_d, heap_v, size, d, v):  # pragma: no cover - compiled
+    i = size
+    heap_d[i], heap_v[i] = d, v
+    while i > 0:
+        parent = (i - 1) // 2
+        # ties by node number: a fixed order whatever was pushed first
+        if heap_d[parent] < heap_d[i] or (heap_d[parent] == heap_d[i]
+                                          and heap_v[parent] <= heap_v[i]):
+            break
+        heap_d[parent], heap_d[i] = heap_d[i], heap_d[parent]
+        heap_v[parent], heap_v[i] = heap_v[i], heap_v[parent]
+        i = parent
+    return size + 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _pop(heap_d, heap_v, size):  # pragma: no cover - compiled
+    d, v = heap_d[0], heap_v[0]
+    size -= 1
+    heap_d[0], heap_v[0] = heap_d[size], heap_v[size]
+    i = 0
+    while True:
+        left, right, low = 2 * i + 1, 2 * i + 2, i
+        for c in (left, right):
+            if c < size and (heap_d[c] < heap_d[low] or (heap_d[c] == heap_d[low]
+                                                         and heap_v[c] < heap_v[low])):
+                low = c
+        if low == i:
+            break
+        heap_d[low], heap_d[i] = heap_d[i], heap_d[low]
+        heap_v[low], heap_v[i] = heap_v[i], heap_v[low]
+        i = low
+    return d, v, size
+
+
+@numba.njit(nogil=True, cache=True)
+def cheapest_loop(cost, col, top):  # pragma: no cover - compiled
+    """The cheapest loop's nodes, ``(n, n)`` bool, and whether there is one.
+
+    ``cost``: ``(n, n)`` node costs (``inf``: not on a loop); the slit runs between columns
+    ``col`` and ``col + 1`` over rows ``0 .. top - 1``. Among loops of equal cost the one
+    crossing the slit highest is kept.
+    """
+    n = cost.shape[0]
+    size = n * n
+    dist = np.empty(size)
+    pred = np.empty(size, np.int64)
+    done = np.empty(size, np.bool_)
+    heap_d = np.empty(4 * size + 1)
+    heap_v = np.empty(4 * size + 1, np.int64)
+    best_total = np.inf
+    best_pred = np.full(size, -1, np.int64)
+    best_target = -1
+    for r in range(top):
+        if not (np.isfinite(cost[r, col]) and np.isfinite(cost[r, col + 1])):
+            continue
+        closing = 0.5 * (cost[r, col] + cost[r, col + 1])
+        source, target = r * n + col, r * n + col + 1
+        dist[:] = np.inf
+        pred[:] = -1
+        done[:] = False
+        dist[source] = 0.0
+        heap = _push(heap_d, heap_v, 0, 0.0, source)
+        while heap > 0:
+            d, v, heap = _pop(heap_d, heap_v, heap)
+            if done[v]:
+                continue
+            if d + closing >= best_total:
+                break  # nothing left beats the best loop so far
+            done[v] = True
+            if v == target:
+                best_total = d + closing
+                best_pred[:] = pred
+                best_target = target
+                break
+            y, x = v // n, v % n
+            for k in range(4):
+                yy, xx = y + (k == 1) - (k == 0), x + (k == 3) - (k == 2)
+                if yy < 0 or yy >= n or xx < 0 or xx >= n:
+                    continue
+                if y < top and yy == y and min(x, xx) == col:
+                    continue  # no step across the slit
+                if not np.isfinite(cost[yy, xx]):
+                    continue
+                u = yy * n + xx
+                nd = d + 0.5 * (cost[y, x] + cost[yy, xx])
+                if nd < dist[u]:
+                    dist[u] = nd
+                    pred[u] = v
+                    heap = _push(heap_d, heap_v, heap, nd, u)
+    loop = np.zeros((n, n), np.bool_)
+    node = best_target
+    while node >= 0:
+        loop[node // n, node % n] = True
+        node = best_pred[node]
+    return loop, best_target >= 0
+
+
+@numba.njit(nogil=True, cache=True)
+def blend(index, weight, value, filled, patch_index, patch_value, alpha, y0, x0, py0, px0,
+          negligible):  # pragma: no cover - compiled
+    """Blend ``alpha`` of the patch into the canvas window at ``(y0, x0)`` (clipped).
+
+    ``index``, ``weight`` ``(h, w, terms)``, ``value`` ``(h, w, c)`` and ``filled`` are the
+    canvas's, changed in place over the window ``[y0, y0 + ny) x [x0, x0 + nx)``, where
+    ``(ny, nx)`` is the part of ``alpha`` from ``(py0, px0)`` on that lies on the canvas.
+    Returns False, changing nothing, when a pixel still empty would get a weight below 1.
+    """
+    ny = min(alpha.shape[0] - py0, filled.shape[0] - y0)
+    nx = min(alpha.shape[1] - px0, filled.shape[1] - x0)
+    terms, channels = index.shape[2], value.shape[2]
+    one = np.float32(1.0)
+    for i in range(ny):
+        for j in range(nx):
+            if not filled[y0 + i, x0 + j] and alpha[py0 + i, px0 + j] < one:
+                return False
+    wt = np.empty(terms, np.float32)
+    idx = np.empty(terms, np.int32)
+    for i in range(ny):
+        for j in range(nx):
+            y, x = y0 + i, x0 + j
+            a = alpha[py0 + i, px0 + j]
+            rest = one - a
+            for t in range(terms):
+                wt[t] = weight[y, x, t] * rest
+                idx[t] = index[y, x, t]
+                if wt[t] < negligible:
+                    wt[t] = 0.0
+                if wt[t] == 0.0:
+                    idx[t] = -1
+            if a > 0:  # a free slot, else the lightest (the first of equals)
+                slot, low = 0, np.inf
+                for t in range(terms):
+                    key = wt[t] if idx[t] >= 0 else -1.0
+                    if key < low:
+                        slot, low = t, key
+                idx[slot] = patch_index[py0 + i, px0 + j]
+                wt[slot] = a
+            total = 0.0
+            for t in range(terms):
+                total += np.float64(wt[t])
+            for t in range(terms):
+                weight[y, x, t] = np.float32(wt[t] / total) if total > 0 else np.float32(0.0)
+                index[y, x, t] = idx[t]
+            if a > 0:
+                for c in range(channels):
+                    value[y, x, c] = a * patch_value[py0 + i, px0 + j, c] + rest * value[y, x, c]
+                filled[y, x] = True
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
+def nearest_ssd(sample, queries, sy, sx):  # pragma: no cover - compiled
+    """Each query's squared distance to the nearest of its candidate sample patches.
+
+    ``sample`` ``(h, w, c)`` float32; ``queries`` ``(q, p, p, c)`` float32 patches; ``sy, sx``
+    ``(q, k)`` the candidates' top-left corners. Each patch row's sum is float32 (``p * c``
+    terms), the rows' sum float64; a candidate stops once past the best so far (it cannot
+    be the nearest).
+    """
+    count, k = sy.shape
+    patch, run = queries.shape[1], queries.shape[2] * queries.shape[3]
+    rows = sample.reshape(sample.shape[0], sample.shape[1] * sample.shape[2])
+    channels = sample.shape[2]
+    out = np.empty(count)
+    for n in range(count):
+        best = np.inf
+        query = queries[n].reshape(patch, run)
+        for m in range(k):
+            y0, start = sy[n, m], sx[n, m] * channels
+            total = 0.0
+            for i in range(patch):
+                line = rows[y0 + i, start : start + run]
+                part = np.float32(0.0)
+                for t in range(run):
+                    d = line[t] - query[i, t]
+                    part += d * d
+                total += part
+                if total >= best:
+                    break
+            if total < best:
+                best = total
+        out[n] = best
+    return out
