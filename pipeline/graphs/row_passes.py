@@ -3,8 +3,8 @@
 A row block is a few (view, block of lights) units of whole stored light chunks, all texels,
 sized so that a block stays within :data:`ROW_BLOCK_BYTES` (and there are enough blocks to keep
 the workers busy). One task per row block reads its radiance, checks it, range-reduces it and
-returns its share of the pass (:class:`tasks.svd.PassPart`); the shares are summed by a fixed
-tree (:func:`tree_sum`), so the result does not depend on scheduling. Memory is a few row
+returns its share of the pass (:class:`tasks.svd.PassPart`); the shares are summed in a fixed
+order (:func:`running_sum`), so the result does not depend on scheduling. Memory is a few row
 blocks plus a few sketches, whatever the size of the store.
 """
 
@@ -185,15 +185,21 @@ def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, cla
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def tree_sum(parts: list) -> Any:
-    """Delayed sum of pass parts by a fixed tree of :data:`FAN_IN` (reproducible order)."""
+def running_sum(parts: list) -> Any:
+    """Delayed sum of pass parts into one running total, :data:`FAN_IN` - 1 parts a step.
+
+    The order is fixed, so the sums are reproducible, and one float64 total is alive at a
+    time (two while a step adds to it). A tree of :data:`FAN_IN` held every total of a level
+    until the level above summed them: a one-pass compression over 16 texel tiles of 30603
+    rows peaked at 1.06 GiB against 0.94 GiB over 4 tiles of the same rows (BENCHMARKS.md,
+    "A store larger than memory"). Up to :data:`FAN_IN` parts, the same sum as that tree.
+    """
     import dask
 
-    level = list(parts)
-    while len(level) > 1:
-        level = [dask.delayed(combine_parts, pure=True)(*level[i : i + FAN_IN])
-                 for i in range(0, len(level), FAN_IN)]
-    return level[0]
+    total = parts[0]
+    for i in range(1, len(parts), FAN_IN - 1):
+        total = dask.delayed(combine_parts, pure=True)(total, *parts[i : i + FAN_IN - 1])
+    return total
 
 
 # the texel-side pass kinds of tasks.rsvd: (task, arguments read whole)
@@ -212,7 +218,7 @@ def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[st
     parts = [dask.delayed(task, pure=True)(store, b, *(shared[name] for name in whole),
                                            eps=eps, clamp=clamp, first=first)
              for b in blocks]
-    return tree_sum(parts)
+    return running_sum(parts)
 
 
 def raise_on_bad_data(check: BlockCheck, store: str, clamp: bool) -> None:

@@ -3,7 +3,7 @@
 A texel tile is one chunk of the output's eigentextures ``V`` (so a task writing its tile of
 ``V`` writes whole chunks: no two tasks share a file). One task per tile reads the tile's
 columns of the BTF matrix, row block by row block (each read one stored chunk, or a few), and
-returns its share of the pass (:class:`tasks.svd.PassPart`), summed by the same fixed tree as
+returns its share of the pass (:class:`tasks.svd.PassPart`), summed in the same fixed order as
 the row-block passes. A tile's texel-side products (``A_t^T Q``, tile texels x l) never leave
 its task, so nothing the size of the texels is ever gathered: memory is a few row blocks of a
 tile, a tile's products and the row-side sketch (rows x l), whatever the number of texels.
@@ -31,8 +31,8 @@ from pipeline.graphs.row_passes import (
     RowBlock,
     plan_row_blocks,
     read_rows,
+    running_sum,
     transformed_rows,
-    tree_sum,
 )
 from tasks.svd import (
     SPARSITY,
@@ -192,7 +192,7 @@ def sketch_pass_graph(store: str, tiles: list[TexelTile], blocks: list[RowBlock]
     """A delayed :class:`tasks.svd.PassPart` of the one-view sketch over the texel tiles."""
     import dask
 
-    return tree_sum([dask.delayed(_sketch_task, pure=True)(
+    return running_sum([dask.delayed(_sketch_task, pure=True)(
         store, tile, blocks, sketch, seed, scratch, eps=eps, clamp=clamp, first=first)
         for tile in tiles])
 
@@ -201,7 +201,7 @@ def sketch_vectors_graph(scratch: str, tiles: list[TexelTile], to_v, out: str):
     """A delayed (empty) :class:`tasks.svd.PassPart` writing ``V`` from the scratch sketch."""
     import dask
 
-    return tree_sum([dask.delayed(_sketch_vectors_task, pure=True)(scratch, tile, to_v, out)
+    return running_sum([dask.delayed(_sketch_vectors_task, pure=True)(scratch, tile, to_v, out)
                      for tile in tiles])
 
 
@@ -258,7 +258,7 @@ def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[
                  store, tile, blocks, *(shared[name] for name in whole),
                  *((out,) if writes else ()), eps=eps, clamp=clamp, first=first, **extra)
              for tile in tiles]
-    return tree_sum(parts)
+    return running_sum(parts)
 
 
 def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowBlock], *,
