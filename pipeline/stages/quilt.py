@@ -276,5 +276,7 @@ STAGE = Stage("quilt", QuiltStageParams, quilt,
               "cut with border flags; Gaussian-blurred blending) for V corner types (V^4 "
               "tiles; V=1: one periodic texture). The plan compiles to one sparse "
               "prescription per tile, stored, and applied identically to every layer (or to "
-              "the eigentextures of a compressed store).", makes_store=True,
+              "the eigentextures of a compressed store). Tiles are planned on this machine, "
+              "--workers at once (one with the synchronous scheduler); the plan is the same "
+              "for any number.", makes_store=True,
               estimate=_estimate, for_scene=True, directions=same_directions)
