@@ -33,7 +33,7 @@ from tasks.svd import (
 
 ROW_BLOCK_BYTES = 128 << 20  # float32 radiance one task reads at most (a single unit may exceed)
 MIN_ROW_BLOCKS = 8  # split smaller matrices further, so that workers share the work
-FAN_IN = 4  # row-block shares added per reduction task
+FAN_IN = 4  # terms of a step of the running sum: its total so far and FAN_IN - 1 shares
 SPAN_BYTES = 8 << 20  # float32 radiance one zarr read of a block gathers at most (or one unit)
 
 
@@ -73,8 +73,9 @@ def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int
 
     The sketches grow with the texels (texels x (rank + oversampling), float64, a few copies
     between passes); the tasks hold a row block, its range reduction in place, and a share of
-    the sketch each; a reduction task holds :data:`FAN_IN` shares. (The one-view sketch runs by
-    texel tiles: :func:`pipeline.graphs.tile_passes.sketch_memory`.)
+    the sketch each; a step of the running sum holds :data:`FAN_IN` - 1 shares and two float64
+    totals. (The one-view sketch runs by texel tiles:
+    :func:`pipeline.graphs.tile_passes.sketch_memory`.)
     """
     n, width = shape[2] * shape[3], rank + extra
     rows = max(b.rows for b in blocks)
@@ -82,7 +83,7 @@ def memory_estimate(shape: tuple[int, ...], blocks: list[RowBlock], *, rank: int
     share = 4 * n * width
     task = 4 * rows * n + share
     return {"client": client, "task": task, "total": client + workers * task
-            + FAN_IN * 2 * share}
+            + (FAN_IN - 1 + 2 * 2) * share}
 
 
 def read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = None,

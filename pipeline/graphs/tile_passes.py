@@ -267,9 +267,9 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
 
     A task holds a row block being read and range-reduced, its tile's test matrices, its
     co-range sketch and the copy written to the scratch array, a float64 run of it, and its
-    sums (``y``, float32, and ``z``: rows x (k + t)); a reduction task holds :data:`FAN_IN`
-    such sums and their float64 total. The client holds ``Y``, its QR and ``U`` (rows x k,
-    float64). Nothing grows with the texels.
+    sums (``y``, float32, and ``z``: rows x (k + t)); a step of the running sum holds
+    :data:`FAN_IN` - 1 such sums, the float64 total so far and the new one. The client holds
+    ``Y``, its QR and ``U`` (rows x k, float64). Nothing grows with the texels.
     """
     from pipeline.graphs.row_passes import FAN_IN
     from tasks.svd import PSI_GROUP, TILE
@@ -283,7 +283,7 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
             + sums)
     client = 8 * 3 * rows * sketch.k + total + 4 * sketch.s * PSI_GROUP
     return {"client": client, "task": task,
-            "total": client + workers * task + FAN_IN * sums + total}
+            "total": client + workers * task + (FAN_IN - 1) * sums + 2 * total}
 
 
 def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock], *,
