@@ -219,10 +219,13 @@ def run(args: argparse.Namespace) -> dict:
                       f"independently {row['independent_seconds']:.1f} s", file=sys.stderr)
         application = _application(plan, layers, args)
         tiles = tmp / "tiles.zarr"
-        quilt = best_of(args.repeat, [btf, "quilt", str(store), str(tiles), "--block",
-                                      str(args.block), "--overlap", str(args.overlap),
-                                      "--candidates", str(args.candidates), "--quiet",
-                                      "--overwrite"])
+        command = [btf, "quilt", str(store), str(tiles), "--block", str(args.block),
+                   "--overlap", str(args.overlap), "--candidates", str(args.candidates),
+                   "--quiet", "--overwrite"]
+        quilt = best_of(args.repeat, command)
+        # one plan, as in the planning rows: the application rate's run (with the border
+        # check's bound, the plans it takes again would count as application)
+        one_plan = best_of(args.repeat, [*command, "--max-seam", "1e9"])
         rendering = render_throughput(tiles, args)
         region = tmp / "surface.zarr"
         render_cli = measure([btf, "render", str(tiles), str(region), "--light", "0", "--size",
@@ -236,7 +239,7 @@ def run(args: argparse.Namespace) -> dict:
                        "candidates": args.candidates}, "repeat": args.repeat,
             "planning": planning, "application": application,
             "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
-                          "peak_rss": quilt.peak_rss},
+                          "peak_rss": quilt.peak_rss, "one_plan_seconds": one_plan.seconds},
             "rendering": rendering, "seams": seams, "search": search, "machine": machine(),
             "git": git_revision()}
 
@@ -317,7 +320,10 @@ def report(result: dict) -> str:
     r = result["rendering"]
     lines += ["", f"`btf quilt` end to end on the {q['size']}^2 sample (reference, plan, "
                   f"application, writing): {q['seconds']:.1f} s, peak RSS "
-                  f"{q['peak_rss'] / mib:.0f} MiB.", "",
+                  f"{q['peak_rss'] / mib:.0f} MiB"
+                  + (f"; {q['one_plan_seconds']:.1f} s with the border check's bound lifted "
+                     "(one plan: the application rate's run)" if "one_plan_seconds" in q
+                     else "") + ".", "",
               f"Rendering one layer, {r['size']} x {r['size']} texels "
               f"({r['bytes'] / mib:.0f} MiB), blocks of {r['block']}^2, 2 threads:", "",
               "| what | seconds | GB/s |", "|---|---|---|",
@@ -335,7 +341,8 @@ def report(result: dict) -> str:
 def rates(result: dict) -> dict[str, float]:
     """The rates ``btf run --plan`` uses: planning time per tile texel and sample texel (the
     client's, serial) and float32 values written per core-second by ``btf quilt``'s
-    application, end to end (its wall time less the planning and a second of start-up).
+    application, end to end: the wall time of a run that plans once (the check's bound lifted)
+    less that plan and a second of start-up.
     """
     from tasks.sampling import parse_sampling
 
@@ -345,9 +352,10 @@ def rates(result: dict) -> dict[str, float]:
     tile = largest["tile"][0] * largest["tile"][1]
     s = parse_sampling(result["sampling"])
     values = tile * s.theta_view.size * s.theta_light.size * 3
-    applying = result["quilt_cli"]["seconds"] - largest["plan_seconds"] - 1.0
     out = {"quilt_plan_seconds_per_texel_pair":
            largest["plan_seconds"] / (tile * largest["size"] ** 2)}
+    # a result of before had no one-plan run: its run planned until the check passed
+    applying = result["quilt_cli"].get("one_plan_seconds", 0.0) - largest["plan_seconds"] - 1.0
     if applying > 0:
         out["quilt_values_per_core_second"] = values / applying / result["machine"]["cpus"]
     return out
