@@ -803,3 +803,17 @@ def test_the_automatic_block_fits_a_given_tile_size():
     assert "divides the tile 144 x 144" in why
     block, overlap, why = choose_block(case.image, tile=(97, 97))  # nothing near divides 97
     assert (block, overlap) == (32, 8) and "the default" in why
+
+
+def test_the_quilt_bench_takes_its_application_rate_from_the_run_that_plans_once():
+    from benchmarks.quilt import rates
+
+    result = {"sampling": "abtf:6,4", "machine": {"cpus": 2},
+              "planning": [{"size": 512, "tile": [504, 504], "plan_seconds": 4.0}],
+              "quilt_cli": {"seconds": 38.5, "one_plan_seconds": 9.0}}
+    values = 504 * 504 * 24 * 3  # tile texels x layers x channels
+    got = rates(result)
+    assert got["quilt_values_per_core_second"] == pytest.approx(values / (9.0 - 4.0 - 1.0) / 2)
+    assert got["quilt_plan_seconds_per_texel_pair"] == pytest.approx(4.0 / (504**2 * 512**2))
+    del result["quilt_cli"]["one_plan_seconds"]  # a run that planned until the check passed
+    assert "quilt_values_per_core_second" not in rates(result)
