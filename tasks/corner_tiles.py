@@ -239,8 +239,7 @@ class _TileSetPlanner:
 
         Each strip depends only on the corner patches and its own stream.
         """
-        for _ in (pool.map if pool is not None else map)(self.plan_strip, keys):
-            pass
+        list((pool.map if pool is not None else map)(self.plan_strip, keys))  # run them all
 
     def plan_strip(self, key: tuple[str, int, int]) -> None:
         """Edge strip ``key`` (phases 2 and 3) again; the tiles along it must be planned again."""
