@@ -159,6 +159,7 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_
                                                                      monkeypatch):
     # row blocks of one stored light chunk: the two bad values lie in two blocks of one tile
     monkeypatch.setattr("pipeline.graphs.tile_passes.ROW_BLOCK_BYTES", 1)
+    monkeypatch.setattr("pipeline.graphs.tile_passes.SKETCH_BLOCK_BYTES", 1)
     mode = ("--passes", "1") if sketch == "one pass" else ("--sketch", sketch)
     a = spectrum_matrix(144, 768, np.exp(-np.arange(10.0)))
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)

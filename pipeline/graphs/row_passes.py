@@ -186,20 +186,23 @@ def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, cla
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def running_sum(parts: list) -> Any:
-    """Delayed sum of pass parts into one running total, :data:`FAN_IN` - 1 parts a step.
+def running_sum(parts: list, *, fan_in: int = FAN_IN) -> Any:
+    """Delayed sum of pass parts into one running total, ``fan_in`` - 1 parts a step.
 
     The order is fixed, so the sums are reproducible, and one float64 total is alive at a
     time (two while a step adds to it). A tree of :data:`FAN_IN` held every total of a level
     until the level above summed them: a one-pass compression over 16 texel tiles of 30603
     rows peaked at 1.06 GiB against 0.94 GiB over 4 tiles of the same rows (BENCHMARKS.md,
     "A store larger than memory"). Up to :data:`FAN_IN` parts, the same sum as that tree.
+    Every ``fan_in`` gives the same bits (each step adds its parts to the total in order); a
+    smaller one leaves fewer finished parts waiting for their step, and copies the total more
+    often.
     """
     import dask
 
     total = parts[0]
-    for i in range(1, len(parts), FAN_IN - 1):
-        total = dask.delayed(combine_parts, pure=True)(total, *parts[i : i + FAN_IN - 1])
+    for i in range(1, len(parts), fan_in - 1):
+        total = dask.delayed(combine_parts, pure=True)(total, *parts[i : i + fan_in - 1])
     return total
 
 

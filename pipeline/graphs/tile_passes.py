@@ -76,11 +76,26 @@ def plan_tiles(ny: int, nx: int, chunk: tuple[int, int]) -> list[TexelTile]:
             for y in range(0, ny, cy) for x in range(0, nx, cx)]
 
 
-def plan_tile_rows(shape: tuple[int, ...], dir_chunk: int, tile: tuple[int, int]
-                   ) -> list[RowBlock]:
-    """Row blocks of one tile's column: whole stored light chunks, within the block budget."""
+# float32 radiance a one-view sketch's task reads at once: its loops take 32 rows at a time, so
+# a smaller block costs no speed, and three tasks' blocks of 128 MiB (ROW_BLOCK_BYTES) were most
+# of the gap between a store of 25 texel tiles and one of 4 (BENCHMARKS.md, "A store larger
+# than memory")
+SKETCH_BLOCK_BYTES = 32 << 20
+# a tile's share of the one-view sketch (rows x k) is added to the running total as soon as it
+# is done: at 25 tiles its peak fell from 0.98-1.01 GiB (4) to 0.93-0.95 GiB (BENCHMARKS.md)
+SKETCH_FAN_IN = 2
+
+
+def plan_tile_rows(shape: tuple[int, ...], dir_chunk: int, tile: tuple[int, int], *,
+                   sketch: bool = False) -> list[RowBlock]:
+    """Row blocks of one tile's column: whole stored light chunks, within the block budget.
+
+    The budget is :data:`SKETCH_BLOCK_BYTES` for the one-view ``sketch``, else
+    :data:`ROW_BLOCK_BYTES`.
+    """
     nv, nl, _, _, nc = shape
-    return plan_row_blocks((nv, nl, *tile, nc), dir_chunk, budget=ROW_BLOCK_BYTES, minimum=1)
+    budget = SKETCH_BLOCK_BYTES if sketch else ROW_BLOCK_BYTES
+    return plan_row_blocks((nv, nl, *tile, nc), dir_chunk, budget=budget, minimum=1)
 
 
 def _row_power_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np.ndarray, *,
@@ -194,7 +209,7 @@ def sketch_pass_graph(store: str, tiles: list[TexelTile], blocks: list[RowBlock]
 
     return running_sum([dask.delayed(_sketch_task, pure=True)(
         store, tile, blocks, sketch, seed, scratch, eps=eps, clamp=clamp, first=first)
-        for tile in tiles])
+        for tile in tiles], fan_in=SKETCH_FAN_IN)
 
 
 def sketch_vectors_graph(scratch: str, tiles: list[TexelTile], to_v, out: str):
@@ -268,10 +283,9 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
     A task holds a row block being read and range-reduced, its tile's test matrices, its
     co-range sketch and the copy written to the scratch array, a float64 run of it, and its
     sums (``y``, float32, and ``z``: rows x (k + t)); a step of the running sum holds
-    :data:`FAN_IN` - 1 such sums, the float64 total so far and the new one. The client holds
-    ``Y``, its QR and ``U`` (rows x k, float64). Nothing grows with the texels.
+    :data:`SKETCH_FAN_IN` - 1 such sums, the float64 total so far and the new one. The client
+    holds ``Y``, its QR and ``U`` (rows x k, float64). Nothing grows with the texels.
     """
-    from pipeline.graphs.row_passes import FAN_IN
     from tasks.svd import PSI_GROUP, TILE
 
     block = max(b.rows for b in blocks) * tile_texels * 4
@@ -283,7 +297,8 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
             + sums)
     client = 8 * 3 * rows * sketch.k + total + 4 * sketch.s * PSI_GROUP
     return {"client": client, "task": task,
-            "total": client + workers * task + (FAN_IN - 1) * sums + 2 * total}
+            "total": client + workers * task + (SKETCH_FAN_IN - 1) * sums
+            + 2 * total}
 
 
 def tile_memory(rows: int, tile_texels: int, width: int, blocks: list[RowBlock], *,

@@ -265,7 +265,7 @@ def _memory(params: CompressParams, shape: tuple[int, ...], dir_chunk: int,
     m, n = nv * nl * nc, ny * nx
     extra = min(params.extra, min(m, n) - params.rank)
     texels = tile[0] * tile[1]
-    tile_rows = plan_tile_rows(shape, dir_chunk, tile)
+    tile_rows = plan_tile_rows(shape, dir_chunk, tile, sketch=params.one_pass)
     if params.one_pass:
         return sketch_memory(m, texels, Sketch.for_rank(params.rank, extra, m), tile_rows,
                              workers=workers)
@@ -349,7 +349,8 @@ def compress(params: CompressParams, session: Session) -> Path:
     dir_chunk, chunk = array.chunks[1], array.chunks[2]
     blocks = plan_row_blocks(shape, dir_chunk)
     v_chunk = (min(chunk, ny), min(chunk, nx))  # the V chunks of create_compressed_store
-    tiles, tile_rows = plan_tiles(ny, nx, v_chunk), plan_tile_rows(shape, dir_chunk, v_chunk)
+    tiles, tile_rows = plan_tiles(ny, nx, v_chunk), plan_tile_rows(
+        shape, dir_chunk, v_chunk, sketch=params.one_pass)
     attrs = _output_attrs(params, dict(group.attrs), shape)
     sketch = Sketch.for_rank(params.rank, extra, m)
     _say_plan(params, session, m, n, side, sketch,
