@@ -151,14 +151,15 @@ def _row_vectors_task(store: str, tile: TexelTile, blocks: list[RowBlock], q: np
 
 
 def create_scratch(location: str, ny: int, nx: int, s: int, chunk: tuple[int, int]) -> None:
-    """The scratch array of a one-view sketch's ``W^T``: ``(y, x, s)`` float32, a chunk a tile.
+    """The scratch array of a one-view sketch's ``W``: ``(s, y, x)`` float32, a chunk a tile.
 
+    A tile's ``W_t`` (``s x texels``, C order) is a chunk as it is, with no transposed copy.
     Uncompressed (signed sums of the data compress little) but checksummed; overwritten if
     present.
     """
     import zarr
 
-    zarr.create_array(storage.store(location), shape=(ny, nx, s), chunks=(*chunk, s),
+    zarr.create_array(storage.store(location), shape=(s, ny, nx), chunks=(s, *chunk),
                       dtype="float32", compressors=checksums.codec(), fill_value=0.0,
                       overwrite=True)
 
@@ -167,7 +168,7 @@ def _sketch_task(store: str, tile: TexelTile, blocks: list[RowBlock], sketch: Sk
                  seed: int, scratch: str, *, eps: float, clamp: bool, first: bool) -> PassPart:
     """A tile's share of the one-view sketch (:class:`tasks.svd.TileSketch`).
 
-    Writes its co-range sketch ``W_t^T`` to ``scratch``; returns its sums.
+    Writes its co-range sketch ``W_t`` to ``scratch``; returns its sums.
     """
     import zarr
 
@@ -185,7 +186,8 @@ def _sketch_task(store: str, tile: TexelTile, blocks: list[RowBlock], sketch: Sk
     if refused:
         return PassPart(part.sums(), {}, check, 0.0)
     target = zarr.open_array(storage.store(scratch), mode="r+")
-    target[tile.region] = part.w.T.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, sketch.s)
+    target[(slice(None), *tile.region)] = part.w.reshape(sketch.s, tile.y1 - tile.y0,
+                                                         tile.x1 - tile.x0)
     return PassPart(part.sums(), {}, check, f2)
 
 
@@ -194,8 +196,8 @@ def _sketch_vectors_task(scratch: str, tile: TexelTile, to_v: np.ndarray, out: s
     """Write the tile's eigentextures ``V_t = W_t^T M`` (float64 products) from the scratch."""
     import zarr
 
-    w = zarr.open_array(storage.store(scratch), mode="r")[tile.region]
-    v = (w.reshape(tile.texels, -1).astype(np.float64) @ to_v).astype(np.float32)
+    w = zarr.open_array(storage.store(scratch), mode="r")[(slice(None), *tile.region)]
+    v = (w.reshape(-1, tile.texels).T.astype(np.float64) @ to_v).astype(np.float32)
     target = zarr.open_array(storage.store(out), path="V", mode="r+")
     target[tile.region] = v.reshape(tile.y1 - tile.y0, tile.x1 - tile.x0, -1)
     return PassPart({}, {}, BlockCheck(), 0.0)

@@ -69,6 +69,9 @@ from tasks.svd import PassPart, Sketch
 TEXEL_SIDE_BYTES = 256 << 20  # auto: the texel side while its client sketches stay below this
 ONE_PASS_RANGE = 6  # --passes 1: range sketch columns per component (BENCHMARKS.md, issue 27)
 SCRATCH = "sketch-scratch"  # the one-view co-range sketch, inside the partial output
+# the scratch's layout, in the name the sketch pass's sums are kept under: sums kept by a btf
+# that wrote another layout ((y, x, s) before 2026-11-28) are not taken, and the pass runs again
+SCRATCH_LAYOUT = "s-y-x"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,7 +218,8 @@ class _Passes:
                 "row-power": f"power iteration {self.count}", "row-gram": "projection",
                 "row-vectors": "eigentextures"}[kind]
         by_tiles = kind.startswith("row-") or kind in ("verify", "sketch")
-        result, stored = self.progress.memo(f"pass-{self.count}-{kind}",
+        name = f"pass-{self.count}-{kind}" + (f"-{SCRATCH_LAYOUT}" if kind == "sketch" else "")
+        result, stored = self.progress.memo(name,
                                             lambda: self._run(kind, what, by_tiles, arrays))
         if stored:
             self.session.log(f"compress: pass {self.count}/{self.planned} ({what}): kept from "
