@@ -12,11 +12,11 @@ from hypothesis import strategies as st
 
 import pipeline.graphs.tile_passes as tile_passes
 from helpers import SLOW_PROCESSES, Killed, killed_before_unit
-from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks, spans
+from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks, running_sum, spans
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
 from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
-from tasks.svd import log_rows, log_transform, matrix_rows
+from tasks.svd import BlockCheck, PassPart, log_rows, log_transform, matrix_rows
 
 EPS = 1e-3
 
@@ -329,6 +329,25 @@ def test_row_blocks_cover_every_texture_once_within_budget(nv, nl, dir_chunk, bu
             assert all((v1 - v0) * (l1 - l0) <= max(layers, dir_chunk)
                        for v0, v1, l0, l1 in spans(b.units, layers))
         assert len(spans(b.units, 10**6)) <= len({v for v, _, _ in b.units})
+
+
+@pytest.mark.parametrize("count", [1, 2, 5, 16])
+def test_the_running_sum_gives_the_same_bits_for_every_fan_in(count):
+    import dask
+
+    rng = np.random.default_rng(count)
+    # shares of float32 sums far apart in size, so that another order would round otherwise
+    parts = [PassPart({"y": (rng.standard_normal((50, 7)) * 10.0 ** rng.integers(-6, 7))
+                       .astype(np.float32)}, {"z": [(i, np.full((1, 2), i))]},
+                      BlockCheck(), float(i)) for i in range(count)]
+    expected = np.zeros((50, 7))
+    for part in parts:  # in order, in float64
+        expected += part.sums["y"]
+    for fan_in in (2, 3, 4, 7):
+        (total,) = dask.compute(running_sum(parts, fan_in=fan_in), scheduler="sync")
+        assert np.array_equal(total.sums["y"], expected), fan_in
+        assert [r for r, _ in total.rows["z"]] == list(range(count))
+        assert total.frobenius2 == sum(range(count))
 
 
 def test_lazy_radiance_has_the_original_dims_and_coordinates(tmp_path, btf, small_abtf):

@@ -283,7 +283,7 @@ def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowB
     """Bytes a one-view sketch holds at its peak: client, one task, and all of them.
 
     A task holds a row block being read and range-reduced, its tile's test matrices, its
-    co-range sketch and the copy written to the scratch array, a float64 run of it, and its
+    co-range sketch and its encoded copy for the scratch array, a float64 run of it, and its
     sums (``y``, float32, and ``z``: rows x (k + t)); a step of the running sum holds
     :data:`SKETCH_FAN_IN` - 1 such sums, the float64 total so far and the new one. The client
     holds ``Y``, its QR and ``U`` (rows x k, float64). Nothing grows with the texels.
