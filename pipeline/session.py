@@ -36,6 +36,8 @@ def progress_after() -> float:
     return float(dask.config.get("btf.progress-after", PROGRESS_AFTER))
 
 
+# seconds between tries of sending btf's worker plugin while a lost worker is being dropped
+PLUGIN_WAITS = (0.25, 0.5, 1.0, 2.0, 4.0)
 NO_WORKERS_TIMEOUT = 120.0  # seconds a cluster run waits with no worker at all (default)
 
 
@@ -219,6 +221,7 @@ class Session:
         self.options = options or RuntimeOptions()
         self.client = None
         self._pin_blas = False
+        self._blas_plugin = False  # registered with the cluster's scheduler
         # what `btf run` did so far, stage by stage (pipeline.config.execute; btf report)
         self.history: list[dict] = []
 
@@ -355,14 +358,41 @@ class Session:
         on the scheduler. Cluster workers get a worker plugin (also for workers that join
         later); local process workers always run with one BLAS thread.
         """
-        if self.client is not None:
-            self.client.register_plugin(_blas_plugin(), name="btf-single-threaded-blas")
+        if self.client is not None and not self._blas_plugin:
+            self._register_blas_plugin()
         steady_memory()
         self._pin_blas = True
         try:
             yield
         finally:
             self._pin_blas = False
+
+    def _register_blas_plugin(self) -> None:
+        """Register :func:`_blas_plugin` with the scheduler, once a session.
+
+        The scheduler sends it to every worker it has; a worker lost meanwhile makes that fail
+        with the connection's error (a kill -9 of a worker stopped a whole ``btf run``: the
+        fault campaign, 2026-11-28), so it is tried again while the scheduler drops the worker
+        (:data:`PLUGIN_WAITS`). Workers that join later get it from the scheduler.
+        """
+        from distributed.comm.core import CommClosedError
+
+        from pipeline.errors import BTFError
+
+        for wait in (*PLUGIN_WAITS, None):
+            try:
+                self.client.register_plugin(_blas_plugin(), name="btf-single-threaded-blas")
+            except (CommClosedError, OSError) as exc:
+                if wait is None:
+                    raise BTFError(f"{self.options.scheduler}: the workers did not take btf's "
+                                   f"worker plugin after {len(PLUGIN_WAITS) + 1} tries "
+                                   f"({type(exc).__name__}: {exc})") from None
+                self.log(f"a worker was lost while btf's worker plugin was sent; trying again "
+                         f"in {wait:g} s")
+                time.sleep(wait)
+            else:
+                self._blas_plugin = True
+                return
 
     def share(self, value: Any) -> Any:
         """A task argument for a large value that every task of a graph reads: one graph task.

@@ -182,3 +182,48 @@ def test_shared_values_are_graph_tasks_a_lost_worker_can_recompute(local_cluster
         assert isinstance(shared, Delayed)
         total = dask.delayed(np.sum)(shared)
         assert session.compute(total) == (10,)
+
+
+class _FlakyScheduler:
+    """A client whose scheduler fails to send a worker plugin ``failures`` times, as when a
+    worker is killed while the plugin is being sent to it."""
+
+    def __init__(self, failures: int):
+        self.failures, self.calls = failures, 0
+
+    def register_plugin(self, plugin, name):
+        from distributed.comm.core import CommClosedError
+
+        self.calls += 1
+        if self.calls <= self.failures:
+            raise CommClosedError("in <TCP (closed) ConnectionPool.register_worker_plugin "
+                                  "local=tcp://127.0.0.1:1 remote=tcp://127.0.0.1:2>: "
+                                  "Stream is closed")
+
+
+@pytest.mark.parametrize("failures", [0, 2, 6])
+def test_a_worker_lost_while_the_blas_plugin_is_sent_is_ridden_out(monkeypatch, capsys,
+                                                                    failures):
+    """The plugin is sent again while the scheduler drops the lost worker (a kill -9 of a
+    worker at that moment stopped a whole btf run), once a session; if the scheduler never
+    takes it, one clear message."""
+    from pipeline import session as session_module
+    from pipeline.errors import BTFError
+    from pipeline.session import RuntimeOptions, Session
+
+    monkeypatch.setattr(session_module, "PLUGIN_WAITS", (0.01,) * 5)
+    monkeypatch.setattr(session_module, "steady_memory", lambda: None)
+    session = Session(RuntimeOptions(scheduler="tcp://127.0.0.1:2"))
+    session.client = client = _FlakyScheduler(failures)
+    if failures > 5:
+        with pytest.raises(BTFError, match=r"tcp://127.0.0.1:2: the workers did not take btf's "
+                                           r"worker plugin after 6 tries \(CommClosedError"):
+            with session.blas_pinned_in_tasks():
+                pass
+        assert client.calls == 6
+        return
+    for _ in range(3):  # a stage after another
+        with session.blas_pinned_in_tasks():
+            pass
+    assert client.calls == failures + 1
+    assert capsys.readouterr().err.count("trying again in 0.01 s") == failures
