@@ -145,6 +145,9 @@ def border_positions(sample: np.ndarray, block: int) -> dict[str, np.ndarray]:
     return {k: (m if m.any() else np.ones((vh, vw), bool)) for k, m in fit.items()}
 
 
+_ANYWHERE = np.ones((1, 1), bool)  # CandidateSearch.choose's mask when every position may be
+
+
 class CandidateSearch:
     """Masked SSD of a target window against every window of the sample, by FFT.
 
@@ -188,6 +191,9 @@ class CandidateSearch:
                rng: np.random.Generator, allowed: np.ndarray | None = None) -> tuple[int, int]:
         """One of the ``k`` best positions, at random; any position if nothing is masked in.
 
+        The ``k`` best by error, of equal errors the first in row-major order (a periodic
+        sample has many).
+
         ``allowed``: a ``valid``-shaped mask of the positions that may be chosen at all.
         """
         if not mask.any():
@@ -195,14 +201,13 @@ class CandidateSearch:
                 return (int(rng.integers(self.valid[0])), int(rng.integers(self.valid[1])))
             positions = np.flatnonzero(allowed)
             return divmod(int(positions[rng.integers(positions.size)]), self.valid[1])
+        from tasks.quilt_kernels import smallest  # numba: not loaded by `btf --help`
+
         err = self.errors(target, mask)
-        if allowed is not None:
-            err = np.where(allowed, err, np.inf)
-        err = err.ravel()
         k = min(k, err.size if allowed is None else int(allowed.sum()))
-        best = np.argpartition(err, k - 1)[:k]
-        best = best[np.argsort(err[best], kind="stable")]  # reproducible order of ties
-        pick = int(best[rng.integers(k)])
+        best = smallest(err, _ANYWHERE if allowed is None else np.ascontiguousarray(allowed),
+                        allowed is not None, k)  # by error, ties by position
+        pick = int(best[rng.integers(best.size)])
         return divmod(pick, self.valid[1])
 
 

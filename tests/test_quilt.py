@@ -685,6 +685,27 @@ def _numpy_place(canvas: Canvas, patch_index, patch_value, alpha, y0: int, x0: i
     canvas.filled[sel] |= keep
 
 
+@pytest.mark.parametrize("case", ["random", "ties", "masked", "few allowed", "nan"])
+def test_the_candidates_k_best_are_the_smallest_errors_ties_to_the_lower_position(case):
+    from tasks.quilt_kernels import smallest
+
+    rng = np.random.default_rng(len(case))
+    err = rng.random((37, 53)).astype(np.float32)
+    if case == "ties":  # a periodic sample: many exactly equal errors, the best among them
+        err = np.round(err * 4).astype(np.float32)
+    allowed = rng.random(err.shape) < (0.002 if case == "few allowed" else 0.3)
+    if case == "nan":
+        err[rng.random(err.shape) < 0.5] = np.nan
+    use = case in ("masked", "few allowed")
+    positions = np.flatnonzero(allowed if use else np.ones(err.shape, bool))
+    positions = positions[~np.isnan(err.ravel()[positions])]
+    for k in (1, 5, 17):
+        k = min(k, positions.size)
+        expected = positions[np.lexsort((positions, err.ravel()[positions]))][:k]
+        got = smallest(err, allowed if use else np.ones((1, 1), bool), use, k)
+        assert got.tolist() == expected.tolist(), k
+
+
 def test_the_compiled_blend_gives_the_bits_of_numpys():
     rng = np.random.default_rng(8)
     for _ in range(60):
