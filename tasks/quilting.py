@@ -145,7 +145,7 @@ def border_positions(sample: np.ndarray, block: int) -> dict[str, np.ndarray]:
     return {k: (m if m.any() else np.ones((vh, vw), bool)) for k, m in fit.items()}
 
 
-_ANYWHERE = np.ones((1, 1), bool)  # CandidateSearch.choose's mask when every position may be
+_ANYWHERE = np.ones((1, 1), bool)  # CandidateSearch.choose: no mask, every position allowed
 
 
 class CandidateSearch:
