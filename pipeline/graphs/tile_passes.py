@@ -82,7 +82,8 @@ def plan_tiles(ny: int, nx: int, chunk: tuple[int, int]) -> list[TexelTile]:
 # than memory")
 SKETCH_BLOCK_BYTES = 32 << 20
 # a tile's share of the one-view sketch (rows x k) is added to the running total as soon as it
-# is done: at 25 tiles its peak fell from 0.98-1.01 GiB (4) to 0.93-0.95 GiB (BENCHMARKS.md)
+# is done: at 25 tiles its peak fell from 0.98-1.01 GiB (4, three runs) to 0.88-0.98 GiB (six
+# runs; BENCHMARKS.md, "A store larger than memory")
 SKETCH_FAN_IN = 2
 
 
