@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 from tasks.periodicity import reduce_basis
 
@@ -100,7 +100,7 @@ def random_lattice_texture(rng: np.random.Generator, motif: str | None = None,
     origin = rng.uniform(0, 1, 2) * 50
     a, b = np.einsum("ij,jyx->iyx", np.linalg.inv(np.stack([u, v], axis=1)),
                      np.stack([yy - origin[0], xx - origin[1]]))
-    image = ndimage.gaussian_filter(_motif(motif, a, b, u, v, rng), 0.5, mode="wrap")
+    image = scipy.ndimage.gaussian_filter(_motif(motif, a, b, u, v, rng), 0.5, mode="wrap")
     image = (image - image.min()) / max(float(image.max() - image.min()), 1e-12)
     noise = float(rng.choice([0.0, rng.uniform(0.02, 0.2)])) if noise is None else noise
     image = image + noise * rng.standard_normal(shape)

@@ -224,8 +224,11 @@ class Session:
         self._blas_plugin = False  # registered with the cluster's scheduler
         # what `btf run` did so far, stage by stage (pipeline.config.execute; btf report)
         self.history: list[dict] = []
+        self._config = contextlib.ExitStack()
 
     def __enter__(self) -> Session:
+        import dask
+
         if not is_cluster(self.options.scheduler):
             pin_openmp()
         else:
@@ -249,12 +252,17 @@ class Session:
             if self.options.workers is not None:
                 self.log("note: --workers is ignored on a cluster; its workers are set where "
                          "they are started (dask worker --nworkers)")
+        if dask.config.get("array.rechunk.method", None) is None:
+            # what dask would choose: it looks for a default client, which a session's never
+            # is, but the look imports distributed (0.17 s) at every first rechunk
+            self._config.enter_context(dask.config.set({"array.rechunk.method": "tasks"}))
         return self
 
     def __exit__(self, *exc_info) -> None:
         if self.client is not None:
             self.client.close()
             self.client = None
+        self._config.close()
 
     @property
     def quiet(self) -> bool:

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 from tasks.noise import fbm, gradient_noise, smoothstep, worley
 
@@ -277,7 +277,8 @@ def image_fields(image: np.ndarray, *, relief: float) -> Fields:
         raise ValueError("an albedo image needs 1 or at least 3 channels, got 2")
     albedo = np.clip(rgb, 0.0, 1.0)
     lightness = albedo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    detail = ndimage.gaussian_filter(lightness, 1.0) - ndimage.gaussian_filter(lightness, 12.0)
+    blur = scipy.ndimage.gaussian_filter
+    detail = blur(lightness, 1.0) - blur(lightness, 12.0)
     lo, hi = np.percentile(detail, [1.0, 99.0])
     height = relief * np.clip((detail - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     level = lightness / max(float(lightness.max()), 1e-6)

@@ -36,9 +36,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
-from scipy.fft import irfft2, next_fast_len, rfft2
-from skimage.morphology import h_maxima
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
+import skimage
 
 CANDIDATES = 24
 MIN_AREA = 4.0
@@ -95,16 +94,16 @@ def autocorrelation(gray: np.ndarray) -> np.ndarray:
     g = np.asarray(gray, np.float64)
     h, w = g.shape
     sigma = max(h, w) / 8.0
-    g = ndimage.gaussian_filter(g, ANTIALIAS, mode="reflect")
-    g = g - ndimage.gaussian_filter(g, sigma, mode="reflect")
-    contrast = np.sqrt(ndimage.gaussian_filter(g * g, sigma, mode="reflect"))
+    g = scipy.ndimage.gaussian_filter(g, ANTIALIAS, mode="reflect")
+    g = g - scipy.ndimage.gaussian_filter(g, sigma, mode="reflect")
+    contrast = np.sqrt(scipy.ndimage.gaussian_filter(g * g, sigma, mode="reflect"))
     g = g / np.maximum(contrast, 1e-6 * max(float(contrast.max()), 1e-300))
     g = g - g.mean()
-    shape = (next_fast_len(2 * h, real=True), next_fast_len(2 * w, real=True))
-    spec = rfft2(g, shape)
-    num = irfft2(np.abs(spec) ** 2, shape)
-    ones = rfft2(np.ones_like(g), shape)
-    count = np.maximum(np.rint(irfft2(np.abs(ones) ** 2, shape)), 1.0)
+    shape = (scipy.fft.next_fast_len(2 * h, real=True), scipy.fft.next_fast_len(2 * w, real=True))
+    spec = scipy.fft.rfft2(g, shape)
+    num = scipy.fft.irfft2(np.abs(spec) ** 2, shape)
+    ones = scipy.fft.rfft2(np.ones_like(g), shape)
+    count = np.maximum(np.rint(scipy.fft.irfft2(np.abs(ones) ** 2, shape)), 1.0)
     var = float(np.mean(g**2)) or 1.0
     corr = num / count / var
     hy, hx = h // 2, w // 2
@@ -149,8 +148,8 @@ def _peak_map(corr: np.ndarray) -> np.ndarray:
     """``corr`` at its local maxima above the floor and 2 px or more from the origin, else -inf."""
     cy, cx = corr.shape[0] // 2, corr.shape[1] // 2
     yy, xx = np.ogrid[-cy : corr.shape[0] - cy, -cx : corr.shape[1] - cx]
-    peak = ndimage.maximum_filter(corr, size=3, mode="constant", cval=-np.inf) == corr
-    peak &= h_maxima(corr, PROMINENCE).astype(bool)
+    peak = scipy.ndimage.maximum_filter(corr, size=3, mode="constant", cval=-np.inf) == corr
+    peak &= skimage.morphology.h_maxima(corr, PROMINENCE).astype(bool)
     peak &= (corr > PEAK_FLOOR) & (yy * yy + xx * xx >= 4)
     return np.where(peak, corr, -np.inf)
 

@@ -15,17 +15,17 @@ loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a quarter of
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 
-def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> sparse.csr_matrix:
+def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> scipy.sparse.csr_matrix:
     """The CSR matrix of padded rows ``index``/``weight`` (``-1`` marks unused terms)."""
     index = np.asarray(index).reshape(index.shape[0], -1)
     weight = np.asarray(weight, np.float32).reshape(index.shape)
     used = index >= 0
     rows = np.broadcast_to(np.arange(index.shape[0])[:, None], index.shape)[used]
-    matrix = sparse.csr_matrix((weight[used], (rows, index[used])),
-                               shape=(index.shape[0], samples), dtype=np.float32)
+    matrix = scipy.sparse.csr_matrix((weight[used], (rows, index[used])),
+                                     shape=(index.shape[0], samples), dtype=np.float32)
     matrix.sum_duplicates()
     return matrix
 
@@ -44,7 +44,7 @@ def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
     return problems
 
 
-def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int],
+def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int],
           out: np.ndarray | None = None) -> np.ndarray:
     """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
 
@@ -57,7 +57,7 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     """
     from tasks.csr_kernel import csr_product
 
-    matrix = sparse.csr_matrix(matrix, dtype=np.float32)
+    matrix = scipy.sparse.csr_matrix(matrix, dtype=np.float32)
     layers = np.ascontiguousarray(layers, np.float32)
     *lead, ny, nx, nc = layers.shape
     if matrix.shape != (output[0] * output[1], ny * nx):
@@ -76,7 +76,7 @@ def apply(matrix: sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, i
     return out
 
 
-def apply_texel_rows(matrix: sparse.csc_matrix, texels: np.ndarray, start: int,
+def apply_texel_rows(matrix: scipy.sparse.csc_matrix, texels: np.ndarray, start: int,
                      out: np.ndarray) -> None:
     """Add the part of ``P @ texels`` that comes from some sample texels to ``out``.
 

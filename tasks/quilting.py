@@ -46,8 +46,7 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
-from scipy.fft import fft, irfft2, next_fast_len, rfft, rfft2
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 from tasks.canvas import TERMS, Canvas
 from tasks.errors import InvalidParameter
@@ -166,12 +165,12 @@ class CandidateSearch:
         self.sample = np.asarray(sample, np.float32)
         self.block = block
         h, w, _ = self.sample.shape
-        self.shape = (next_fast_len(h + block - 1, real=True),
-                      next_fast_len(w + block - 1, real=True))
+        self.shape = (scipy.fft.next_fast_len(h + block - 1, real=True),
+                      scipy.fft.next_fast_len(w + block - 1, real=True))
         self.valid = (h - block + 1, w - block + 1)
         planes = [np.sum(self.sample**2, axis=-1)]
         planes += [-2.0 * self.sample[..., c] for c in range(self.sample.shape[-1])]
-        self.spectra = rfft2(np.stack(planes), self.shape)
+        self.spectra = scipy.fft.rfft2(np.stack(planes), self.shape)
 
     def errors(self, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """SSD of ``target`` over ``mask`` at every sample position ``(sy, sx)``."""
@@ -179,9 +178,9 @@ class CandidateSearch:
         target = target.astype(np.float32)
         kernels = np.concatenate([mask[None], np.moveaxis(mask[..., None] * target, -1, 0)])
         flipped = kernels[:, ::-1, ::-1]
-        rows = rfft(flipped, n=self.shape[1], axis=-1)  # only the B non-zero rows
-        spectrum = fft(rows, n=self.shape[0], axis=-2)
-        full = irfft2(np.einsum("kij,kij->ij", self.spectra, spectrum), self.shape)
+        rows = scipy.fft.rfft(flipped, n=self.shape[1], axis=-1)  # only the B non-zero rows
+        spectrum = scipy.fft.fft(rows, n=self.shape[0], axis=-2)
+        full = scipy.fft.irfft2(np.einsum("kij,kij->ij", self.spectra, spectrum), self.shape)
         b = self.block
         out = full[b - 1 : b - 1 + self.valid[0], b - 1 : b - 1 + self.valid[1]]
         out += float(np.sum(mask[..., None] * target**2))
@@ -254,7 +253,7 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
     loop, found = cheapest_loop(cost, col, top)
     if not found:
         return np.ones((b, b), bool)
-    enclosed = ndimage.binary_fill_holes(loop | inner)
+    enclosed = scipy.ndimage.binary_fill_holes(loop | inner)
     return enclosed[1:-1, 1:-1]
 
 
@@ -264,8 +263,9 @@ def blend_weights(region: np.ndarray, keep: np.ndarray, overlap: int) -> np.ndar
     Beyond the window the blur sees weight 0 (the canvas), so a region reaching the window's
     edge still fades out instead of ending in a hard edge.
     """
-    alpha = ndimage.gaussian_filter(region.astype(np.float64), sigma=max(overlap / FEATHER, 0.5),
-                                    mode="constant", cval=0.0)
+    alpha = scipy.ndimage.gaussian_filter(region.astype(np.float64),
+                                          sigma=max(overlap / FEATHER, 0.5), mode="constant",
+                                          cval=0.0)
     alpha[keep] = 1.0
     alpha[~region & (alpha < 1e-3)] = 0.0
     return alpha.astype(np.float32)
@@ -368,7 +368,7 @@ class Planner:
             if not (filled[band].all()))
         # the cut may run just outside the window next to empty pixels, and off the canvas
         open_px = np.pad(~filled, 1, constant_values=False)
-        outside_free = ndimage.binary_dilation(open_px, structure=np.ones((3, 3), bool))
+        outside_free = scipy.ndimage.binary_dilation(open_px, structure=np.ones((3, 3), bool))
         ring_y = (y0 - 1 + np.arange(b + 2))[:, None]
         ring_x = (x0 - 1 + np.arange(b + 2))[None, :]
         h, w = canvas.shape

@@ -41,10 +41,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
-from scipy.special import erfc
+import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 from tasks.errors import InvalidParameter
 from tasks.lattice import hermite, lattice_cells, lattice_coordinates
@@ -236,10 +233,10 @@ def _cut(error: np.ndarray, origin, along, across_unit, steps: int, band: int) -
         src.append(a[ok])
         dst.append(b[ok])
         wts.append(c[ok])
-    graph = coo_matrix((np.concatenate(wts), (np.concatenate(src), np.concatenate(dst))),
-                       shape=(ids.size, ids.size)).tocsr()
+    edges = (np.concatenate(wts), (np.concatenate(src), np.concatenate(dst)))
+    graph = scipy.sparse.coo_matrix(edges, shape=(ids.size, ids.size)).tocsr()
     start, end = ids[0, band], ids[-1, band]
-    _, pred = dijkstra(graph, indices=start, return_predecessors=True)
+    _, pred = scipy.sparse.csgraph.dijkstra(graph, indices=start, return_predecessors=True)
     path = np.zeros(steps + 1, int)
     node = end
     if pred[node] < 0:
@@ -265,7 +262,7 @@ def _feather(frac: np.ndarray, cut: np.ndarray, along: np.ndarray, width: float,
     near_first = inside <= width - inside
     dist = np.where(near_first, inside, width - inside)
     other = np.where(near_first, main + 1, main - 1)
-    alpha = 0.5 * erfc((dist + 0.5) / (sigma * math.sqrt(2.0)))
+    alpha = 0.5 * scipy.special.erfc((dist + 0.5) / (sigma * math.sqrt(2.0)))
     alpha = np.where(alpha < 1e-3, 0.0, alpha)
     return main.astype(np.int64), other.astype(np.int64), alpha
 
@@ -364,7 +361,7 @@ def _optimal_vertex(img: np.ndarray, U, V, params: RollerParams
         raise ValueError(f"the sample ({shape[0]} x {shape[1]}) is too small for a tile "
                          f"spanned by {U} and {V} plus its cut bands")
     psi_u, psi_v = _overlap_error(img, U), _overlap_error(img, V)
-    score = ndimage.uniform_filter(np.where(np.isfinite(psi_u + psi_v), psi_u + psi_v, 1e30),
+    score = scipy.ndimage.uniform_filter(np.where(np.isfinite(psi_u + psi_v), psi_u + psi_v, 1e30),
                                    size=5)
     sub = score[ys.start : ys.stop, xs.start : xs.stop]
     oy, ox = np.unravel_index(int(np.argmin(sub)), sub.shape)
@@ -473,7 +470,7 @@ def _edge_distance(representative: np.ndarray, U, V, hnf) -> np.ndarray:
         other[tuple(lead)] |= step
         lead[axis] = slice(None, -1)
         other[tuple(lead)] |= step
-    dist = ndimage.distance_transform_edt(~other)
+    dist = scipy.ndimage.distance_transform_edt(~other)
     return dist[rep[:, 0] - lo[0], rep[:, 1] - lo[1]]
 
 

@@ -112,7 +112,10 @@ def test_the_cycle_finder_finds_a_cycle():  # the check above could not pass by 
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-HEAVY = ("dask", "distributed", "zarr", "xarray", "numba", "matplotlib")
+# scipy's and skimage's submodules load on first use (``scipy.ndimage.gaussian_filter``): 0.3 s
+# that every btf command, and every rerun after a fault, paid for two stages' kernels
+HEAVY = ("dask", "distributed", "zarr", "xarray", "numba", "matplotlib", "scipy.ndimage",
+         "scipy.sparse", "scipy.fft", "scipy.spatial", "scipy.special", "skimage.morphology")
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["generate", "--help"], ["bench", "--help"]])
