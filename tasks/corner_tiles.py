@@ -498,8 +498,11 @@ class _Progress:
                 self._say(f"round {round_ + 1}: every tile within the bound")
         else:
             last = round_ + 1 == self.plan.params.attempts
+            worst = max((self.plan.tiles[k].check for k in failed),
+                        key=lambda c: c.figures.worst)
             self._say(f"round {round_ + 1} of at most {self.plan.params.attempts}: "
-                      f"{n - len(failed)} of {n} tile(s) within the bound"
+                      f"{n - len(failed)} of {n} tile(s) within the bound (worst: "
+                      f"{worst.tile}, {worst.figures.worst_line()})"
                       + ("" if last else "; planning the worst borders' strips again"))
 
 

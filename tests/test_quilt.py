@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import re
 
 import numpy as np
 import pytest
@@ -764,6 +765,11 @@ def test_planning_says_how_its_rounds_go_and_a_passing_plan_is_silent(noise):
     assert lines[0].endswith(
         f"strips again ({16 * INTERIOR_ATTEMPTS} interior plan(s) so far)"), lines
     assert "round 2 of at most 2: 0 of 16 tile(s) within the bound (" in lines[1], lines
+    # each round names its worst tile, border and figure (beyond the bound)
+    for line in lines:
+        found = re.search(r"within the bound \(worst: tile (\d{4}), (row|col) \d+ "
+                          r"\((seam|structure) (\d+\.\d+)\)\)", line)
+        assert found and float(found[4]) > 1e-3, line
     lines.clear()
     plan_tiles(reference, QuiltParams(12, 3, 3, 2, (18, 18), **ANY_SEAM), seed=2,
                exemplar=exemplar, progress=lines.append)
