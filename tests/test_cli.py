@@ -59,6 +59,22 @@ def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed
     assert out.split() == ["0", "['pipeline.stages.generate']", "False"], out
 
 
+def test_a_rechunk_on_a_local_scheduler_does_not_import_distributed(tmp_path):
+    """dask's rechunk looks for a default client by importing distributed (0.17 s); a session
+    tells it the method it would choose ("tasks"). ``btf scene`` rechunks the layers it reads.
+    """
+    g, spec = tmp_path / "g.zarr", tmp_path / "scene.yaml"
+    spec.write_text(f"source: {g}\ndirections:\n  - [0, 0, 0, 0]\n  - [45, 30, 0, 0]\n")
+    code = ("import sys; from pipeline.cli import main; "
+            f"print(main(['generate', {str(g)!r}, '--material', 'wood', '--size', '24', "
+            "'--sampling', 'abtf:4,1', '--chunk', '8', '--quiet']), "
+            f"main(['scene', {str(spec)!r}, {str(tmp_path / 's.zarr')!r}, '--quiet']), "
+            "'distributed' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.split() == ["0", "0", "False"], out
+
+
 def test_console_script_is_installed():
     btf = Path(sys.executable).parent / "btf"
     out = subprocess.run([btf, "--version"], capture_output=True, text=True, check=True)
