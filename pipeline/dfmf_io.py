@@ -12,6 +12,11 @@ Export writes a compressed store as a DFMF file that Bonn's readers (btflib, ``b
 btf-extractor) open: each channel's values ``U_c S V^T`` at the channel's own rank
 (:func:`tasks.dfmf.per_channel`), in float32 (exact) or float16 (``--half``), the transform as
 its colour model. ``V`` is read once, a chunk at a time.
+
+**Rows.** A file's texel ``y * width + x`` counts its rows from the *bottom* of the picture (an
+OpenGL-style image: btf-extractor reverses them to make an image, and its images are upright
+under Bonn's directions). A store's row 0 is the top row (docs/formats.md, "The frame"), so
+store row ``y`` is file row ``height - 1 - y``, both ways (:func:`file_rows`).
 """
 
 from __future__ import annotations
@@ -95,6 +100,11 @@ def channel_u(path: str, block: ChannelBlock) -> np.ndarray:
     return values.reshape(block.rows, block.k).astype(np.float64)
 
 
+def file_rows(ys: slice, height: int) -> slice:
+    """The file's texel rows that hold store rows ``ys``, in the file's (bottom-up) order."""
+    return slice(height - ys.stop, height - ys.start)
+
+
 def _read_rows(f, block: ChannelBlock, width: int, ys: slice, xs: slice) -> np.ndarray:
     """Channel ``block``'s ``S V`` rows of texels ``ys x xs`` from an open file.
 
@@ -117,11 +127,14 @@ def sxv_tile(path: str, header: DfmfHeader, ys: slice, xs: slice, *, ones: bool 
              dtype=np.float64) -> np.ndarray:
     """The file's ``S V`` rows of a texel tile, channels side by side: ``(texels, sum k_c)``.
 
-    With ``ones`` a last column of 1 (a linear colour model's mean) is added. Only the tile's
-    bytes are read.
+    ``ys`` are store rows (top first); the texels come in the store's order, row-major from the
+    tile's top row. With ``ones`` a last column of 1 (a linear colour model's mean) is added.
+    Only the tile's bytes are read.
     """
+    rows, cols = ys.stop - ys.start, xs.stop - xs.start
     with open(path, "rb") as f:
-        parts = [_as_float(_read_rows(f, b, header.width, ys, xs), dtype)
+        parts = [_as_float(_read_rows(f, b, header.width, file_rows(ys, header.height), xs)
+                           .reshape(rows, cols, b.k)[::-1].reshape(rows * cols, b.k), dtype)
                  for b in header.channels]
     if ones:
         parts.append(np.ones((parts[0].shape[0], 1), dtype))
@@ -142,6 +155,9 @@ def _as_float(values: np.ndarray, dtype) -> np.ndarray:
 def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
                  band: int | None = None, threads: int = 2) -> np.ndarray:
     """Radiance images ``(n, height, width, channel)`` of (view, light) pairs, from the file.
+
+    The images are upright, row 0 the top row as in a store (the file's rows reversed: a view,
+    not a copy).
 
     Decoded as Bonn's readers do (:mod:`tasks.transform`'s colour models, a cosine flag
     divided out), without a store: per band of ``band`` texels (default: two bands per thread
@@ -194,7 +210,7 @@ def decode_pairs(path: str, header: DfmfHeader, pairs: list[tuple[int, int]], *,
         with (threadpool_limits(1, user_api="blas") if len(rows) >= GEMM_ROWS
               else contextlib.nullcontext()):
             _run_shared(one_band, range(0, texels, band), threads)
-    return out.reshape(len(rows), header.height, header.width, -1)
+    return out.reshape(len(rows), header.height, header.width, -1)[:, ::-1]
 
 
 @functools.cache
@@ -468,8 +484,10 @@ def _write_tile(f, tile: np.ndarray, ys: slice, xs: slice, width: int,
                 ) -> None:
     """Each channel's ``S V`` rows of one ``V`` tile, written at their offsets in the file.
 
-    A tile's rows are runs of ``x`` in the file (texel ``y * width + x``): one write per row.
+    A tile's rows are runs of ``x`` in the file (texel ``y * width + x``, rows from the
+    bottom: store row ``y`` is file row ``height - 1 - y``): one write per row.
     """
+    height = blocks[0].columns // width
     h, w, k = tile.shape
     flat = tile.reshape(-1, k).astype(np.float64)
     for block, vmap in zip(blocks, maps, strict=True):
@@ -480,5 +498,6 @@ def _write_tile(f, tile: np.ndarray, ys: slice, xs: slice, width: int,
                            "export without --half")
         rows = values.astype(dtype).reshape(h, w * block.k)
         for i, y in enumerate(range(ys.start, ys.stop)):
-            f.seek(block.sxv_offset + (y * width + xs.start) * block.k * block.scalar)
+            row = height - 1 - y
+            f.seek(block.sxv_offset + (row * width + xs.start) * block.k * block.scalar)
             f.write(rows[i].tobytes())

@@ -7,8 +7,10 @@ tile advances one step with a few vector operations, and a texel's result depend
 heights within a fixed distance: tiles rendered separately with a large enough halo agree bit for
 bit with one large render.
 
-Heights and horizontal distances are both in pixels. Coordinates: rows are ``y``, columns ``x``;
-the azimuth ``phi`` runs from +x towards +y (see :mod:`tasks.sampling`).
+Heights and horizontal distances are both in pixels. The frame is the store's (docs/formats.md,
+"The frame"): x along increasing columns, y towards the top of the picture, so +y is *decreasing*
+row index; the azimuth ``phi`` runs from +x towards +y (see :mod:`tasks.sampling`). Offsets
+below are in rows and columns.
 """
 
 from __future__ import annotations
@@ -25,7 +27,10 @@ _TOP = 1e-6  # degrees: a direction this close to the normal casts no shadow and
 
 @dataclass(frozen=True)
 class Step:
-    """One DDA step along azimuth ``phi``: row and column offsets and horizontal length."""
+    """One DDA step along azimuth ``phi``: row and column offsets and horizontal length.
+
+    ``dy`` is in rows, which run against the frame's +y.
+    """
 
     dy: float
     dx: float
@@ -34,7 +39,8 @@ class Step:
 
 def dda_step(phi_deg: float) -> Step:
     """The step along azimuth ``phi_deg`` that moves exactly one pixel along the dominant axis."""
-    cx, cy = math.cos(math.radians(phi_deg)), math.sin(math.radians(phi_deg))
+    # cy: the step's row component; +y (phi = 90) is towards row 0
+    cx, cy = math.cos(math.radians(phi_deg)), -math.sin(math.radians(phi_deg))
     major = max(abs(cx), abs(cy))
     if abs(cx) >= abs(cy):
         return Step(cy / major, math.copysign(1.0, cx), 1.0 / major)

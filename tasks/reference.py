@@ -110,9 +110,10 @@ def frankot_chellappa(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray) -> np.ndar
 
     Frankot and Chellappa (1988): with ``p = dz/dx = -nx/nz`` and ``q = dz/dy = -ny/nz``, the
     least-squares integrable surface is ``Z = (-i wx P - i wy Q) / (wx^2 + wy^2)`` (periodic
-    boundary, mean height 0).
+    boundary, mean height 0). The normals are in the store's frame, whose +y is towards row 0:
+    along rows the slope is ``-q``, and ``wy`` is the rows' frequency.
     """
-    p, q = -nx / nz, -ny / nz
+    p, q = -nx / nz, ny / nz  # q: dz per row
     h, w = p.shape
     wy = 2 * np.pi * np.fft.fftfreq(h)[:, None]
     wx = 2 * np.pi * np.fft.fftfreq(w)[None, :]

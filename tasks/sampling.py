@@ -1,7 +1,9 @@
 """Direction samplings of the hemisphere: where the lights and the cameras are.
 
 Angles are in degrees. ``theta`` is measured from the surface normal; ``phi`` is the azimuth
-measured from the image's +x axis (columns) towards its +y axis (rows). A BTF holds every
+measured from the image's +x axis (increasing columns) towards its +y axis, which points to the
+top of the picture (decreasing rows: row 0 is the top row): a right-handed frame with z the
+normal towards the viewer (docs/formats.md, "The frame"). A BTF holds every
 (view, light) combination of its sampling; an ABTF (paper 003) has one view straight above.
 
 ``dome151``

@@ -82,10 +82,14 @@ class ShadingModel:
 
 
 def normals(height: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit normals ``(nx, ny, nz)`` of a height field by central differences (float32)."""
-    gy, gx = np.gradient(height)
-    inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)
-    return (-gx * inv).astype(np.float32), (-gy * inv).astype(np.float32), inv.astype(np.float32)
+    """Unit normals ``(nx, ny, nz)`` of a height field by central differences (float32).
+
+    In the store's frame (:mod:`tasks.heightfield`): +y is towards row 0, so ``dh/dy`` is minus
+    the gradient along rows and ``ny = +dh/drow`` (before normalisation).
+    """
+    grow, gx = np.gradient(height)
+    inv = 1.0 / np.sqrt(gx * gx + grow * grow + 1.0)
+    return (-gx * inv).astype(np.float32), (grow * inv).astype(np.float32), inv.astype(np.float32)
 
 
 def _smith_g1(cosine: np.ndarray, a2: np.ndarray) -> np.ndarray:

@@ -19,7 +19,8 @@ Velinov's "Free BTF Library"), checked against files from ``tests/dfmf_files.py`
   *count* (their angles are skipped, not compared). Rows must be ``nL * nL``: nV != nL fails.
 - **Indices**: row ``view * nL + light`` (light fastest), texel ``y * W + x``: as the format.
 - **Rows flipped**: after loading it swaps S x V rows so that image row ``y`` is the file's
-  texel row ``H - 1 - y``.
+  texel row ``H - 1 - y``: the file's rows run from the bottom of the picture. btf reads them
+  the same way, so its layers and these images agree row for row.
 - **Channel order**: BGR (``img[..., 0]`` is the file's third channel).
 - **Colour models**: 0 and 11 only. Model 0: the channel sums as they are, **not clamped**.
   Model 11: ``Y = exp(c0) - 1e-5``, ``U = c1 * Y + 1e-5``, ``V = c2 * Y + 1e-5`` (btflib:
@@ -125,7 +126,7 @@ def btfx_images(path, pairs, *, threads: int | None = None) -> np.ndarray:
     Returns float32 (len(pairs), height, width, 3) exactly as ``angles_to_image`` gives them:
     rows flipped, BGR, model 11 clamped to [0, 1], model 0 unclamped (see the module doc).
     Each tuple is matched to the nearest stored key (phi in any range, at most 0.06 deg off).
-    ``to_file_order`` undoes the flip and the channel order.
+    ``as_store_layers`` turns them into a store's layers (the channel order).
     """
     return _run(path, pairs, 0, "images.npy", threads)
 
@@ -139,6 +140,10 @@ def btfx_time(path, pairs, *, repeat: int = 3, threads: int | None = None) -> fl
     return _run(path, pairs, max(1, repeat), "time.json", threads)
 
 
-def to_file_order(images: np.ndarray) -> np.ndarray:
-    """btf-extractor images (..., height, width, BGR) -> file order: row y = texel row y, RGB."""
-    return images[..., ::-1, :, ::-1]
+def as_store_layers(images: np.ndarray) -> np.ndarray:
+    """btf-extractor images (..., height, width, BGR) as a store's layers (RGB).
+
+    Its rows are already the store's: it reverses the file's texel rows, as btf's reader does
+    (docs/formats.md, "The frame"), so only the channel order changes.
+    """
+    return images[..., ::-1]

@@ -67,7 +67,8 @@ def write_dfmf(path, *, views: Sequence[tuple[float, float]],
     """Write a DFMF ``.btf`` file; return its path.
 
     ``views``/``lights``: (theta, phi) in radians, as stored. ``u[c]``: (nV * nL, k_c), light
-    index fastest; ``sxv[c]``: (width * height, k_c), texel ``y * width + x``. ``s[c]``: the
+    index fastest; ``sxv[c]``: (width * height, k_c), texel ``y * width + x`` (``y`` from the
+    bottom of the picture, as Bonn writes them; see :func:`reference_decode`). ``s[c]``: the
     k_c singular values (default: column norms of ``sxv[c]``; readers ignore them).
     ``rotations``: False, True (one identity per view) or an (n, 3, 3) array.
 
@@ -151,7 +152,9 @@ def reference_decode(u, sxv, *, color_model: int, width: int, height: int,
     """Radiance (views, lights, height, width, channels), float64, as btflib decodes it.
 
     ``c_ch = U_ch @ SxV_ch.T`` per channel, then ``undecorrelate.m``'s colour model, then, with
-    ``cosine``, a division by cos(theta_light) (``lights`` in radians, as stored).
+    ``cosine``, a division by cos(theta_light) (``lights`` in radians, as stored). The images
+    are upright: texel ``y * width + x`` of a file counts rows from the bottom (btf-extractor
+    reverses them to make its images), so the file's last texel row is the image's row 0.
     """
     n_lights = len(lights)
     vals = np.stack([np.asarray(a, np.float64) @ np.asarray(b, np.float64).T
@@ -182,4 +185,4 @@ def reference_decode(u, sxv, *, color_model: int, width: int, height: int,
     if cosine:
         theta_l = np.asarray(lights, np.float64).reshape(-1, 2)[:, 0]
         out = out / np.cos(theta_l)[None, :, None, None, None]
-    return out
+    return out[:, :, ::-1]

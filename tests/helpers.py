@@ -21,6 +21,19 @@ from pipeline.cli import main
 SLOW_PROCESSES = pytest.param("processes", marks=pytest.mark.slow)
 
 
+def facing(height, phi: float):
+    """How far each texel's surface faces azimuth ``phi`` (degrees): its slope down towards it.
+
+    In the store's frame (docs/formats.md, "The frame"): x along columns, y towards row 0, so
+    ``dh/dy`` is minus the gradient along rows. Positive where the surface tilts towards phi.
+    """
+    import numpy as np
+
+    grow, gx = np.gradient(np.asarray(height, np.float64))
+    p = np.radians(phi)
+    return -(gx * np.cos(p) - grow * np.sin(p))
+
+
 def generate_store(path: Path, *args: str) -> Path:
     code = main(["generate", str(path), "--quiet", *args])
     assert code == 0

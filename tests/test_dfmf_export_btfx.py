@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 import pytest
-from btfx import btfx_available, btfx_images, to_file_order
+from btfx import as_store_layers, btfx_available, btfx_images
 from dfmf_files import write_dfmf
 
 from pipeline.stores.base import RADIANCE
@@ -46,13 +46,20 @@ def test_a_model_11_store_exports_to_a_file_btf_extractor_decodes_alike(tmp_path
     write_dfmf(tmp_path / "a.btf", views=views, lights=views, u=u, sxv=sxv, width=w, height=h,
                color_model=11, scalar_size=4)
     assert btf("ingest", tmp_path / "a.btf", tmp_path / "a.zarr", "--quiet").code == 0
+    # the file as btf ingested it and as btf-extractor decodes it: the same images, the same
+    # way up (both reverse the file's texel rows)
+    ds = open_compressed(tmp_path / "a.zarr")
+    ingested = ds[RADIANCE].values.reshape(-1, h, w, 3)
+    theirs = as_store_layers(btfx_images(tmp_path / "a.btf", _pairs(ds)))
+    assert np.allclose(theirs, np.clip(ingested, 0, 1), atol=5e-5)
+    assert np.abs(theirs[:, ::-1] - np.clip(ingested, 0, 1)).max() > 0.05  # a flip would show
     for half, tol in ((False, 5e-5), (True, 3e-3)):  # btf-extractor's eps: up to 2.5e-5
         out = tmp_path / f"b{int(half)}.btf"
         args = ("--half",) if half else ()
         assert btf("export", tmp_path / "a.zarr", out, "--quiet", *args).code == 0
         ds = open_compressed(tmp_path / "a.zarr")
         ours = ds[RADIANCE].values.reshape(-1, h, w, 3)
-        theirs = to_file_order(btfx_images(out, _pairs(ds)))
+        theirs = as_store_layers(btfx_images(out, _pairs(ds)))
         # btf-extractor clamps to [0, 1] and writes U = c1 Y + eps (btflib: c1 (Y + eps))
         assert np.allclose(theirs, np.clip(ours, 0, 1), atol=tol), (
             half, np.abs(theirs - np.clip(ours, 0, 1)).max())
@@ -66,7 +73,7 @@ def test_a_compressed_store_exports_as_model_12_whose_sums_btf_extractor_reads(t
     assert btf("export", out, tmp_path / "c.btf", "--quiet").code == 0
     ds = open_compressed(out)
     ours = ds[RADIANCE].values
-    sums = to_file_order(btfx_images(tmp_path / "c.btf", _pairs(ds)))  # model 12: raw sums
+    sums = as_store_layers(btfx_images(tmp_path / "c.btf", _pairs(ds)))  # model 12: raw sums
     decoded = np.maximum(np.exp(sums) - 1e-5, 0).reshape(ours.shape)
     assert np.allclose(decoded, ours, rtol=1e-4, atol=1e-6 * ours.max()), (
         np.abs(decoded - ours).max(), ours.max())

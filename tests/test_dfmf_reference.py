@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 import pytest
-from btfx import btfx_available, btfx_images, btfx_time, to_file_order
+from btfx import as_store_layers, btfx_available, btfx_images, btfx_time
 from dfmf_files import (
     EPS,
     SCALAR_DTYPES,
@@ -98,7 +98,7 @@ def assert_matches_only(got, expected):
 
 
 def decode_btfx(path):
-    got = to_file_order(btfx_images(path, PAIRS))
+    got = as_store_layers(btfx_images(path, PAIRS))
     return got.reshape(len(VIEWS), len(LIGHTS), H, W, 3).astype(np.float64)
 
 

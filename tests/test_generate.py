@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import SLOW_PROCESSES, generate_store, no_partial_outputs
+from helpers import SLOW_PROCESSES, facing, generate_store, no_partial_outputs
 from pipeline.images import write_exr, write_png
 from pipeline.session import RuntimeOptions, Session
 from pipeline.stages.generate import GenerateParams, generate
@@ -107,16 +107,16 @@ def test_highlights_move_with_the_light_in_stored_layers(small_abtf):
     # Top view, light near the normal: the brightest texels are those facing the light
     # (ground truth: the stored height), and they move when the light turns.
     ds = open_radiance(small_abtf)
-    gy, gx = np.gradient(ds["height"].values)
+    height = ds["height"].values
     theta, phi = ds["theta_light"].values, ds["phi_light"].values
     tops = {}
     for i in np.flatnonzero(theta == theta.min()):
         layer = ds[RADIANCE].values[0, i].sum(axis=-1)
         top = layer > np.percentile(layer, 97)
-        facing = -(gx * np.cos(np.radians(phi[i])) + gy * np.sin(np.radians(phi[i])))
-        assert np.mean(facing[top] > 0) > 0.85
+        assert np.mean(facing(height, phi[i])[top] > 0) > 0.85
         tops[round(phi[i])] = top
     assert np.mean(tops[0] & tops[180]) < 0.25 * np.mean(tops[0])
+    assert np.mean(tops[60] & tops[300]) < 0.5 * np.mean(tops[60])  # mirror images in y
 
 
 def test_existing_output_is_kept_unless_overwrite(tmp_path, btf):

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from helpers import facing
 from tasks.heightfield import (
     Step,
     bilinear,
@@ -107,7 +108,8 @@ def test_parallax_of_a_flat_plane_is_the_analytic_offset(level):
                                reference=reference)
         shift = (level - reference) * math.tan(math.radians(theta))
         assert np.allclose(ox, shift * math.cos(math.radians(phi)), atol=1e-4)
-        assert np.allclose(oy, shift * math.sin(math.radians(phi)), atol=1e-4)
+        # rows run against the frame's +y
+        assert np.allclose(oy, -shift * math.sin(math.radians(phi)), atol=1e-4)
 
 
 def test_a_raised_square_appears_displaced_away_from_an_oblique_camera():
@@ -126,11 +128,14 @@ def test_a_raised_square_appears_displaced_away_from_an_oblique_camera():
     fields = Fields.stack(np.pad(height, pad), np.pad(albedo, (*pad, (0, 0)), mode="edge"),
                           0.9, 0.02)
     shift = (relief - model.reference) * math.tan(math.radians(theta))
-    for phi, axis in ((0.0, 1), (90.0, 0)):
+    # phi = 0: the camera is towards +x (higher columns), the square moves to lower columns;
+    # phi = 90: it is towards +y, the top of the picture (row 0), the square moves down
+    for phi, axis, sign in ((0.0, 1, 1), (90.0, 0, -1)):
         out = _render(fields, halo, model, theta, phi, 0, 0)[0, 0, ..., 0]
         bright = np.nonzero(out > 0.3)
-        far_edge = bright[axis].min()  # the camera is on the + side of this axis
-        assert abs(far_edge - (16 - shift)) <= 1.0, (far_edge, 16 - shift)
+        far_edge = bright[axis].min() if sign > 0 else bright[axis].max()
+        expected = 16 - shift if sign > 0 else 31 + shift
+        assert abs(far_edge - expected) <= 1.0, (phi, far_edge, expected)
         across = bright[1 - axis]
         assert across.min() == 16 and across.max() == 31  # no shift across the view plane
 
@@ -183,13 +188,11 @@ def test_highlights_move_with_the_light_azimuth():
     m = Material("leather", seed=2)
     model = ShadingModel(relief=m.relief, shadows=False)
     f = m.fields(-2, -2, 68, 68)
-    gy, gx = np.gradient(f.height)
     tops = {}
     for phi in (0.0, 90.0, 180.0, 270.0):
         layer = _render(f, 2, model, 0, 0, 20, phi)[0, 0].sum(axis=-1)
         top = layer > np.percentile(layer, 98)
-        rise = -(gx[2:-2, 2:-2] * math.cos(math.radians(phi))
-                 + gy[2:-2, 2:-2] * math.sin(math.radians(phi)))  # slope facing the light
+        rise = facing(f.height, phi)[2:-2, 2:-2]  # slope facing the light
         assert abs(rise.mean()) < 0.05
         assert rise[top].mean() > 0.1
         assert np.mean(rise[top] > 0) > 0.9
