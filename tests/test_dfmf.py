@@ -372,13 +372,16 @@ def test_inspect_quilt_and_enlarge_take_an_ingested_file(tmp_path, btf):
     # the enlarged store keeps the sample's colour model, and meets its photo
     assert btf("reconstruct", tmp_path / "m.zarr", tmp_path / "photo.zarr", "--view", "0",
                "--light", "1", "--quiet").code == 0
-    assert btf("crop", tmp_path / "m.zarr", tmp_path / "s.zarr", "--region", "0:32,0:32",
-               "--quiet").code != 0  # crop takes radiance stores: the sample comes from a file
-    # the file's first 32 texel rows: the picture's bottom half (rows 32:64 of the store)
+    # the sample: the file's first 32 texel rows, the picture's bottom half (rows 32:64 of
+    # the store), once cut from the ingested store and once written as a file of its own
+    assert btf("crop", tmp_path / "m.zarr", tmp_path / "c.zarr", "--region", "32:64,0:32",
+               "--quiet").code == 0
     small = [c.reshape(side, side, -1)[:32, :32].reshape(32 * 32, -1) for c in sxv]
     write_dfmf(tmp_path / "s.btf", views=views, lights=lights, u=u, sxv=small, width=32,
                height=32, color_model=11)
     assert btf("ingest", tmp_path / "s.btf", tmp_path / "s.zarr", "--quiet").code == 0
+    cut, own = (open_compressed(tmp_path / n)[RADIANCE].values for n in ("c.zarr", "s.zarr"))
+    assert np.allclose(cut, own, rtol=1e-4, atol=1e-6 * own.max())
     r = btf("enlarge", tmp_path / "s.zarr", tmp_path / "photo.zarr", tmp_path / "e.zarr",
             "--sample-origin", "32,0", "--levels", "2", "--patch", "5", "--quiet")
     assert r.code == 0, r.err

@@ -78,8 +78,9 @@ SCRATCH_LAYOUT = "s-y-x"
 class CompressParams:
     """Parameters of ``btf compress``."""
 
-    store: str = option(help="radiance store to compress", positional=True, path="in",
-                        metavar="IN")
+    store: str = option(help="radiance store to compress, or a compressed store to bring to a "
+                             "lower --rank (its factors truncated, or re-factored exactly)",
+                        positional=True, path="in", metavar="IN")
     out: str = option(help="output compressed store (a .zarr directory)", positional=True,
                       path="out")
     rank: int = option(help="components to keep (K)", metavar="K")
@@ -336,9 +337,102 @@ def _say_plan(params: CompressParams, session: Session, m: int, n: int, side: st
                 f"{memory['task'] / 2**30:.2f} GiB)")
 
 
+def _factor_attrs(params: CompressParams, source: dict) -> dict:
+    """The attrs of a compressed store made from a compressed one: its transform kept."""
+    attrs = {key: source[key] for key in ("source_btf_kind", "source_shape", "transform",
+                                          "dfmf", "source_sampling", "source_material")
+             if key in source}
+    return {**attrs, "source": "compress", "source_store": params.store,
+            "provenance": provenance("compress", params)}
+
+
+def _combined_error(source: dict, norm: float, part: float) -> dict:
+    """The new store's error: the dropped share, and the source's error carried along."""
+    out = {"frobenius_norm": norm, "dropped_relative_frobenius": part,
+           "of_source": source or None}
+    if source and "log_relative_frobenius" in source and source.get("frobenius_norm"):
+        # relative to the matrix the source was compressed from; the truncation's share is
+        # orthogonal to the source's own error for an exact SVD (Eckart-Young), so they add
+        # in quadrature (an estimate for a randomized one)
+        scale = norm / float(source["frobenius_norm"])
+        out["log_relative_frobenius"] = math.hypot(float(source["log_relative_frobenius"]),
+                                                   part * scale)
+        out["log_relative_frobenius_note"] = (
+            "the source's error and this truncation's, added in quadrature")
+    return out
+
+
+def compress_factors(params: CompressParams, group, session: Session) -> Path:
+    """``btf compress`` of a compressed store: its first components, as an exact SVD.
+
+    If ``U`` and ``V`` are orthonormal and ``S`` sorted (what ``btf compress`` and ``btf
+    ingest FILE.btf`` write), the stored factors are an SVD already: the first ``--rank``
+    components are the best approximation of that rank of the stored values, and are copied
+    (truncation). Otherwise (an enlarged or cropped store, a store edited by hand) they are
+    re-factored exactly first (:mod:`pipeline.graphs.factors`). One read of ``V`` either way,
+    and one more to write the new ``V``.
+    """
+    import dask.array as da
+    import zarr
+
+    from pipeline.graphs.blocks import store_aligned
+    from pipeline.graphs.factors import dropped, gram, is_svd, mapped_v
+    from pipeline.stores.compressed import check_compressed, create_compressed_store
+    from tasks.dfmf import svd_map
+
+    check_compressed(group, params.store)
+    nv, nl, nc, k = group["U"].shape
+    ny, nx = group["V"].shape[:2]
+    name = group.attrs["transform"].get("name", "log")
+    if params.rank > k:
+        raise BTFError(f"{params.store}: --rank {params.rank} is more than the {k} components "
+                       "this compressed store holds: its factors can only lose components "
+                       "(compress the radiance it came from for more)")
+    u = np.asarray(group["U"][...], np.float64).reshape(-1, k)
+    s = np.asarray(group["S"][...], np.float64)
+    v = da.from_zarr(zarr.open_array(storage.store(location(params.store)), path="V",
+                                     mode="r"))
+    session.log(f"compress: {params.store} is a compressed store (rank {k}, transform "
+                f"{name}): its factors are used as they are; --eps, --clamp, --passes, "
+                "--sketch, --power-iters, --oversample and --verify apply to radiance stores")
+    g_v = gram(v, np.ones(k), session)
+    if is_svd(u, s, g_v):
+        how = "truncated (the stored U and V are orthonormal: an SVD already)"
+        s_all, new_u, new_v = s, u[:, :params.rank], v[..., :params.rank]
+    else:
+        s_all_u, s_all, vmap = svd_map(u, g_v * np.outer(s, s))
+        how = (f"re-factored exactly (QR of U, Gram matrix of V: {len(s_all)} components) and "
+               "truncated")
+        new_u = s_all_u[:, :params.rank]
+        new_v = mapped_v(v, s[:, None] * vmap[:, :params.rank])
+    rank = min(params.rank, len(s_all))
+    norm = float(np.sqrt(np.sum(s_all**2)))
+    part = dropped(s_all, rank)
+    source = dict(group.attrs)
+    attrs = _factor_attrs(params, source)
+    attrs.update({"svd": {"rank": rank, "method": f"{how} from {params.store} (rank {k})"},
+                  "error": _combined_error(source.get("error") or {}, norm, part)})
+    chunk, dir_chunk = group["V"].chunks[0], group["U"].chunks[1]
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        out = create_compressed_store(tmp, directions=read_directions(group),
+                                      channels=read_channels(group), ny=ny, nx=nx, rank=rank,
+                                      chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
+        out["U"][...] = new_u[:, :rank].reshape(nv, nl, nc, rank).astype(np.float32)
+        out["S"][...] = s_all[:rank].astype(np.float32)
+        session.compute(store_aligned([new_v[..., :rank].astype(np.float32)], [out["V"]]))
+    session.log(f"compress: rank {k} -> {rank}, {how}: the dropped components hold "
+                f"{part:.4g} of the stored values' Frobenius norm")
+    return Path(params.out)
+
+
 def compress(params: CompressParams, session: Session) -> Path:
     """Compress the store of ``params`` into U, S, V; returns the output path."""
+    from pipeline.stores.compressed import NAME as COMPRESSED
+
     group = open_group(params.store)  # zarr metadata only: no xarray needed here
+    if group.attrs.get("btf_kind") == COMPRESSED:
+        return compress_factors(params, group, session)
     check_radiance(group, params.store)
     shape = tuple(group[RADIANCE].shape)
     nv, nl, ny, nx, nc = shape
@@ -407,6 +501,20 @@ def _estimate(params: CompressParams, shapes: dict, *,
     """``btf run --plan``'s estimate, with the other mode (one pass or several) beside it."""
     src = shapes[params.store]
     nv, nl, ny, nx, nc = src.radiance
+    if src.kind == "compressed":  # its factors: V read twice, U held, V written
+        k, rank = src.rank or params.rank, min(params.rank, src.rank or params.rank)
+        v_bytes, u_bytes = ny * nx * k * 4, nv * nl * nc * k * 8
+        per_core, source = rate("compress_bytes_per_core_second")
+        plan = StageEstimate("compress", "", bytes_read=2 * v_bytes + u_bytes // 2,
+                             bytes_written=(nv * nl * nc + ny * nx + 1) * rank * 4,
+                             tasks=2 * max(1, math.ceil(ny / src.chunk) * math.ceil(
+                                 nx / src.chunk)), passes=2, input_reads=2,
+                             task_bytes=2 * src.chunk**2 * k * 8, client_bytes=3 * u_bytes,
+                             core_seconds=2 * v_bytes / per_core, rate_source=source,
+                             option="--rank",
+                             note="a compressed store: its factors truncated or re-factored")
+        return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=rank,
+                           unit=src.chunk)
     m, n = nv * nl * nc, ny * nx
     extra = min(params.extra, min(m, n) - params.rank)
     side = params.side(m, n)
@@ -472,7 +580,11 @@ STAGE = Stage("compress", CompressParams, compress,
               "sketch kept in a scratch array that is removed at the end). The relative error "
               "comes from an exact identity (or, for one pass, an error sketch); --verify adds "
               "a pass for the average ABRDF RMSE in linear radiance. Memory: a few blocks and "
-              "sketches; with --sketch rows or --passes 1 nothing grows with the texels.",
+              "sketches; with --sketch rows or --passes 1 nothing grows with the texels. "
+              "A compressed store (btf compress, btf ingest FILE.btf, btf enlarge) is brought "
+              "to a lower --rank from its factors, keeping its transform: truncated if its U "
+              "and V are orthonormal (an SVD already), else re-factored exactly first; the log "
+              "says which and the share of the values dropped.",
               makes_store=True,
               estimate=_estimate, whole="the SVD needs every layer and texel",
               directions=same_directions)

@@ -1,11 +1,12 @@
-"""``btf crop``: a region, and optionally some layers, of a radiance store, as a new store.
+"""``btf crop``: a region, and optionally some layers, of a store, as a new store.
 
 A generic cut: a sample of a measurement, the constraint photos of an enlargement, a
 ground-truth region for evaluation. The selection is made on the lazy Dataset
 (:func:`pipeline.stores.radiance.open_radiance`) and written block by block in the output's
 task blocks, so memory is bounded by a few blocks whatever the sizes. Ground-truth fields of a
 generated store (``height``, ``albedo``, ...) are cropped along. The output records where it
-came from (``cropped_from``) and its provenance.
+came from (``cropped_from``) and its provenance. A compressed store is cut in its factors and
+re-factored exactly into a compressed store (nothing is expanded to radiance).
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store, 
 class CropParams:
     """Parameters of ``btf crop``."""
 
-    store: str = option(help="radiance store to cut from", positional=True, path="in",
-                        metavar="IN")
-    out: str = option(help="output radiance store (a .zarr directory)", positional=True,
-                      path="out")
+    store: str = option(help="radiance or compressed store to cut from", positional=True,
+                        path="in", metavar="IN")
+    out: str = option(help="output store (a .zarr directory) of the input's kind",
+                      positional=True, path="out")
     region: str | None = option(None, metavar="Y0:Y1,X0:X1",
                                 help="texel region, ends exclusive (default: all texels)")
     light: tuple[int, ...] | None = option(None, metavar="I,..", repeatable=True,
@@ -51,10 +52,79 @@ class CropParams:
         Layout(chunk=self.chunk or 128, dir_chunk=self.dir_chunk or 16)
 
 
+def _crop_factors(params: CropParams, group, session: Session) -> Path:
+    """A part of a compressed store as a compressed store: an exact SVD of the part.
+
+    The selected rows of ``U`` and the region of ``V`` are re-factored exactly
+    (:mod:`pipeline.graphs.factors`): nothing is expanded to radiance, and the result is a
+    compressed store like any other (orthonormal ``U`` and ``V``, decreasing ``S``, at most
+    the source's rank), with the source's transform.
+    """
+    import dask.array as da
+    import numpy as np
+    import zarr
+
+    from pipeline import storage
+    from pipeline.graphs.factors import gram, mapped_v
+    from pipeline.stores.base import location, read_directions
+    from pipeline.stores.compressed import check_compressed, create_compressed_store
+    from tasks.dfmf import svd_map
+
+    check_compressed(group, params.store)
+    nv, nl, nc, k = group["U"].shape
+    ny, nx = group["V"].shape[:2]
+    views = layer_indices(params.view, nv, "view", params.store)
+    lights = layer_indices(params.light, nl, "light", params.store)
+    ys, xs = slice(0, ny), slice(0, nx)
+    if params.region is not None:
+        ys, xs = parse_region(params.region)
+        if ys.stop > ny or xs.stop > nx:
+            raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
+                           f"{ny} x {nx} texels of the store")
+    d = read_directions(group).select(views, lights)
+    u = np.asarray(group["U"][...], np.float64)[np.ix_(views, lights)].reshape(-1, k)
+    s = np.asarray(group["S"][...], np.float64)
+    chunk = params.chunk or group["V"].chunks[0]
+    v = da.from_zarr(zarr.open_array(storage.store(location(params.store)), path="V",
+                                     mode="r"))[ys, xs].rechunk((chunk, chunk, k))
+    h, w = ys.stop - ys.start, xs.stop - xs.start
+    session.log(f"crop: {d.views} x {d.lights} layers of {h} x {w} texels at ({ys.start}, "
+                f"{xs.start}) of a compressed store (rank {k}): its factors, re-factored "
+                f"exactly -> {params.out}")
+    new_u, new_s, vmap = svd_map(u, gram(v, s, session))
+    rank = len(new_s)
+    attrs = {key: group.attrs[key] for key in ("source_btf_kind", "transform", "dfmf",
+                                               "source_sampling", "source_material")
+             if key in group.attrs}
+    attrs.update({
+        "source": "crop", "provenance": provenance("crop", params),
+        "source_shape": [d.views, d.lights, h, w, nc],
+        "cropped_from": {"store": params.store, "y": [ys.start, ys.stop],
+                         "x": [xs.start, xs.stop], "views": views, "lights": lights},
+        "svd": {"rank": rank, "method": f"exact re-factorisation of the selected rows of U "
+                                        f"and region of V of {params.store} (rank {k})"},
+        "error": {"frobenius_norm": float(np.sqrt(np.sum(new_s**2))),
+                  "dropped_relative_frobenius": 0.0,
+                  "of_source": group.attrs.get("error")}})
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        out = create_compressed_store(
+            tmp, directions=d, channels=read_channels(group), ny=h, nx=w, rank=rank,
+            chunk=chunk, dir_chunk=params.dir_chunk or group["U"].chunks[1], attrs=attrs)
+        out["U"][...] = new_u.reshape(d.views, d.lights, nc, rank).astype(np.float32)
+        out["S"][...] = new_s.astype(np.float32)
+        session.compute(store_aligned([mapped_v(v, s[:, None] * vmap)], [out["V"]]))
+    return Path(params.out)
+
+
 def crop(params: CropParams, session: Session) -> Path:
-    """Write the requested part of a radiance store as a new radiance store."""
-    ds = open_radiance(params.store)
+    """Write the requested part of a store as a new store of its kind (radiance or factors)."""
+    from pipeline.stores.compressed import NAME as COMPRESSED
+
     group = open_group(params.store)
+    if group.attrs.get("btf_kind") == COMPRESSED:
+        return _crop_factors(params, group, session)
+    ds = open_radiance(params.store)
     rad = ds[RADIANCE]
     views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
     lights = layer_indices(params.light, rad.sizes["light"], "light", params.store)
@@ -106,6 +176,18 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
         ny, nx = ys.stop - ys.start, xs.stop - xs.start
     nv = len(set(params.view)) if params.view else nv
     nl = len(set(params.light)) if params.light else nl
+    if src.kind == "compressed":  # the factors: V's region read twice, the new V written
+        k, chunk = src.rank or 1, params.chunk or src.chunk
+        v_bytes = ny * nx * k * 4
+        per_core, source = rate("compress_bytes_per_core_second")
+        plan = StageEstimate("crop", "", bytes_read=2 * v_bytes, bytes_written=v_bytes,
+                             tasks=2 * max(1, (ny // chunk) * (nx // chunk)), passes=2,
+                             input_reads=2, task_bytes=2 * chunk * chunk * k * 8,
+                             client_bytes=3 * nv * nl * nc * k * 8,
+                             core_seconds=2 * v_bytes / per_core, rate_source=source,
+                             option="--chunk", note="a compressed store: its factors")
+        return plan, Shape("compressed", (nv, nl, ny, nx, nc), chunk, src.dir_chunk, rank=k,
+                           unit=chunk)
     size = nv * nl * ny * nx * nc * 4
     truth = ny * nx * 6 * 4 if src.truth else 0  # height, albedo (3), roughness, specular
     chunk = params.chunk or src.chunk
@@ -122,11 +204,13 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
 
 
 STAGE = Stage("crop", CropParams, crop,
-              "cut a region and some layers of a radiance store into a new store",
+              "cut a region and some layers of a store into a new store",
               "Write a texel region (--region Y0:Y1,X0:X1) and optionally some lights "
               "(--light) and views (--view) of a radiance store as a new radiance store, "
               "streamed block by block; ground-truth fields of a generated store are cut "
-              "along. For samples, constraint photos and ground-truth regions.",
+              "along. For samples, constraint photos and ground-truth regions. A compressed "
+              "store (btf compress, btf ingest FILE.btf) is cut in its factors, re-factored "
+              "exactly into a compressed store: nothing is expanded to radiance.",
               makes_store=True,
               estimate=_estimate, whole="cuts what its own region, light and view say",
               directions=selected_directions)

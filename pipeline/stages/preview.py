@@ -15,8 +15,8 @@ from pipeline.graphs.thumbnails import thumbnail
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
+from pipeline.stores import open_layers
 from pipeline.stores.base import Directions
-from pipeline.stores.radiance import open_radiance
 from tasks.sampling import spread_pairs
 from tasks.tonemap import exposure, tonemap
 
@@ -25,7 +25,8 @@ from tasks.tonemap import exposure, tonemap
 class PreviewParams:
     """Parameters of ``btf preview``."""
 
-    store: str = option(help="radiance store to preview", positional=True, path="in")
+    store: str = option(help="radiance or compressed store to preview", positional=True,
+                        path="in")
     out: str = option(help="PNG file for the contact sheet", positional=True, path="out")
     count: int = option(12, help="number of layers on the sheet, spread over the directions")
     size: int = option(256, help="largest side of each thumbnail in pixels")
@@ -44,7 +45,7 @@ def preview(params: PreviewParams, session: Session) -> Path:
     import dask.array as da
     from matplotlib.figure import Figure
 
-    ds = open_radiance(params.store)
+    ds = open_layers(params.store)  # a compressed store's layers are rebuilt from U, S, V
     d = Directions.of(ds)
     layers = spread_pairs(d.theta_view, d.phi_view, d.theta_light, d.phi_light, params.count)
     thumbs = da.stack([thumbnail(ds, v, li, params.size) for v, li in layers])
@@ -78,4 +79,5 @@ def preview(params: PreviewParams, session: Session) -> Path:
 STAGE = Stage("preview", PreviewParams, preview,
               "draw a contact sheet of a spread of directions",
               "Draw a contact sheet of layers spread over the directions (farthest-point "
-              "sampling), labelled with their angles, all with one exposure.")
+              "sampling), labelled with their angles, all with one exposure; a compressed "
+              "store's layers are rebuilt from its factors (only those shown).")

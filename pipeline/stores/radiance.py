@@ -126,10 +126,25 @@ def create_radiance_store(path: str | Path, *, directions: Directions, ny: int, 
     return group
 
 
+# What to run first where a stage needs radiance layers and is given another kind of store.
+FIRST = {
+    "compressed": "rebuild the layers this stage needs first, e.g. btf reconstruct STORE "
+                  "OUT.zarr --light I,.. --view J,.. (--region, --rank)",
+    "tileset": "render the surface first (btf render TILES OUT.exr) or use the sample it was "
+               "quilted from",
+    "compressed-tileset": "render the surface first (btf render TILES OUT.exr) or use the "
+                          "sample it was quilted from",
+    "surface": "a rendered surface holds one layer: use the store it was rendered from",
+}
+
+
 def check_radiance(group, path: str | Path) -> None:
     """Raise :class:`BTFError` naming what is wrong if ``group`` is not a radiance store."""
     names = sorted(group.array_keys())
     if RADIANCE not in names:
+        kind = group.attrs.get("btf_kind")
+        if kind in FIRST:
+            raise BTFError(f"{path}: a {kind} store, not radiance layers: {FIRST[kind]}")
         raise BTFError(f"{path}: no variable {RADIANCE!r} (found: {', '.join(names) or 'none'})")
     rad = group[RADIANCE]
     dims = tuple(rad.metadata.dimension_names or ())
