@@ -299,13 +299,21 @@ def _joint_u(params, src: str, header: DfmfHeader) -> tuple[np.ndarray, bool]:
 
 
 def _log_file(session: Session, header: DfmfHeader, out: str) -> None:
-    """Log the file's sampling, size, channels, components and colour model."""
+    """Log the file's sampling, size, channels, components and colour model, and its reading.
+
+    The colour line says what ingest makes of the model
+    (:func:`pipeline.source_formats.dfmf_colour_note`).
+    """
+    from pipeline.source_formats import dfmf_colour_note
+
     ks = [b.k for b in header.channels]
     session.log(f"ingest: Bonn DFMF file, {len(header.theta_view)} views x "
                 f"{len(header.theta_light)} lights, {header.height} x "
                 f"{header.width} texels, channels {','.join(header.channel_names)} with "
                 f"{'+'.join(map(str, ks))} components ({header.channels[0].dtype.name}), "
                 f"colour model {header.colour_model} -> {out}")
+    session.log("ingest: colour: " + dfmf_colour_note(header.colour_model,
+                                                      cosine=header.cosine))
 
 
 def _ingest_attrs(params, header: DfmfHeader, directions: Directions) -> dict:
@@ -454,6 +462,9 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
     session.log(f"export: {d.views} views x {d.lights} lights, {ny} x {nx} texels as a DFMF "
                 f"file, colour model {model} ({transform.name}), components "
                 f"{'+'.join(map(str, ks))}, {'float16' if half else 'float32'} -> {out}")
+    from pipeline.source_formats import dfmf_readers_note
+
+    session.log(f"export: readers: {dfmf_readers_note(model)}")
     if transform.name != "linear" and transform.eps != DFMF_EPS:
         session.log(f"export: note: the store's eps is {transform.eps:g}, Bonn's readers "
                     f"subtract {DFMF_EPS:g}: every decoded value is "

@@ -38,16 +38,17 @@ from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.images import ImageInfo
-from pipeline.layer_sources import XYZ_MODES, LayerSource, folder_source
+from pipeline.layer_sources import XYZ_MODES, LayerSource
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
+from pipeline.source_formats import colour_note, open_layers
 from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import Layout, create_radiance_store
 from tasks.colour import DECODINGS
-from tasks.container_formats import ATRIUM_ROWS, BIG_MAGIC
+from tasks.container_formats import ATRIUM_ROWS
 
 STAGING = "_staging"  # scratch array inside the partial store, removed before it is published
 
@@ -102,34 +103,9 @@ class IngestParams:
 
 
 def open_source(params: IngestParams) -> LayerSource:
-    """The layers of ``params.src``, its format found from the folder or the file's first bytes.
-
-    Raises
-    ------
-    BTFError
-        SRC missing, or a file that is neither a zip archive nor a BIG file (by content or by
-        its suffix), or whatever the format's reader refuses.
-    """
-    from pipeline.archive_sources import ZIP_MAGICS, big_source, zip_source
-
-    src = Path(params.src)
-    if src.is_dir():
-        return folder_source(src, params.manifest, decode=params.decoding(), xyz=params.xyz)
-    if not src.is_file():
-        raise BTFError(f"{src}: no such folder or file")
-    if params.manifest is not None:
-        raise BTFError(f"{src}: --manifest is for folders of images; an archive's directions "
-                       "come from its member names or its list of directions")
-    with src.open("rb") as f:
-        magic = f.read(8)
-    decode = params.decoding()
-    if magic.startswith(ZIP_MAGICS) or src.suffix.lower() == ".zip":
-        return zip_source(src, decode="srgb" if decode == "auto" else decode,
-                          hdr_rows=params.hdr_rows)
-    if magic == BIG_MAGIC or src.suffix.lower() == ".big":
-        return big_source(src, xyz=params.xyz)
-    raise BTFError(f"{src}: not a folder of images, a zip archive (UBO2003/ATRIUM), a BIG file "
-                   "(UTIA) or a .btf file (Bonn DFMF)")
+    """The layers of ``params.src`` (:func:`pipeline.source_formats.open_layers`)."""
+    return open_layers(params.src, manifest=params.manifest, decode=params.decoding(),
+                       xyz=params.xyz, hdr_rows=params.hdr_rows)
 
 
 def _task_key(key):
@@ -247,6 +223,7 @@ def ingest(params: IngestParams, session: Session) -> Path:
         session.log(f"ingest: {directions.views} x {directions.lights} layers of "
                     f"{info.height} x {info.width} texels ({','.join(info.channels)}) -> "
                     f"{params.out}")
+        session.log(f"ingest: colour: {colour_note(source, xyz=params.xyz)}")
         if progress.count():
             session.log(f"ingest: resuming: {progress.count()} images and blocks already "
                         "written")
