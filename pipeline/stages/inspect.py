@@ -1,5 +1,8 @@
 """``btf inspect``: what a store holds, from its metadata; its values only when asked.
 
+Given a measured source (a ``.btf``, ``.zip`` or ``.big`` file, a folder of images) rather
+than a store, it describes that from its headers (:mod:`pipeline.source_report`).
+
 By default only metadata is read (array shapes, chunking, codecs, attrs, bytes on disk from the
 file listing, and the small direction coordinates). ``--scan`` reads every data variable block
 by block (:func:`pipeline.graphs.reductions.statistics`), ``--plot`` draws the direction
@@ -36,7 +39,10 @@ from pipeline.stores.levels import levels_of
 class InspectParams:
     """Parameters of ``btf inspect``."""
 
-    store: str = option(help="zarr store to describe", positional=True, path="in")
+    store: str = option(help="zarr store to describe, or a measured source to look at before "
+                             "ingesting it: a Bonn .btf (DFMF) file, a UBO2003/ATRIUM .zip, a "
+                             "folder of EXR/PNG images (UTIA's too) or a UTIA .big file",
+                        positional=True, path="in")
     json: bool = option(False, help="print one JSON object instead of text")
     scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
                                     "and negative counts per variable; every chunk's checksum "
@@ -230,25 +236,86 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def is_source(path: str | Path) -> bool:
+    """Whether ``path`` names a measured source (a file, a folder of images), not a store.
+
+    A folder with ``zarr.json`` (or zarr v2's ``.zgroup``) is a store; a folder is a source
+    when it or its subfolders hold EXR/PNG images or a manifest; a missing path is a store
+    when named ``*.zarr`` or a URL, else a source.
+    """
+    from pipeline import storage
+    from pipeline.images import IMAGE_SUFFIXES
+    from pipeline.layer_files import MANIFEST
+
+    if storage.is_url(str(path)):
+        return False
+    path = Path(path)
+    if path.is_file():
+        return True
+    if not path.is_dir():
+        return path.suffix.lower() != ".zarr"
+    if (path / storage.ROOT).exists() or (path / ".zgroup").exists():
+        return False
+    folders = [path, *(d for d in path.iterdir() if d.is_dir())]
+    return (path / MANIFEST).is_file() or any(
+        f.suffix.lower() in IMAGE_SUFFIXES for d in folders for f in d.iterdir())
+
+
+def _inspect_source(params: InspectParams) -> dict[str, Any]:
+    """Describe a measured source (``btf inspect FILE.btf|ARCHIVE.zip|FOLDER|FILE.big``)."""
+    from pipeline.source_report import describe_source, format_source
+
+    for flag in ("scan", "plot"):
+        if getattr(params, flag):
+            raise BTFError(f"{params.store}: --{flag} reads a store; a measured source is "
+                           f"described from its headers (ingest it first: btf ingest "
+                           f"{params.store} OUT.zarr)")
+    report = describe_source(params.store)
+    _print(params, report, format_source)
+    return report
+
+
+def _print(params: InspectParams, report: dict[str, Any], text) -> None:
+    """Print ``report`` as JSON or as ``text(report)``; write it to ``--report``."""
+    dumped = json.dumps(report, indent=2, default=str)
+    if params.report:
+        with atomic_output(params.report, directory=False, overwrite=True) as tmp:
+            tmp.write_text(dumped + "\n")
+    print(dumped if params.json else text(report), file=sys.stdout, flush=True)
+
+
 def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
-    """Describe a store; print the report (text or JSON) and write the optional files."""
-    report = describe(params.store)
+    """Describe a store or a measured source; print the report (text or JSON), write files."""
+    if is_source(params.store):
+        return _inspect_source(params)
+    try:
+        report = describe(params.store)
+    except BTFError as exc:
+        if Path(params.store).is_dir() and not any(
+                (Path(params.store) / name).exists() for name in ("zarr.json", ".zgroup")):
+            raise BTFError(f"{exc}; nor a measured source (no .exr or .png images or "
+                           "manifest.csv in it or its subfolders)") from None
+        raise
     if params.scan:
         report["scan"] = scan(params.store, session)
     if params.plot:
         if not set(DIRECTION_COORDS) <= set(open_group(params.store).array_keys()):
             raise BTFError(f"{params.store}: no direction coordinates to plot")  # not a BTF
         plot_sampling(params.store, params.plot)
-    text = json.dumps(report, indent=2, default=str)
-    if params.report:
-        with atomic_output(params.report, directory=False, overwrite=True) as tmp:
-            tmp.write_text(text + "\n")
-    print(text if params.json else format_report(report), file=sys.stdout, flush=True)
+    _print(params, report, format_report)
     return report
 
 
 STAGE = Stage("inspect", InspectParams, inspect,
-              "describe a store (metadata; --scan reads the data)",
+              "describe a store (metadata; --scan reads the data) or a source before ingest",
               "Describe a store from its metadata: kind, variables, dims, dtypes, chunks, "
-              "codecs, bytes in memory and on disk, direction sampling and provenance. --scan "
-              "reads the data chunk by chunk for min/max/mean and NaN/Inf/negative counts.")
+              "codecs, bytes in memory and on disk, direction sampling and provenance (and for "
+              "a store ingested from a .btf file its colour model and the file's header). "
+              "--scan reads the data chunk by chunk for min/max/mean and NaN/Inf/negative "
+              "counts. Given a measured source instead (FILE.btf, ARCHIVE.zip, FOLDER of "
+              "images, FILE.big), describe it without ingesting it, from its headers and names "
+              "only: format, file size, texels, channels, directions (views x lights, the "
+              "sampling named when it is ubo2014's or ubo2003's), for a .btf file its colour "
+              "model, components, scalar type, cosine flag and descriptive header, the colour "
+              "reading btf ingest would apply (and the option that changes it) and the store "
+              "it would make, with its size. See docs/formats.md.")

@@ -42,7 +42,7 @@ from pipeline.stores.base import (
     sampling_summary,
 )
 from tasks.svd import reconstruct_layers
-from tasks.transform import Transform
+from tasks.transform import DFMF_MODELS, Transform
 
 NAME = "compressed"
 FACTOR_DIMS = {"U": ("view", "light", "channel", "component"), "S": ("component",),
@@ -163,6 +163,8 @@ def _summary(group) -> dict[str, Any]:
             "ratio": original / factors if factors else None,
             "ratio_on_disk": original / stored if stored else None,
         },
+        # the descriptive header of the DFMF file a store was ingested from
+        "dfmf": group.attrs.get("dfmf"),
     }
 
 
@@ -181,6 +183,44 @@ def _lines(summary: dict[str, Any]) -> list[str]:
                         if "abrdf_rmse" in err else ""))
     if c["svd"]:
         lines.append("  " + ", ".join(f"{k}={v}" for k, v in c["svd"].items()))
+    if c["transform"]:
+        lines.append(transform_line(c["transform"]))
+    if summary.get("dfmf"):
+        lines += dfmf_lines(summary["dfmf"], what="source file")
+    return lines
+
+
+def transform_line(transform: dict[str, Any]) -> str:
+    """How a store's values decode to radiance (its ``transform`` attrs), one line."""
+    name, eps = transform.get("name", "log"), transform.get("eps")
+    model = transform.get("dfmf_colour_model")
+    formula = (DFMF_MODELS[model][1] if model in DFMF_MODELS
+               else transform.get("formula") or ("radiance = values" if name == "linear"
+                                                 else "radiance = exp(values) - eps"))
+    return (f"transform: {name}" + (f", eps {eps:g}" if name != "linear" and eps else "")
+            + (f"; DFMF colour model {model}" if model is not None else "")
+            + f": {formula}")
+
+
+def dfmf_lines(meta: dict[str, Any], *, what: str = "file") -> list[str]:
+    """Text lines of a DFMF file's descriptive header (:meth:`tasks.dfmf.DfmfHeader.metadata`)."""
+    xml = meta.get("xml") or ""
+    first = xml.strip().splitlines()[0] if xml.strip() else ""
+    scalar = {2: "float16", 4: "float32", 8: "float64"}.get(meta.get("scalar_bytes"), "?")
+    ks = meta.get("components") or []
+    lines = [f"{what} header (DFMF metadata version {meta.get('version')}): measurement setup "
+             f"{meta.get('measurement_setup')!r}, image sensor {meta.get('image_sensor')!r}, "
+             f"light source {meta.get('light_source')!r}",
+             f"  {meta.get('ppmm', 0):g} ppmm, RGB scale "
+             + ", ".join(f"{v:g}" for v in meta.get("rgb_scale") or ())
+             + f", channels {','.join(meta.get('channel_names') or ())}, colour model "
+             f"{meta.get('colour_model')}, components per channel "
+             f"{'+'.join(map(str, ks))} = {sum(ks)} ({scalar}), cosine flag "
+             f"{'set' if meta.get('cosine') else 'not set'}"
+             + (f", {meta['rotations']} rotation matrices" if meta.get("rotations") else ""),
+             f"  XML: {len(xml)} characters" + (f", first line {first[:100]!r}"
+                                                + ("..." if len(first) > 100 else "")
+                                                if first else "")]
     return lines
 
 
