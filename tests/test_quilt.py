@@ -16,6 +16,7 @@ from helpers import SLOW_PROCESSES, generate_store, quilt
 from pipeline.graphs.surface import lazy_layer
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
+from pipeline.stores.tileset import tile_eigentextures, tile_layers
 from tasks.canvas import TERMS, Canvas
 from tasks.corner_tiles import INTERIOR_ATTEMPTS, BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
@@ -347,24 +348,24 @@ def test_the_same_seed_gives_the_same_tile_set_and_another_seed_another(tmp_path
     assert not np.array_equal(a[RADIANCE][:], c[RADIANCE][:])
 
 
-def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples,
-                                                                 monkeypatch):
+def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, samples):
     # rank 8: every tile below is within about 2% of the measured layer (rank 6: 5%)
     assert btf("compress", samples["stone"], tmp_path / "c.zarr", "--rank", "8",
                "--quiet").code == 0
-    # V read one chunk row at a time
-    monkeypatch.setattr("pipeline.graphs.prescriptions.BAND_BUDGET", 1)
     group = _quilt(tmp_path / "c.zarr", tmp_path / "q.zarr", "--size", "24,24",
-                   "--corners", "2", "--workers", "3")  # 16 tiles in 3 tasks: 6, 5 and 5
+                   "--corners", "2", "--workers", "3")
     assert group.attrs["btf_kind"] == "compressed-tileset"
     v = zarr.open_array(tmp_path / "c.zarr", path="V")
     assert v.chunks[0] < v.shape[0]  # several bands
     v = v[:]
     n = v.shape[0] * v.shape[1]
-    assert group["V"].shape[0] == 16
+    # the store holds the prescriptions and the sample's eigentextures, not 16 tiles' worth
+    assert group["V"].shape == v.shape and np.array_equal(group["V"][:], v)
+    tiles = tile_eigentextures(group, range(16))
+    assert tiles.shape == (16, 24, 24, v.shape[-1])
     for t in range(16):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
-        assert np.allclose(group["V"][t], (matrix @ v.reshape(n, -1)).reshape(24, 24, -1),
+        assert np.allclose(tiles[t], (matrix @ v.reshape(n, -1)).reshape(24, 24, -1),
                            atol=1e-6)
     # Each tile, rebuilt, is the sample's layer as the compressed store rebuilds it, moved by
     # the prescription: exactly where a texel has one source, and between its sources where
@@ -377,8 +378,11 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
     assert np.abs(rebuilt.reshape(layer.shape) - layer).mean() < 0.05 * layer.mean()
     for t in range(16):
         index, weight = group["prescription_index"][t], group["prescription_weight"][t]
-        tile = reconstruct_layers(group["U"][0, 2], group["S"][:], group["V"][t],
+        tile = reconstruct_layers(group["U"][0, 2], group["S"][:], tiles[t],
                                   transform=Transform("log", eps)).reshape(-1, 3)
+        # the layer formed on the sample, then prescribed: the same radiance
+        assert np.allclose(tile_layers(group, [t], group["U"][0, 2][None])[0, :, :, 0]
+                           .reshape(-1, 3), tile, rtol=1e-4, atol=1e-6), t
         single = (weight > 0).sum(axis=1) == 1
         # The tile's prescription P_t applied to the measured layer itself (not to its rank-8
         # rebuild) gives the tile up to the compression error: P_t @ layer where a texel has
@@ -398,16 +402,6 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
         assert np.all(tile[~single] <= np.nanmax(sources[~single], axis=1) + 1e-5), t
     surface = lazy_layer(tmp_path / "q.zarr", view=0, light=2, size=(50, 60)).compute()
     assert surface.shape == (50, 60, 3) and np.isfinite(surface).all() and surface.min() >= 0
-
-
-def test_eigentexture_tasks_share_reads_within_the_budget_and_keep_every_core_busy():
-    from pipeline.graphs.prescriptions import RESULT_BUDGET, tile_groups
-
-    assert tile_groups(16, 1000, 3) == [range(0, 6), range(6, 11), range(11, 16)]
-    assert [len(g) for g in tile_groups(16, 1000, 5)] == [4, 3, 3, 3, 3]
-    assert tile_groups(16, RESULT_BUDGET // 4, 2) == [range(t, t + 4) for t in range(0, 16, 4)]
-    assert tile_groups(3, 2 * RESULT_BUDGET, 1) == [range(0, 1), range(1, 2), range(2, 3)]
-    assert tile_groups(1, 1000, 8) == [range(0, 1)]
 
 
 @pytest.mark.parametrize(("args", "message"), [

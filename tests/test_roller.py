@@ -14,6 +14,7 @@ from pipeline.graphs.surface import lazy_layer
 from pipeline.images import read_image, write_exr
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
+from pipeline.stores.tileset import tile_eigentextures
 from tasks.periodicity import detect_lattice
 from tasks.placement import lattice_cells
 from tasks.prescription import check, to_csr
@@ -291,10 +292,12 @@ def test_the_roller_on_a_compressed_store_gives_a_compressed_tile_set(btf, store
     assert group.attrs["lattice"]["hnf"] == plain.attrs["lattice"]["hnf"]
     v = zarr.open_array(tmp_path / "c.zarr", path="V")[:]
     n = v.shape[0] * v.shape[1]
+    assert np.array_equal(group["V"][:], v)  # the sample's eigentextures, and prescriptions
+    tiles = tile_eigentextures(group, range(2))
     for t in range(2):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
-        assert np.allclose(group["V"][t], (matrix @ v.reshape(n, -1)).reshape(
-            group["V"].shape[1:]), atol=1e-6)
+        assert np.allclose(tiles[t], (matrix @ v.reshape(n, -1)).reshape(tiles.shape[1:]),
+                           atol=1e-6)
     # Each compressed tile is its prescription applied to the measured layer, up to the rank-8
     # compression error (and log-domain blending at the cuts). The two plans need not pick the
     # same tile origin on this exactly periodic material (ties), so the comparison is with the
@@ -303,8 +306,8 @@ def test_the_roller_on_a_compressed_store_gives_a_compressed_tile_set(btf, store
     eps = group.attrs["transform"]["eps"]
     for t in range(2):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
-        direct = (matrix @ layer.reshape(n, -1)).reshape(*group["V"].shape[1:3], -1)
-        tile = reconstruct_layers(group["U"][0, 3], group["S"][:], group["V"][t],
+        direct = (matrix @ layer.reshape(n, -1)).reshape(*tiles.shape[1:3], -1)
+        tile = reconstruct_layers(group["U"][0, 3], group["S"][:], tiles[t],
                                   transform=Transform("log", eps))
         assert np.abs(tile - direct).mean() < 0.05 * np.abs(direct).mean()
     rendered = lazy_layer(tmp_path / "t.zarr", view=0, light=3, size=(120, 150)).compute()

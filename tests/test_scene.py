@@ -207,7 +207,9 @@ def test_tile_set_scenes_equal_btf_render_and_read_only_visible_tiles(stores, tm
         assert result.code == 0, result.err
         assert np.array_equal(_radiance(tmp_path / f"o_{name}")[0],
                               _radiance(tmp_path / f"r_{name}"))
-        variable = "V" if "svd" in name else "radiance"
+        # a compressed set's tiles are their prescriptions applied to the sample's V (read
+        # whole): only the visible tiles' prescriptions are read
+        variable = "prescription_index" if "svd" in name else "radiance"
         read = _chunk_reads(keys, variable)
         recorded = zarr.open_group(tmp_path / f"o_{name}", mode="r").attrs["reads"]
         assert len(read) == recorded[variable][0] < 16  # of 16 tiles (x one layer)
@@ -234,6 +236,17 @@ def test_tile_set_levels_come_from_the_tiles_pyramid(stores, tmp_path, btf, monk
         assert "which cover" not in fly.err  # on whole 4 x 4 blocks: nothing widened
         levels = tmp_path / f"p_{name}"
         shutil.copytree(ts, levels)
+        if variable == "V":  # prescribed tiles: no pyramid, the level is block means of 0
+            refused = btf("pyramid", levels, "--levels", "2", "-q")
+            assert refused.code == 1 and "computed where they are read" in refused.err
+            zero = btf("scene", _write(tmp_path / "z.yaml", text.format(
+                ts, _angles(ts, 2, 4)).replace("level: 2", "level: 0")), tmp_path / "zero.zarr")
+            assert zero.code == 0, zero.err
+            full = _radiance(tmp_path / "zero.zarr").astype(np.float64)
+            means = full.reshape(2, 15, 4, 21, 4, 3).mean(axis=(2, 4))
+            assert np.allclose(_radiance(tmp_path / f"fly_{name}"), means, rtol=1e-5,
+                               atol=1e-7)
+            continue
         assert btf("pyramid", levels, "--levels", "2", "-q").code == 0
         keys = _count_reads(monkeypatch)
         stored = btf("scene", _write(tmp_path / "b.yaml", text.format(levels,

@@ -347,7 +347,7 @@ def test_the_sphere_gives_every_pixel_its_own_light_view_and_texel(browser, page
 def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser,
                                                                              compressed, btf):
     from pipeline.cli import main
-    from pipeline.stores.tileset import stored_seed
+    from pipeline.stores.tileset import stored_seed, tile_eigentextures
     from tasks.placement import cell_tiles, gather
 
     q, page = compressed.parent / "q.zarr", compressed.parent / "q.html"
@@ -356,7 +356,7 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
     big = btf("view", q, compressed.parent / "big.html", "--budget", "0.01")
     assert big.code == 1 and "lower --rank, or raise --budget" in big.err  # not --level
     g = zarr.open_group(q, mode="r")
-    tiles = g["V"][..., :RANK]
+    tiles = tile_eigentextures(g, range(g["corners"].shape[0]), RANK)
     ty, tx = tiles.shape[1:3]
     cells = max(1, min(4, 512 // max(ty, tx)))
     seed = stored_seed(g)
@@ -383,7 +383,7 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
 
 def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser, tmp_path):
     from pipeline.cli import main
-    from pipeline.stores.tileset import stored_seed
+    from pipeline.stores.tileset import stored_seed, tile_eigentextures
     from tasks.placement import lattice_gather
 
     t = generate_store(tmp_path / "t.zarr", "--material", "tiles", "--size", "96", "--scale",
@@ -402,7 +402,8 @@ def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser,
     shown = _pixels(tab).reshape(
         h, w, 4)[::-1, :, :3].astype(int)
     rep = g["representative"][...] if "representative" in g.array_keys() else None
-    mosaic = lattice_gather(g["V"][...].astype(np.float16).astype(np.float32), 0, 0, h, w,
+    tiles = tile_eigentextures(g, range(g["corners"].shape[0]))
+    mosaic = lattice_gather(tiles.astype(np.float16).astype(np.float32), 0, 0, h, w,
                             hnf=tuple(spec["hnf"]), basis=(tuple(spec["U"]), tuple(spec["V"])),
                             representative=rep, seed=stored_seed(g))
     layer = reconstruct_layers(g["U"][2, 5][None], g["S"][...], mosaic,

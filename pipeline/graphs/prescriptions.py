@@ -2,14 +2,14 @@
 
 A prescription ``P`` may take any texel of the sample, so a whole layer is the smallest unit a
 task reads. For a radiance source, one task per (view, block of stored lights) reads a few whole
-layers at a time within :data:`APPLY_BUDGET` and writes every tile's layers. For a compressed
-source, the tiles are split into groups (:func:`tile_groups`), one task per group, each reading
-the eigentextures ``V`` once in bands of whole chunk rows and accumulating its tiles' results.
+layers at a time within :data:`APPLY_BUDGET` and writes every tile's layers. A compressed
+source's tile set keeps the prescriptions and a copy of the sample's eigentextures ``V``
+(:func:`sample_copies`); its tiles are computed where they are read
+(:mod:`pipeline.stores.tileset`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +18,6 @@ from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
 
 APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
-# A compressed source's task holds a band of its eigentextures and its tiles' results: half each.
-BAND_BUDGET = APPLY_BUDGET // 2
-RESULT_BUDGET = APPLY_BUDGET // 2
 
 
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
@@ -47,41 +44,28 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
             target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape, out=result)
 
 
-def _apply_eigentextures(store: str, out: str, tiles: Sequence[int], matrices) -> None:
-    """Some tiles' eigentextures, reading the source's once, in bands of whole chunk rows.
-
-    The bands are as many chunk rows as fit in :data:`BAND_BUDGET` (at least one); every band
-    serves all the task's tiles, whose results and CSC matrices (within :data:`RESULT_BUDGET`,
-    see :func:`tile_groups`) are held until the last band.
-    """
+def _copy_band(store: str, out: str, y0: int, y1: int) -> None:
     import zarr
-
-    from tasks.prescription import apply_texel_rows
 
     source = zarr.open_array(storage.store(store), path="V", mode="r")
     target = zarr.open_array(storage.store(out), path="V", mode="r+")
-    ny, nx, rank = source.shape
-    columns = [matrices[t].tocsc() for t in tiles]
-    results = [np.zeros((c.shape[0], rank), np.float32) for c in columns]
-    band = source.chunks[0] * max(1, BAND_BUDGET // (4 * rank * nx * source.chunks[0]))
-    for y0 in range(0, ny, band):
-        texels = source[y0 : y0 + band]
-        for matrix, result in zip(columns, results, strict=True):
-            apply_texel_rows(matrix, texels, y0 * nx, result)
-    for t, result in zip(tiles, results, strict=True):
-        target[t] = result.reshape(target.shape[1:])
+    target[y0:y1] = source[y0:y1]
 
 
-def tile_groups(tiles: int, tile_bytes: int, parallelism: int) -> list[range]:
-    """Tiles split evenly into groups, each reading the eigentextures once.
+def sample_copies(store: str, out: str) -> list:
+    """Delayed tasks copying a compressed source's ``V`` into a tile set, a chunk row each.
 
-    As few groups as keep every one of ``parallelism`` tasks busy (one per tile at most) and
-    fit each group's ``tile_bytes`` per tile in :data:`RESULT_BUDGET`.
+    The tile set's ``V`` has the source's chunks (:func:`pipeline.stores.tileset.
+    create_tileset_store`), so each task writes whole chunks of its own.
     """
-    per_group = max(1, RESULT_BUDGET // max(1, tile_bytes))
-    groups = max(min(tiles, parallelism), -(-tiles // per_group))
-    return [range(int(g[0]), int(g[-1]) + 1)
-            for g in np.array_split(np.arange(tiles), groups)]
+    import dask
+    import zarr
+
+    v = zarr.open_array(storage.store(location(store)), path="V", mode="r")
+    step = v.chunks[0]
+    return [dask.delayed(_copy_band)(location(store), location(out), y0,
+                                     min(y0 + step, v.shape[0]))
+            for y0 in range(0, v.shape[0], step)]
 
 
 def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_chunk: int,
@@ -101,15 +85,6 @@ def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_
             if needs is None or needs.keeps(v, range(l0, min(l0 + dir_chunk, nl)))]
 
 
-def eigentexture_writes(store: str, out: str, matrices, *, tiles: int, tile_bytes: int,
-                        parallelism: int) -> list:
-    """Delayed tasks writing every tile's eigentextures of a compressed source."""
-    import dask
-
-    return [dask.delayed(_apply_eigentextures)(location(store), location(out), group, matrices)
-            for group in tile_groups(tiles, tile_bytes, parallelism)]
-
-
 def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: int,
                   needs=None) -> tuple[list, str]:
     """Delayed tasks filling a tile-set store at ``out`` from ``source``, and what they do.
@@ -118,17 +93,14 @@ def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: 
     ``share`` makes the prescriptions a task argument every task reads
     (:meth:`pipeline.session.Session.share`); ``parallelism`` is how many tasks run at once.
     """
+    if source_group.attrs.get("btf_kind") == "compressed":
+        # the tiles are their prescriptions applied to the sample's eigentextures, computed
+        # where they are read (pipeline.stores.tileset.tile_values): only V is copied
+        writes = sample_copies(source, out)
+        return writes, (f"{len(tiles.index)} prescription(s) kept with the sample's "
+                        f"eigentextures ({len(writes)} band(s) of V copied)")
     matrices = tiles.matrices()
     handle = share(matrices)
-    if source_group.attrs.get("btf_kind") == "compressed":
-        rank = source_group["S"].shape[0]
-        texels, terms = tiles.tile_shape[0] * tiles.tile_shape[1], tiles.index[0].shape[-1]
-        # a result, and a CSC matrix (values and row indices per term, a pointer per column)
-        tile_bytes = 4 * texels * rank + 8 * texels * terms + 4 * (tiles.samples + 1)
-        writes = eigentexture_writes(source, out, handle, tiles=len(matrices),
-                                     tile_bytes=tile_bytes, parallelism=parallelism)
-        return writes, (f"{len(matrices)} prescription(s) to the eigentextures in "
-                        f"{len(writes)} group(s) of tiles")
     radiance = source_group[RADIANCE]
     writes = layer_writes(source, out, handle, shape=radiance.shape,
                           dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape,
@@ -170,8 +142,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism,
                                      needs=needs)
-        # how the writes are grouped depends on the session (tile_groups): a rerun with
-        # other workers groups them otherwise, and then keeps nothing of the killed run's
+        # the writes' names carry the session's parallelism (they used to depend on it): a
+        # rerun with other workers keeps nothing of the killed run's
         grouping = f"{len(writes)}x{session.parallelism}"
         todo, done = progress.pending((f"write-{grouping}-{i}", w)
                                       for i, w in enumerate(writes))

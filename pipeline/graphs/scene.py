@@ -214,6 +214,28 @@ def _tile_data(store: str, tile: int, layers, rank, path: str):
     return np.stack([array[tile, v, li] for v, li in layers], axis=2)
 
 
+def _open(store: str):
+    import zarr
+
+    return zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
+
+
+def _sample_values(store: str, u_rows: np.ndarray, rank) -> np.ndarray:
+    """A prescribed compressed tile set's sample values of some layers: ``(y, x, n * nc)``."""
+    from pipeline.stores.tileset import layer_coefficients, sample_values
+
+    group = _open(store)
+    return sample_values(group, layer_coefficients(group, u_rows, rank))
+
+
+def _prescribed_tile(store: str, tile: int, values: np.ndarray, layers: int) -> np.ndarray:
+    """Radiance ``(y, x, layer, channel)`` of one tile of a prescribed compressed tile set."""
+    from pipeline.stores.tileset import decode_tile_values, prescribe
+
+    group = _open(store)
+    return decode_tile_values(group, prescribe(group, tile, values), layers)
+
+
 def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, transform,
              weights):
     from tasks.placement import gather, lattice_gather
@@ -260,7 +282,13 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     import dask
     import dask.array as da
 
+    from pipeline.stores.tileset import prescribed
+
     compressed = u_rows is not None
+    # a compressed set that keeps the sample's V: its tiles are radiance computed per group of
+    # layers (the sample's values formed once, then each tile prescribed), laid as a radiance
+    # tile set's are
+    from_sample = compressed and prescribed(group)
     f = request.read_factor
     tile_shape = tuple(t // (request.factor // f) for t in group.attrs["tile_shape"])
     path = level_path or ("V" if compressed else RADIANCE)
@@ -277,26 +305,37 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     # tiles) every tile the block shows, whole
     ny, nx = request.shape
     texels = min(request.block, ny) * f * min(request.block, nx) * f
-    if not compressed:
+    if not compressed or from_sample:
         shown = max(len(codes) for row in grid for _, codes in row)
         texels += shown * tile_shape[0] * tile_shape[1]
+    if from_sample:  # and the sample's values of the group's layers
+        texels += int(np.prod(group.attrs["sample_shape"]))
     most = request.layers_per_task((1, texels), nc)
     for dirs, used, w in direction_groups(request.weights, most):
         layers = None if compressed else [request.layers[k] for k in used]
         u = u_rows[used] if compressed else None
-        tiles = shared if compressed else {}
+        tiles = shared if compressed and not from_sample else {}
+        sample = (dask.delayed(_sample_values, pure=True)(location(store), u, request.rank)
+                  if from_sample else None)
         rows = []
         for row in grid:
             blocks = []
             for (y0, y1, x0, x1), codes in row:
                 for c in codes:
-                    if c not in tiles:
-                        tiles[c] = dask.delayed(_tile_data, pure=True)(
-                            location(store), int(order[c]), layers, request.rank, path)
-                        read.add((int(order[c]), None if layers is None else tuple(layers)))
+                    if c in tiles:
+                        continue
+                    if from_sample:
+                        tiles[c] = dask.delayed(_prescribed_tile, pure=True)(
+                            location(store), int(order[c]), sample, len(used))
+                        read.add((int(order[c]), tuple(int(k) for k in used)))
+                        continue
+                    tiles[c] = dask.delayed(_tile_data, pure=True)(
+                        location(store), int(order[c]), layers, request.rank, path)
+                    read.add((int(order[c]), None if layers is None else tuple(layers)))
                 block = dask.delayed(_surface, pure=True)(
                     {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0,
-                    factor=f, placement=placement, u=u, s=s, transform=transform, weights=w)
+                    factor=f, placement=placement, u=None if from_sample else u, s=s,
+                    transform=transform, weights=w)
                 blocks.append(da.from_delayed(block, (len(dirs), y1 - y0, x1 - x0, nc),
                                               dtype=np.float32))
             rows.append(blocks)

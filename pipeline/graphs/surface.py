@@ -17,7 +17,6 @@ from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE, check_computed, location
 from pipeline.stores.tileset import corner_order, open_tileset, stored_seed
 from tasks.placement import gather, lattice_gather
-from tasks.transform import Transform
 
 
 def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = None
@@ -28,13 +27,11 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
     group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
     if group.attrs["btf_kind"] == "tileset":
         tiles = group[RADIANCE][:, view, light]
-    else:
-        from tasks.svd import reconstruct_layers
+    else:  # the layer's values formed on the sample, then each tile's prescription applied
+        from pipeline.stores.tileset import tile_layers
 
         u = group["U"][view, light]  # (channel, component)
-        s = group["S"][:]
-        transform = Transform.from_attrs(group.attrs["transform"])
-        tiles = np.stack([reconstruct_layers(u, s, v, transform=transform) for v in group["V"]])
+        tiles = tile_layers(group, range(group["corners"].shape[0]), u[None])[:, :, :, 0]
     if order is None or np.array_equal(order, np.arange(len(tiles))):
         return tiles
     return tiles[order]

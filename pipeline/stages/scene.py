@@ -227,7 +227,7 @@ def build(spec: SceneSpec, session: Session):
 
 def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Session):
     from pipeline.graphs import scene as graphs
-    from pipeline.stores.tileset import corner_order, stored_seed
+    from pipeline.stores.tileset import corner_order, prescribed, stored_seed
 
     f = 2**spec.level
     (h, w), (oy, ox) = spec.size, spec.origin
@@ -255,6 +255,9 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
         session.log(f"scene: a roller tile set has no pyramid (its tiles lie on a sheared "
                     f"lattice): level {spec.level} is computed on the fly from level 0, which "
                     f"reads {4**spec.level}x the texels")
+    elif compressed and prescribed(group) and spec.level:
+        session.log(f"scene: level {spec.level} of a compressed tile set's tiles is computed "
+                    "on the fly from its prescriptions")
     elif not lattice:
         stored = _pyramid_level(spec, group, variable, session)
     rank = spec.rank or (group["S"].shape[0] if compressed else None)
@@ -266,7 +269,13 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
         extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]),
                  "transform": Transform.from_attrs(group.attrs["transform"])}
     out, read = graphs.tileset_graph(path, group, req, placement, level_path=stored, **extra)
-    if compressed:
+    if compressed and prescribed(group):  # the sample's V whole, and the tiles' prescriptions
+        v = group["V"]
+        total = graphs.total_chunks(v.shape, v.chunks)
+        reads = {"V": [total, total],
+                 "prescription_index": [len({t for t, _ in read}), n],
+                 "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
+    elif compressed:
         reads = {stored or "V": [len(read), n],
                  "U": [u_read, graphs.total_chunks(u.shape, u.chunks)]}
     else:

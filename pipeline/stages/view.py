@@ -208,10 +208,11 @@ class _Tiles:
 
 def _tile_set(params: ViewParams, group, rank: int) -> _Tiles:
     """The page's view of a compressed tile set (btf quilt or btf roller of a compressed store)."""
-    from pipeline.stores.tileset import corner_order, stored_seed
+    from pipeline.stores.tileset import corner_order, stored_seed, tile_eigentextures
     from tasks.placement import lattice_gather
 
-    v = np.asarray(group["V"][..., :rank], np.float32)  # within the budget: a few MB
+    # every tile's first eigentextures (prescribed from the sample's): within the budget
+    v = tile_eigentextures(group, range(group["corners"].shape[0]), rank)
     n, ty, tx = v.shape[:3]
     seed = stored_seed(group)
     if group.attrs.get("placement") != "lattice":
@@ -299,10 +300,10 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     """The page of the compressed store or tile set ``store`` (``name``: the one given)."""
     d, channels, transform, triangles = _check_shown(params, group, store, tiled)
     k = _rank(params, group)
-    ny, nx = group["V"].shape[-3:-1]
+    ny, nx = group.attrs["tile_shape"] if tiled else group["V"].shape[:2]
     ys, xs = _window(params, ny, nx)
     f = 1 << params.level
-    count = group["V"].shape[0] if tiled else 1
+    count = group["corners"].shape[0] if tiled else 1
     _check_budget(params, count * _page_size(
         ((ys.stop - ys.start) // f, (xs.stop - xs.start) // f, k), 0)
         + _page_size((0, 0, k), int(np.prod(group["U"].shape[:-1])) * k), tiled)

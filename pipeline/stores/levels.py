@@ -22,6 +22,10 @@ def variable_of(group, path: str) -> str:
         raise BTFError(f"{path}: a roller tile set: its tiles lie on a sheared lattice, so "
                        "level n of its surface is not made of level-n tiles; btf scene computes "
                        "its levels on the fly")
+    if kind == "compressed-tileset" and group["V"].ndim == 3:
+        raise BTFError(f"{path}: a compressed tile set that keeps the sample's eigentextures "
+                       "and its tiles' prescriptions: its tiles are computed where they are "
+                       "read, and btf scene and btf view compute their levels on the fly")
     if kind in ("compressed", "compressed-tileset"):
         return "V"
     if kind in ("abtf", "btf", "tileset") and RADIANCE in group:

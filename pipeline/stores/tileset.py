@@ -3,10 +3,15 @@
 A tile-set store holds
 
 - ``radiance``: float32 ``(tile, view, light, y, x, channel)``, one chunk per tile and layer, so
-  that rendering one layer reads nothing of the others; or, for a compressed source, ``U`` and
-  ``S`` of the source with eigentextures per tile ``V`` ``(tile, y, x, component)`` (the
-  prescription blends the log-domain eigentextures, so blended texels are weighted geometric
-  means of the radiance they join);
+  that rendering one layer reads nothing of the others; or, for a compressed source
+  (``compressed-tileset``), the source's factors ``U``, ``S`` and the *sample's* eigentextures
+  ``V`` ``(sample_y, sample_x, component)``: a tile's eigentextures are its prescription applied
+  to them, ``P_t V``, computed where they are read (:func:`tile_eigentextures`,
+  :func:`tile_layers`), so the store is about the size of the source's factors and
+  prescriptions, whatever the number of tiles (the prescription blends the log-domain
+  eigentextures, so blended texels are weighted geometric means of the radiance they join).
+  Tile sets written before this (``tiles_stored: eigentextures``) hold every tile's ``V``
+  ``(tile, y, x, component)`` instead, and read as before;
 - ``corners`` ``(tile, corner)``: the corner types (top-left, top-right, bottom-left,
   bottom-right) of each tile, and ``corner`` labels;
 - ``prescription_index`` / ``prescription_weight`` ``(tile, pixel, term)``: each tile's
@@ -46,10 +51,20 @@ NAMES = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
 
 
+PRESCRIBED = "prescriptions"  # attrs["tiles_stored"] of a compressed set holding the sample's V
+
+
 def create_tileset_store(path, *, directions: Directions, channels: tuple[str, ...],
                          tiles: int, tile_shape: tuple[int, int], terms: int,
-                         reference: np.ndarray, attrs: dict[str, Any], rank: int | None = None):
-    """Create an empty tile-set store (``rank``: a compressed one); returns the zarr group."""
+                         reference: np.ndarray, attrs: dict[str, Any], rank: int | None = None,
+                         v_chunk: int = 128):
+    """Create an empty tile-set store (``rank``: a compressed one); returns the zarr group.
+
+    A compressed one gets the sample's ``V`` (chunks of ``v_chunk`` texels a side), not the
+    tiles'.
+    """
+    if rank is not None:
+        attrs = {**attrs, "tiles_stored": PRESCRIBED}
     group = create_store(path, kind=NAMES[rank is not None], attrs=attrs,
                          directions=directions, channels=channels)
     ty, tx = tile_shape
@@ -63,8 +78,11 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
         add_array(group, "U", shape=(nv, nl, nc, rank), chunks=(nv, nl, nc, rank),
                   dims=("view", "light", "channel", "component"))
         add_array(group, "S", shape=(rank,), dims=("component",), chunks=(rank,))
-        add_array(group, "V", shape=(tiles, ty, tx, rank), chunks=(1, ty, tx, rank),
-                  dims=("tile", "y", "x", "component"))
+        sy, sx = reference.shape[:2]
+        add_array(group, "V", shape=(sy, sx, rank),
+                  chunks=(min(v_chunk, sy), min(v_chunk, sx), rank),
+                  dims=("sample_y", "sample_x", "component"),
+                  attrs={"long_name": "the sample's eigentextures: tile t's are P_t V"})
     pixels = ty * tx
     add_array(group, "corners", shape=(tiles, 4), dims=("tile", "corner"), dtype="int64",
               chunks=(tiles, 4))
@@ -126,7 +144,8 @@ def write_tileset_store(path, tiles: TileSet, *, source: str, source_group):
                                channels=read_channels(source_group), tiles=len(tiles.index),
                                tile_shape=tiles.tile_shape, terms=tiles.index[0].shape[-1],
                                reference=tiles.reference, attrs=attrs,
-                               rank=source_group["S"].shape[0] if compressed else None)
+                               rank=source_group["S"].shape[0] if compressed else None,
+                               v_chunk=source_group["V"].chunks[0] if compressed else 128)
     out["corners"][...] = tiles.corners
     for t in range(len(tiles.index)):
         out["prescription_index"][t] = tiles.index[t].astype(np.int32)
@@ -151,6 +170,108 @@ def check_tileset(group, path: str | Path) -> None:
     for name in (*needed, "corners", "prescription_index", "prescription_weight"):
         if name not in group.array_keys():
             raise BTFError(f"{path}: variable {name!r} is missing")
+
+
+def prescribed(group) -> bool:
+    """Whether a compressed tile set holds the sample's ``V`` (its tiles' computed on reading).
+
+    False for radiance tile sets and for compressed sets that store every tile's ``V``.
+    """
+    return group.attrs.get("btf_kind") == NAMES[1] and group["V"].ndim == 3
+
+
+def tile_prescription(group, tile: int):
+    """Tile ``tile``'s prescription as a CSR matrix (tile texels x sample texels)."""
+    from tasks.prescription import to_csr
+
+    sy, sx = group.attrs["sample_shape"]
+    return to_csr(group["prescription_index"][tile], group["prescription_weight"][tile],
+                  sy * sx)
+
+
+def _sample_values(v, coef: np.ndarray) -> np.ndarray:
+    """``V coef`` ``(sample_y, sample_x, n)`` float32, reading ``V`` a band of chunk rows at a time.
+
+    ``coef`` is ``(K, n)``: memory holds the result and one band, not the sample's ``V``.
+    """
+    sy, sx = v.shape[:2]
+    coef = np.asarray(coef, np.float32)
+    out = np.empty((sy, sx, coef.shape[1]), np.float32)
+    for y0 in range(0, sy, v.chunks[0]):
+        band = np.asarray(v[y0 : y0 + v.chunks[0], :, : coef.shape[0]], np.float32)
+        out[y0 : y0 + len(band)] = band @ coef
+    return out
+
+
+def tile_values(group, tiles, coef: np.ndarray) -> np.ndarray:
+    """Values ``(tile, y, x, n)`` of ``n`` linear combinations of eigentextures, of ``tiles``.
+
+    ``coef`` ``(K', n)`` with ``K' <= K``: e.g. ``diag(S) U[rows]^T`` for some layers' values,
+    or the identity's first columns for the eigentextures themselves. Prescribed sets apply each
+    tile's prescription to the sample's values (the sample is read once); others read the
+    stored tiles.
+    """
+    tiles = list(tiles)
+    coef = np.asarray(coef, np.float32)
+    ty, tx = group.attrs["tile_shape"]
+    out = np.empty((len(tiles), ty, tx, coef.shape[1]), np.float32)
+    if not prescribed(group):
+        for i, t in enumerate(tiles):
+            v = np.asarray(group["V"][t, :, :, : coef.shape[0]], np.float32)
+            out[i] = v @ coef
+        return out
+    sample = _sample_values(group["V"], coef)
+    for i, t in enumerate(tiles):
+        out[i] = prescribe(group, t, sample)
+    return out
+
+
+def tile_eigentextures(group, tiles, rank: int | None = None) -> np.ndarray:
+    """The first ``rank`` eigentextures ``(tile, y, x, rank)`` of ``tiles`` (default: all)."""
+    k = group["S"].shape[0] if rank is None else rank
+    return tile_values(group, tiles, np.eye(group["S"].shape[0], k, dtype=np.float32))
+
+
+def layer_coefficients(group, u_rows: np.ndarray, rank: int | None = None) -> np.ndarray:
+    """``diag(S) u^T`` ``(K', layer * channel)``: what takes eigentextures to layers' values.
+
+    ``u_rows`` is ``(layer, channel, K)``; the first ``rank`` components (default: all).
+    """
+    u = np.asarray(u_rows, np.float64)
+    k = u.shape[-1] if rank is None else rank
+    s = np.asarray(group["S"][:k], np.float64)
+    n, nc = u.shape[:2]
+    return (s[:, None] * u[..., :k].reshape(n * nc, k).T).astype(np.float32)
+
+
+def decode_tile_values(group, values: np.ndarray, layers: int) -> np.ndarray:
+    """Radiance ``(..., layer, channel)`` of tile values ``(..., layer * channel)``."""
+    from tasks.transform import Transform
+
+    transform = Transform.from_attrs(group.attrs["transform"])
+    return transform.decode(values.reshape(*values.shape[:-1], layers, -1))
+
+
+def tile_layers(group, tiles, u_rows: np.ndarray, *, rank: int | None = None) -> np.ndarray:
+    """Radiance ``(tile, y, x, layer, channel)`` of ``u_rows`` ``(layer, channel, K)``.
+
+    The layers' values are formed on the sample (``V diag(S) u^T``: a few numbers per texel)
+    and then prescribed, so no tile's eigentextures are ever held.
+    """
+    values = tile_values(group, tiles, layer_coefficients(group, u_rows, rank))
+    return decode_tile_values(group, values, len(u_rows))
+
+
+def sample_values(group, coef: np.ndarray) -> np.ndarray:
+    """``V coef`` ``(sample_y, sample_x, n)`` of a prescribed set's sample, by bands of ``V``."""
+    return _sample_values(group["V"], coef)
+
+
+def prescribe(group, tile: int, values: np.ndarray) -> np.ndarray:
+    """Tile ``tile`` of sample values ``(sample_y, sample_x, n)``: ``(y, x, n)``."""
+    from tasks.prescription import apply
+
+    return apply(tile_prescription(group, tile), values, output=tuple(group.attrs["tile_shape"]))
 
 
 def read_plan(path) -> TileSet:
