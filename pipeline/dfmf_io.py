@@ -286,8 +286,12 @@ def store_transform(header: DfmfHeader) -> dict:
     """The ``transform`` attrs of a store ingested from a file with this header."""
     name, formula = DFMF_MODELS[header.colour_model]
     eps = DFMF_EPS if name != "linear" else 0.0
-    return {"name": name, "formula": formula, "eps": eps, "clamp": False,
-            "dfmf_colour_model": header.colour_model}
+    out = {"name": name, "formula": formula, "eps": eps, "clamp": False,
+           "dfmf_colour_model": header.colour_model}
+    if header.cosine and name != "linear":  # the linear models fold it into U
+        out.update(cosine=True, formula=f"({formula}) / cos(theta_light): the file's cosine "
+                                        "flag")
+    return out
 
 
 def _joint_u(params, src: str, header: DfmfHeader) -> tuple[np.ndarray, bool]:
@@ -314,6 +318,8 @@ def _log_file(session: Session, header: DfmfHeader, out: str) -> None:
                 f"colour model {header.colour_model} -> {out}")
     session.log("ingest: colour: " + dfmf_colour_note(header.colour_model,
                                                       cosine=header.cosine))
+    for note in header.notes:
+        session.log(f"ingest: note: {note}")
 
 
 def _ingest_attrs(params, header: DfmfHeader, directions: Directions) -> dict:
@@ -406,10 +412,12 @@ def ingest_dfmf(params, session: Session) -> Path:
 
 
 def _written_header(group, directions: Directions, channels: tuple[str, ...], model: int,
-                    ks: list[int], scalar: int, ny: int, nx: int) -> DfmfHeader:
+                    ks: list[int], scalar: int, ny: int, nx: int, *, cosine: bool = False
+                    ) -> DfmfHeader:
     """The header export writes: the store's directions, channels, size and colour model.
 
-    The descriptive fields of a store ingested from a DFMF file are written back.
+    The descriptive fields of a store ingested from a DFMF file are written back, and a
+    cosine store's flag (its values are radiance x cos(theta_light), as the file's were).
     """
     meta = dict(group.attrs.get("dfmf") or {})
     tv, pv = radians(directions.theta_view, directions.phi_view)
@@ -419,7 +427,7 @@ def _written_header(group, directions: Directions, channels: tuple[str, ...], mo
         measurement_setup=meta.get("measurement_setup", "btf-pipeline export"),
         image_sensor=meta.get("image_sensor", ""), light_source=meta.get("light_source", ""),
         ppmm=float(meta.get("ppmm", 0.0)),
-        rgb_scale=tuple(meta.get("rgb_scale", (1.0, 1.0, 1.0))), cosine=False,
+        rgb_scale=tuple(meta.get("rgb_scale", (1.0, 1.0, 1.0))), cosine=cosine,
         xml=meta.get("xml", ""), channel_names=channels, theta_view=tv, phi_view=pv,
         theta_light=tl, phi_light=pl, width=nx, height=ny, components=max(ks),
         colour_model=model, colour_mean=(0.0, 0.0, 0.0),
@@ -458,7 +466,8 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
     if half and max(float(p[1][0]) for p in per) > HALF_MAX:
         session.log(f"export: note: singular values above {HALF_MAX:g} are written as "
                     f"{HALF_MAX:g} in float16 (Bonn's readers do not use them)")
-    header = _written_header(group, d, channels, model, ks, scalar, ny, nx)
+    header = _written_header(group, d, channels, model, ks, scalar, ny, nx,
+                             cosine=transform.cosine)
     session.log(f"export: {d.views} views x {d.lights} lights, {ny} x {nx} texels as a DFMF "
                 f"file, colour model {model} ({transform.name}), components "
                 f"{'+'.join(map(str, ks))}, {'float16' if half else 'float32'} -> {out}")

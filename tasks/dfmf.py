@@ -44,6 +44,10 @@ OTHER_SIGNATURES = {b"!FMF12FCE": "FMF12 (one joint factorization, extended head
                     b"!PVF06FC": "PVF06 (per-view factorizations)",
                     b"!BDIF06R2!": "BDIF06 (uncompressed, in chunks)"}
 SCALARS = {2: np.dtype("<f2"), 4: np.dtype("<f4"), 8: np.dtype("<f8")}
+# btflib's colour models (undecorrelate.m) that btf does not decode: not linear in the values,
+# and not among its transforms
+UNREAD_MODELS = {2: "LAB, decoded by MATLAB's lab2srgb to display sRGB",
+                 5: "SPECTRAL: channel ratios times a sum", 6: "SPECTRAL_LINEAR"}
 _CHANNEL_HEAD = struct.Struct("<BIII")
 MAX_TEXT = 1 << 24  # an XML string or channel name longer than this is corrupt
 
@@ -54,7 +58,12 @@ class DfmfError(ValueError):
 
 @dataclass(frozen=True)
 class ChannelBlock:
-    """Where one channel's factors are: ``k`` components, byte offsets of S, U and S V."""
+    """Where one channel's factors are: ``k`` components, byte offsets of S, U and S V.
+
+    ``u_offset`` is always the (view, light) rows' matrix (``rows`` x ``k``) and ``sxv_offset``
+    the texels' (``columns`` x ``k``): a file that stores them the other way round (texels
+    first, which btflib also reads) has them swapped here, so readers need not know.
+    """
 
     scalar: int  # bytes per value
     k: int
@@ -72,7 +81,8 @@ class ChannelBlock:
     @property
     def end(self) -> int:
         """The byte after this channel's last value."""
-        return self.sxv_offset + self.columns * self.k * self.scalar
+        return max(self.sxv_offset + self.columns * self.k * self.scalar,
+                   self.u_offset + self.rows * self.k * self.scalar)
 
 
 @dataclass(frozen=True)
@@ -100,6 +110,8 @@ class DfmfHeader:
     colour_mean: tuple[float, ...]
     colour_matrix: tuple[tuple[float, ...], ...]
     channels: tuple[ChannelBlock, ...]
+    # what a reader tolerated where Bonn's readers differ (light lists, layout, trailing bytes)
+    notes: tuple[str, ...] = ()
 
     @property
     def end(self) -> int:
@@ -115,7 +127,8 @@ class DfmfHeader:
                 "colour_model": self.colour_model, "colour_mean": list(self.colour_mean),
                 "colour_matrix": [list(r) for r in self.colour_matrix],
                 "components": [c.k for c in self.channels],
-                "scalar_bytes": self.channels[0].scalar, "rotations": self.rotations}
+                "scalar_bytes": self.channels[0].scalar, "rotations": self.rotations,
+                **({"notes": list(self.notes)} if self.notes else {})}
 
 
 class _Cursor:
@@ -173,11 +186,17 @@ def _metadata(cur: _Cursor) -> dict:
     return out
 
 
-def _sampling(cur: _Cursor) -> tuple[np.ndarray, ...]:
+def _sampling(cur: _Cursor) -> tuple[tuple[np.ndarray, ...], list[str]]:
+    """The view and light directions, and a note if later views list other lights.
+
+    Like btflib (``read_bidir_sampling.m``) and btf-extractor, the lights of view 0 are the
+    file's: a later view with as many lights but other directions is read with view 0's (and
+    noted, with how far they differ); another number of lights is refused, as they refuse it.
+    """
     (views,) = cur.unpack("I", "the view count")
     if views == 0:
         raise DfmfError("the sampling has no views")
-    view_angles, lights = [], None
+    view_angles, lights, differ = [], None, []
     for v in range(views):
         view_angles.append(cur.unpack("2f", f"the direction of view {v}"))
         (n,) = cur.unpack("I", f"the light count of view {v}")
@@ -186,14 +205,30 @@ def _sampling(cur: _Cursor) -> tuple[np.ndarray, ...]:
         these = np.frombuffer(cur.take(8 * n, f"the lights of view {v}"), "<f4").reshape(n, 2)
         if lights is None:
             lights = these
-        elif these.shape != lights.shape or not np.array_equal(these, lights):
-            what = (f"{n} lights where view 0 has {len(lights)}" if n != len(lights)
-                    else "other light directions than view 0")
-            raise DfmfError(f"view {v} lists {what}: btf reads only files whose light list "
-                            "is the same for every view (as Bonn's readers do)")
+        elif these.shape != lights.shape:
+            raise DfmfError(f"view {v} lists {n} lights where view 0 has {len(lights)}: Bonn's "
+                            "readers (btflib, btf-extractor) and btf read only files with as "
+                            "many lights for every view")
+        elif not np.array_equal(these, lights):
+            differ.append((v, float(np.degrees(_angle_between(these, lights)).max())))
     va = np.asarray(view_angles, np.float64)
     la = lights.astype(np.float64)
-    return va[:, 0], va[:, 1], la[:, 0], la[:, 1]
+    notes = []
+    if differ:
+        worst = max(d for _, d in differ)
+        notes.append(f"{len(differ)} view(s) (the first: view {differ[0][0]}) list other light "
+                     f"directions than view 0, up to {worst:.3g} degrees apart: read with view "
+                     "0's, as btflib and btf-extractor read them")
+    return (va[:, 0], va[:, 1], la[:, 0], la[:, 1]), notes
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (radians) between ``(theta, phi)`` directions of two lists, pair by pair."""
+    def unit(d):
+        t, p = np.asarray(d, np.float64).T
+        return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+    return np.arccos(np.clip(np.sum(unit(a) * unit(b), axis=-1), -1.0, 1.0))
 
 
 def _signature(head: bytes) -> bool:
@@ -215,37 +250,45 @@ def _colour_model(cur: _Cursor, channel_names: tuple[str, ...]) -> tuple:
     components, model = cur.unpack("Ii", "the component count and colour model")
     mean = cur.unpack("3f", "the colour mean")
     matrix = cur.unpack("9f", "the colour matrix")
+    if model in UNREAD_MODELS:
+        raise DfmfError(f"colour model {model} ({UNREAD_MODELS[model]}): btflib decodes it, "
+                        f"btf does not yet (it reads {', '.join(map(str, DFMF_MODELS))}); "
+                        "btflib can write the file's layers as images for btf ingest")
     if model not in DFMF_MODELS:
         raise DfmfError(f"unknown colour model {model} (btf reads "
-                        f"{', '.join(map(str, DFMF_MODELS))}: btflib's models but LAB, "
-                        "spectral and spectral-linear)")
+                        f"{', '.join(map(str, DFMF_MODELS))}, btflib also 2, 5 and 6)")
     if model not in (0, 12) and len(channel_names) != 3:
         raise DfmfError(f"colour model {model} needs 3 channels, the metadata names "
                         f"{len(channel_names)} ({', '.join(channel_names)})")
     return components, model, mean, matrix
 
 
-def _channel_block(cur: _Cursor, name: str, rows: int, columns: int, components: int,
-                   size: int) -> ChannelBlock:
-    """One channel's head, checked against the sampling and image size; the cursor skips it."""
+def _channel_block(cur: _Cursor, name: str, rows: int, columns: int,
+                   size: int) -> tuple[ChannelBlock, bool]:
+    """One channel's head, checked against the sampling and image size; the cursor skips it.
+
+    Also whether the channel stores its texels' matrix first (btflib reads that layout too:
+    its ``U`` then has a row per texel): the block's offsets are swapped to the usual roles.
+    """
     scalar, k, r, cols = _CHANNEL_HEAD.unpack(cur.take(_CHANNEL_HEAD.size,
                                                        f"the header of channel {name}"))
     if scalar not in SCALARS:
         raise DfmfError(f"channel {name}: scalar size {scalar} at byte {cur.offset - 13} "
                         "(2, 4 or 8 expected)")
-    if (r, cols) != (rows, columns):
+    transposed = (r, cols) == (columns, rows) and rows != columns
+    if (r, cols) != (rows, columns) and not transposed:
         raise DfmfError(f"channel {name}: {r} rows x {cols} columns, but the sampling "
                         f"and image size give {rows} (views x lights) x {columns} texels")
-    if k == 0 or k > components:
-        raise DfmfError(f"channel {name}: {k} components (the file's count is "
-                        f"{components})")
-    block = ChannelBlock(scalar, k, r, cols, cur.offset, cur.offset + k * scalar,
-                         cur.offset + (k + rows * k) * scalar)
+    if k == 0:
+        raise DfmfError(f"channel {name}: 0 components")
+    first, second = cur.offset + k * scalar, cur.offset + (k + r * k) * scalar
+    block = ChannelBlock(scalar, k, rows, columns, cur.offset,
+                         second if transposed else first, first if transposed else second)
     if block.end > size:
         raise DfmfError(f"truncated: channel {name}'s factors end at byte {block.end}, "
                         f"but the file has {size} bytes")
     cur.offset = block.end
-    return block
+    return block, transposed
 
 
 def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
@@ -255,15 +298,17 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
     ------
     DfmfError
         A wrong signature (Bonn's other formats named), a truncated file, a metadata size that
-        does not match its fields, light lists that differ between views, an unknown colour
-        model, matrices whose shapes disagree with the sampling and image size, bytes left
-        after the last channel.
+        does not match its fields (btflib refuses it too), views with other numbers of lights,
+        a colour model btf does not decode, matrices whose shapes disagree with the sampling
+        and image size. What Bonn's readers differ on is read as btflib reads it and said in
+        the header's ``notes``: later views' light lists, channels stored texels first, bytes
+        after the last channel, channels with more components than the file's count.
     """
     cur = _Cursor(read, size)
     rotations_block = _signature(read(0, min(size, 12)))
     cur.offset = len(DFMF) + rotations_block
     meta = _metadata(cur)
-    theta_view, phi_view, theta_light, phi_light = _sampling(cur)
+    (theta_view, phi_view, theta_light, phi_light), notes = _sampling(cur)
     width, height = cur.unpack("II", "the image size")
     if width == 0 or height == 0:
         raise DfmfError(f"the image size is {width} x {height}")
@@ -273,11 +318,20 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
         cur.take(36 * rotations, f"{rotations} rotation matrices")
     components, model, mean, matrix = _colour_model(cur, meta["channel_names"])
     rows, columns = len(theta_view) * len(theta_light), width * height
-    blocks = [_channel_block(cur, name, rows, columns, components, size)
-              for name in meta["channel_names"]]
+    read = [_channel_block(cur, name, rows, columns, size) for name in meta["channel_names"]]
+    blocks = [b for b, _ in read]
+    swapped = [name for name, (_, t) in zip(meta["channel_names"], read, strict=True) if t]
+    if swapped:
+        notes.append(f"channel(s) {','.join(swapped)} store the texels' matrix first (a row "
+                     "per texel, then one per view and light), as btflib also reads")
+    if max(b.k for b in blocks) > components:
+        notes.append(f"channels hold up to {max(b.k for b in blocks)} components where the "
+                     f"file's count says {components}: each channel's own count is read, as "
+                     "btflib reads it")
     if cur.offset != size:
-        raise DfmfError(f"{size - cur.offset} bytes follow the last channel's factors (at byte "
-                        f"{cur.offset}): not a DFMF file as Bonn's readers write it")
+        notes.append(f"{size - cur.offset} bytes after the last channel's factors (byte "
+                     f"{cur.offset} on) are ignored, as btflib ignores them (btf.hh and "
+                     "btf-extractor refuse such a file)")
     return DfmfHeader(
         version=meta["version"], rotations=rotations,
         measurement_setup=meta["measurement_setup"], image_sensor=meta["image_sensor"],
@@ -287,7 +341,7 @@ def parse_header(read: Callable[[int, int], bytes], size: int) -> DfmfHeader:
         phi_light=phi_light, width=width, height=height, components=components,
         colour_model=model, colour_mean=tuple(mean),
         colour_matrix=tuple(tuple(matrix[3 * i : 3 * i + 3]) for i in range(3)),
-        channels=tuple(blocks))
+        channels=tuple(blocks), notes=tuple(notes))
 
 
 def _text(s: str) -> bytes:
@@ -346,21 +400,15 @@ def joint_u(header: DfmfHeader, u: list[np.ndarray]) -> tuple[np.ndarray, bool]:
     elsewhere. For the linear models (0, 1, 3, 4) the colour matrix is applied
     (``radiance = values @ M + mean``): channel ``d``'s row gets ``U_c M[c, d]`` in column block
     ``c``, and a non-zero mean adds a last column (the flag says so) whose ``V`` is 1 on every
-    texel. A set cosine flag divides the linear models' rows by ``cos(theta_light)``.
-
-    Raises
-    ------
-    DfmfError
-        For a set cosine flag with a non-linear colour model (not supported).
+    texel. A set cosine flag divides the linear models' rows by ``cos(theta_light)``; with
+    the non-linear models it comes after the colour model, so the store's transform keeps it
+    (:attr:`tasks.transform.Transform.cosine`) and ``U`` is the file's.
     """
     name = DFMF_MODELS[header.colour_model][0]
     nc, views, lights = len(u), len(header.theta_view), len(header.theta_light)
     ks = [x.shape[1] for x in u]
     offsets = np.cumsum([0, *ks])
     if name != "linear":
-        if header.cosine:
-            raise DfmfError(f"the cosine flag is set with colour model {header.colour_model}: "
-                            "btf folds the cosine only into the linear models (0, 1, 3, 4)")
         out = np.zeros((views * lights, nc, offsets[-1]))
         for c, uc in enumerate(u):
             out[:, c, offsets[c] : offsets[c + 1]] = uc

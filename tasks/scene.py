@@ -36,13 +36,15 @@ def mix(layers: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 
 def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, transform: Transform,
-                     weights: np.ndarray, factor: int = 1) -> np.ndarray:
+                     weights: np.ndarray, factor: int = 1, scale: np.ndarray | None = None
+                     ) -> np.ndarray:
     """Requested directions of an eigentexture block, ``(direction, y, x, channel)``.
 
     ``v`` is ``(y, x, k)`` at level 0 (sides multiples of ``factor``), ``u`` the eigen-ABRDF
     rows ``(layer, channel, k)`` of the layers ``weights`` ``(direction, layer)`` combine.
-    Radiance (``transform`` of ``U S V^T``) is rebuilt as many layers at a time as fit
-    :data:`BUDGET`, averaged over ``factor x factor`` blocks, and mixed.
+    Radiance (``transform`` of ``U S V^T``, each layer times its ``scale``: a cosine store's)
+    is rebuilt as many layers at a time as fit :data:`BUDGET`, averaged over
+    ``factor x factor`` blocks, and mixed.
     """
     ty, tx, k = v.shape
     nl, nc = u.shape[:2]
@@ -52,7 +54,9 @@ def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, transform: 
     for l0 in range(0, nl, step):
         rows = np.asarray(u[l0 : l0 + step], np.float32)
         n = len(rows)
-        radiance = reconstruct(rows.reshape(n * nc, k), s, texels, transform=transform)
+        radiance = reconstruct(rows.reshape(n * nc, k), s, texels, transform=transform,
+                               scale=None if scale is None
+                               else np.repeat(np.asarray(scale[l0 : l0 + n]), nc))
         layers = np.moveaxis(radiance.reshape(n, nc, ty, tx), 1, -1)
         out += mix(block_mean(layers, factor), weights[:, l0 : l0 + n])
     return out
@@ -60,7 +64,8 @@ def compressed_block(v: np.ndarray, *, u: np.ndarray, s: np.ndarray, transform: 
 
 def surface_block(values: np.ndarray, *, weights: np.ndarray, factor: int = 1,
                   u: np.ndarray | None = None, s: np.ndarray | None = None,
-                  transform: Transform | None = None) -> np.ndarray:
+                  transform: Transform | None = None, scale: np.ndarray | None = None
+                  ) -> np.ndarray:
     """Requested directions of a gathered surface block, ``(direction, y, x, channel)``.
 
     ``values`` is the level-0 block gathered from a tile set: ``(y, x, layer, channel)``
@@ -68,6 +73,6 @@ def surface_block(values: np.ndarray, *, weights: np.ndarray, factor: int = 1,
     """
     if u is not None:
         return compressed_block(values, u=u, s=s, transform=transform, weights=weights,
-                                factor=factor)
+                                factor=factor, scale=scale)
     layers = np.moveaxis(values, 2, 0)
     return mix(block_mean(layers, factor), weights)

@@ -503,31 +503,40 @@ def estimated_error(z_phi: np.ndarray, vt_phi: np.ndarray, t: int, u, s,
 _LOG_MAX = 88.0  # exp of more overflows float32
 
 
-def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform
-                ) -> np.ndarray:
+def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform,
+                scale: np.ndarray | None = None) -> np.ndarray:
     """Radiance (float32) of ``u`` rows and ``v`` texels: ``transform`` of ``u diag(s) v^T``.
 
     Rows run over (layer, channel) with the channel fastest (:func:`matrix_rows`); the log
     transform rebuilds ``max(exp(u diag(s) v^T) - eps, 0)``. Radiance was non-negative (or
     clamped to be) before compression, so the small negatives that approximation error would
-    give are set to 0 (:meth:`tasks.transform.Transform.decode`).
+    give are set to 0 (:meth:`tasks.transform.Transform.decode`). ``scale``, one number per
+    row, multiplies the decoded rows (a cosine store's :meth:`~tasks.transform.Transform.
+    layer_scale`, repeated over each layer's channels).
     """
     values = (blas_ready(u) * np.asarray(s, np.float32)) @ blas_ready(v).T
-    return transform.decode_rows(values)
+    radiance = transform.decode_rows(values)
+    if scale is not None:
+        radiance *= np.asarray(scale, np.float32).reshape(-1, 1)
+    return radiance
 
 
-def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform
-                       ) -> np.ndarray:
+def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform,
+                       scale: np.ndarray | None = None) -> np.ndarray:
     """Radiance layers ``(..., y, x, channel)`` rebuilt from factors.
 
     ``u`` holds eigen-ABRDF rows ``(..., channel, k)``, ``v`` an eigentexture tile
-    ``(y, x, k)``: the result is what the corresponding radiance block held.
+    ``(y, x, k)``: the result is what the corresponding radiance block held. ``scale`` (shape
+    ``u.shape[:-2]``, one number per layer) multiplies each layer (a cosine store's
+    :meth:`~tasks.transform.Transform.layer_scale`).
     """
     u = np.asarray(u)
     lead, nc, k = u.shape[:-2], u.shape[-2], u.shape[-1]
     ny, nx = v.shape[:2]
+    rows = None if scale is None else np.repeat(
+        np.broadcast_to(np.asarray(scale, np.float32), lead).reshape(-1), nc)
     flat = reconstruct(u.reshape(-1, k), s, np.asarray(v).reshape(ny * nx, k),
-                       transform=transform)
+                       transform=transform, scale=rows)
     return np.moveaxis(flat.reshape(*lead, nc, ny, nx), -3, -1)
 
 

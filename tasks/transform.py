@@ -22,6 +22,13 @@ The colour models are those of Bonn's btflib (``undecorrelate.m``); YUV to RGB i
 :data:`YUV_TO_RGB`. Decoded radiance below 0 (approximation error) is set to 0. :meth:`encode`
 is the inverse, for values that must be compared with stored ones (constraint photos, levels of
 detail).
+
+``cosine`` (a DFMF file's cosine flag with a non-linear colour model): the decoded quantity is
+radiance times ``cos(theta_light)``, so a layer's radiance is it divided by the cosine of its
+light (:meth:`Transform.layer_scale`), after the colour model, as the flag means. The
+division is per layer, so it is not part of :meth:`decode`: whoever rebuilds layers passes
+their scale (:func:`tasks.svd.reconstruct`'s ``scale``). The linear models fold it into ``U``
+instead, and keep ``cosine`` false.
 """
 
 from __future__ import annotations
@@ -53,10 +60,11 @@ NAMES = ("log", "linear", *_YUV_NAMES)
 
 @dataclass(frozen=True)
 class Transform:
-    """A store's value model: ``name`` (see the module) and its ``eps``."""
+    """A store's value model: ``name`` (see the module), its ``eps``, and the cosine flag."""
 
     name: str = "log"
     eps: float = 1e-3
+    cosine: bool = False  # decoded values are radiance x cos(theta_light)
 
     def __post_init__(self):
         if self.name not in NAMES:
@@ -67,7 +75,19 @@ class Transform:
     @staticmethod
     def from_attrs(attrs: dict[str, Any]) -> Transform:
         """The transform a store's ``transform`` attribute describes (old stores: ``log``)."""
-        return Transform(str(attrs.get("name", "log")), float(attrs.get("eps", 0.0)))
+        return Transform(str(attrs.get("name", "log")), float(attrs.get("eps", 0.0)),
+                         bool(attrs.get("cosine", False)))
+
+    def layer_scale(self, theta_light) -> np.ndarray | None:
+        """What multiplies decoded layers lit from ``theta_light`` (degrees) to give radiance.
+
+        ``1 / cos(theta_light)`` (float32, the cosine at least 1e-6) for a cosine store; None
+        for any other, where the decoded values are radiance already.
+        """
+        if not self.cosine:
+            return None
+        cos = np.cos(np.radians(np.asarray(theta_light, np.float64)))
+        return (1.0 / np.maximum(cos, 1e-6)).astype(np.float32)
 
     @property
     def channels(self) -> int | None:

@@ -63,7 +63,7 @@ def write_dfmf(path, *, views: Sequence[tuple[float, float]],
                rgb_scale=(1.0, 1.0, 1.0), n_components: int | None = None,
                light_lists: Sequence[Sequence[tuple[float, float]]] | None = None,
                signature: bytes | None = None, metadata_size_delta: int = 0,
-               trailing: bytes = b"") -> Path:
+               trailing: bytes = b"", transposed: bool = False) -> Path:
     """Write a DFMF ``.btf`` file; return its path.
 
     ``views``/``lights``: (theta, phi) in radians, as stored. ``u[c]``: (nV * nL, k_c), light
@@ -75,6 +75,8 @@ def write_dfmf(path, *, views: Sequence[tuple[float, float]],
     For error tests: ``light_lists`` (one light list per view, overriding ``lights`` in the
     sampling block only), ``signature`` (replaces ``!DFMF08FC``), ``metadata_size_delta``
     (added to the stored metadata size), ``trailing`` (bytes appended after the data).
+    ``transposed``: each channel stores its texels' matrix first (its head then says rows =
+    texels, columns = views x lights), a layout btflib's ``decode_dfmf_texel.m`` also reads.
     """
     dtype = np.dtype(SCALAR_DTYPES[scalar_size])
     n_views, n_lights = len(views), len(lights)
@@ -119,9 +121,10 @@ def write_dfmf(path, *, views: Sequence[tuple[float, float]],
         if uc.shape != (n_views * n_lights, k) or vc.shape != (width * height, k):
             raise ValueError(f"channel {c}: U {uc.shape}, SxV {vc.shape} do not fit")
         sc = np.linalg.norm(vc, axis=0) if s is None else np.asarray(s[c])
-        chunks.append(struct.pack("<B", scalar_size) + _u32(k) + _u32(uc.shape[0])
-                      + _u32(vc.shape[0]))
-        for m in (sc, uc, vc):
+        first, second = (vc, uc) if transposed else (uc, vc)
+        chunks.append(struct.pack("<B", scalar_size) + _u32(k) + _u32(first.shape[0])
+                      + _u32(second.shape[0]))
+        for m in (sc, first, second):
             chunks.append(np.ascontiguousarray(m, dtype=dtype).tobytes())
 
     path = Path(path)

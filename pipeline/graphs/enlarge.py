@@ -55,6 +55,9 @@ class Guide:
     offsets: tuple[float, ...]  # subtracted per value (a mean colour's Jensen offset)
     transform: Transform
     shape: tuple[int, int]  # full-resolution size of the photos
+    # per layer, what multiplies the photo's radiance before it is encoded: cos(theta_light)
+    # for a cosine sample, whose values are radiance x cos (None: 1)
+    scales: tuple[float, ...] | None = None
 
     def region(self, factor: int, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         """Constraint values of level texels ``[y0, y1) x [x0, x1)`` at ``1 / factor`` scale.
@@ -73,8 +76,10 @@ class Guide:
         out = []
         for a in range(y0, y1, step):
             rows = slice(a * factor, min(min(a + step, y1) * factor, h))
-            values = np.concatenate([self.transform.encode(array[v, li, rows, cols])
-                                     for v, li in self.layers], axis=-1)
+            values = np.concatenate([self.transform.encode(
+                array[v, li, rows, cols] * np.float32(1.0 if self.scales is None
+                                                      else self.scales[k]))
+                for k, (v, li) in enumerate(self.layers)], axis=-1)
             values -= np.asarray(self.offsets, np.float32)
             out.append(downsample(values, factor))
         return np.concatenate(out, axis=0)

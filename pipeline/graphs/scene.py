@@ -165,10 +165,11 @@ def read_u_rows(u, layers: list[tuple[int, int]], rank: int) -> tuple[np.ndarray
 
 
 def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, transform: Transform,
-                     request: Request):
+                     request: Request, scale: np.ndarray | None = None):
     """Scene from a compressed store: ``v`` the dask ``V`` (level n if stored, else level 0).
 
     Only the region's ``V`` tiles are read; each block rebuilds just the needed layers.
+    ``scale`` (one per layer of the request): a cosine store's layer scale.
     """
     ys, xs = request.read_window()
     factor = request.read_factor
@@ -186,7 +187,8 @@ def compressed_graph(v, u_rows: np.ndarray, s: np.ndarray, transform: Transform,
                   tuple(c // factor for c in region.chunks[1]), (nc,))
         parts.append(region.map_blocks(
             compressed_block, u=u_rows[used], s=np.asarray(s[:rank], np.float32),
-            transform=transform, weights=w, factor=factor, chunks=chunks, drop_axis=2,
+            transform=transform, weights=w, factor=factor,
+            scale=None if scale is None else scale[used], chunks=chunks, drop_axis=2,
             new_axis=[0, 3],
             dtype=np.float32, meta=np.empty((0, 0, 0, 0), np.float32)))
     return da.concatenate(parts, axis=0) if len(parts) > 1 else parts[0]
@@ -228,16 +230,17 @@ def _sample_values(store: str, u_rows: np.ndarray, rank) -> np.ndarray:
     return sample_values(group, layer_coefficients(group, u_rows, rank))
 
 
-def _prescribed_tile(store: str, tile: int, values: np.ndarray, layers: int) -> np.ndarray:
+def _prescribed_tile(store: str, tile: int, values: np.ndarray, layers: int, scale
+                     ) -> np.ndarray:
     """Radiance ``(y, x, layer, channel)`` of one tile of a prescribed compressed tile set."""
     from pipeline.stores.tileset import decode_tile_values, prescribe
 
     group = _open(store)
-    return decode_tile_values(group, prescribe(group, tile, values), layers)
+    return decode_tile_values(group, prescribe(group, tile, values), layers, scale)
 
 
 def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, transform,
-             weights):
+             weights, scale=None):
     from tasks.placement import gather, lattice_gather
 
     f = factor
@@ -250,7 +253,8 @@ def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s,
     else:
         values = gather(tiles, y0 * f, x0 * f, ny * f, nx * f, seed=placement["seed"],
                         corners=placement["corners"])
-    return surface_block(values, weights=weights, factor=f, u=u, s=s, transform=transform)
+    return surface_block(values, weights=weights, factor=f, u=u, s=s, transform=transform,
+                         scale=scale)
 
 
 def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape,
@@ -267,7 +271,8 @@ def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape
 
 
 def tileset_graph(store: str, group, request: Request, placement: dict, *, u_rows=None,
-                  s=None, transform: Transform | None = None, level_path: str | None = None):
+                  s=None, transform: Transform | None = None, level_path: str | None = None,
+                  scale: np.ndarray | None = None):
     """Scene of the surface a tile set covers; returns the dask array and the tiles read.
 
     With ``level_path`` (the tiles' stored level n, ``request.stored_level``) the surface is
@@ -326,7 +331,8 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
                         continue
                     if from_sample:
                         tiles[c] = dask.delayed(_prescribed_tile, pure=True)(
-                            location(store), int(order[c]), sample, len(used))
+                            location(store), int(order[c]), sample, len(used),
+                            None if scale is None else scale[used])
                         read.add((int(order[c]), tuple(int(k) for k in used)))
                         continue
                     tiles[c] = dask.delayed(_tile_data, pure=True)(
@@ -335,7 +341,8 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
                 block = dask.delayed(_surface, pure=True)(
                     {c: tiles[c] for c in codes}, y0, x0, y1 - y0, x1 - x0,
                     factor=f, placement=placement, u=None if from_sample else u, s=s,
-                    transform=transform, weights=w)
+                    transform=transform, weights=w,
+                    scale=None if scale is None or from_sample else scale[used])
                 blocks.append(da.from_delayed(block, (len(dirs), y1 - y0, x1 - x0, nc),
                                               dtype=np.float32))
             rows.append(blocks)

@@ -29,9 +29,13 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
         tiles = group[RADIANCE][:, view, light]
     else:  # the layer's values formed on the sample, then each tile's prescription applied
         from pipeline.stores.tileset import tile_layers
+        from tasks.transform import Transform
 
         u = group["U"][view, light]  # (channel, component)
-        tiles = tile_layers(group, range(group["corners"].shape[0]), u[None])[:, :, :, 0]
+        scale = Transform.from_attrs(group.attrs["transform"]).layer_scale(
+            group["theta_light"][light : light + 1])
+        tiles = tile_layers(group, range(group["corners"].shape[0]), u[None],
+                            scale=scale)[:, :, :, 0]
     if order is None or np.array_equal(order, np.arange(len(tiles))):
         return tiles
     return tiles[order]

@@ -238,8 +238,10 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
         offsets += [0.0] * nc
         described.append({"layer": k, "kind": "photo", "sample_view": sv, "sample_light": sl,
                           "angle_deg": angle})
+    scale = transform.layer_scale(d.theta_light[[i for _, i in layers]])
     guide = Guide(location(path), tuple(layers), tuple(offsets), transform,
-                  tuple(group[RADIANCE].shape[2:4]))
+                  tuple(group[RADIANCE].shape[2:4]),
+                  None if scale is None else tuple(float(1.0 / x) for x in scale))
     return _Constraints(guide, np.concatenate(rows, axis=0), described)
 
 

@@ -96,8 +96,9 @@ def _layers(store: str, view: int, lights: list[int]) -> np.ndarray:
     if RADIANCE in group:
         return group[RADIANCE].get_orthogonal_selection((view, lights))
     u = group["U"].get_orthogonal_selection((view, lights))
-    return reconstruct_layers(u, group["S"][:], group["V"][:],
-                              transform=Transform.from_attrs(group.attrs["transform"]))
+    transform = Transform.from_attrs(group.attrs["transform"])
+    return reconstruct_layers(u, group["S"][:], group["V"][:], transform=transform,
+                              scale=transform.layer_scale(group["theta_light"][lights]))
 
 
 def _export_block(store: str, out: str, view: int, lights: list[int], names: list[str], *,

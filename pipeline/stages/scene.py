@@ -104,6 +104,12 @@ def _pyramid_level(spec: SceneSpec, group, variable: str, session: Session) -> s
     return next(lv["path"] for lv in levels if lv["level"] == spec.level)
 
 
+def _layer_scale(transform: Transform, group, layers) -> np.ndarray | None:
+    """A cosine store's scale of each of the scene's measured layers (else None)."""
+    theta = np.asarray(group["theta_light"][...], np.float64)
+    return transform.layer_scale(theta[[li for _, li in layers]])
+
+
 def _check_keys(spec: SceneSpec, kind: str, group) -> None:
     tiles = kind == "tileset"
     if tiles and spec.region is not None:
@@ -185,8 +191,9 @@ def _compressed(spec: SceneSpec, group, path: str, layers, request, session: Ses
     u_rows, u_read = graphs.read_u_rows(u, layers, rank)
     s = np.asarray(group["S"][:rank])
     v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
-    out = graphs.compressed_graph(da.from_zarr(v), u_rows, s,
-                                  Transform.from_attrs(group.attrs["transform"]), req)
+    transform = Transform.from_attrs(group.attrs["transform"])
+    out = graphs.compressed_graph(da.from_zarr(v), u_rows, s, transform, req,
+                                  scale=_layer_scale(transform, group, layers))
     ys, xs = req.read_window()
     return out, {
         v.path: [graphs.chunks_touched(v.shape, v.chunks, (ys, xs, slice(None))),
@@ -266,8 +273,9 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
     if compressed:
         u = group["U"]
         u_rows, u_read = graphs.read_u_rows(u, layers, rank)
-        extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]),
-                 "transform": Transform.from_attrs(group.attrs["transform"])}
+        transform = Transform.from_attrs(group.attrs["transform"])
+        extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]), "transform": transform,
+                 "scale": _layer_scale(transform, group, layers)}
     out, read = graphs.tileset_graph(path, group, req, placement, level_path=stored, **extra)
     if compressed and prescribed(group):  # the sample's V whole, and the tiles' prescriptions
         v = group["V"]

@@ -80,20 +80,27 @@ def check_compressed(group, path: str | Path) -> None:
     check_coordinates(group, path, {"view": u[0], "light": u[1], "channel": u[2]}, "U")
 
 
-def _rebuild(u, s, v, *, transform: Transform) -> np.ndarray:
-    return reconstruct_layers(u, s, v, transform=transform)
+def _rebuild(u, s, v, *scale, transform: Transform) -> np.ndarray:
+    return reconstruct_layers(u, s, v, transform=transform, scale=scale[0] if scale else None)
 
 
-def lazy_radiance(u, s, v, *, transform: Transform):
+def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
     """Dask radiance ``(view, light, y, x, channel)`` from dask factors.
 
-    There is one block per pair of a ``U`` chunk and a ``V`` tile.
+    There is one block per pair of a ``U`` chunk and a ``V`` tile. A cosine store needs
+    ``theta_light`` (degrees, one per light): each layer is divided by its light's cosine.
     """
     import dask.array as da
 
+    scale = transform.layer_scale(theta_light) if transform.cosine else None
+    if transform.cosine and theta_light is None:
+        raise ValueError("a cosine store's radiance needs its lights' theta")
+    extra = () if scale is None else (
+        da.from_array(np.broadcast_to(scale, u.shape[:2]).copy(), chunks=u.chunks[:2]), "vl")
     return da.blockwise(
-        _rebuild, "vlyxc", u, "vlck", s, "k", v, "yxk", concatenate=True, align_arrays=False,
-        dtype=np.float32, meta=np.empty((0,) * 5, np.float32), transform=transform)
+        _rebuild, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra, concatenate=True,
+        align_arrays=False, dtype=np.float32, meta=np.empty((0,) * 5, np.float32),
+        transform=transform)
 
 
 def open_compressed(path: str | Path, *, rank: int | None = None):
@@ -121,8 +128,9 @@ def open_compressed(path: str | Path, *, rank: int | None = None):
     factors = {name: da.from_zarr(zarr.open_array(store, path=name, mode="r"))[..., :rank]
                for name in FACTOR_DIMS}
     transform = Transform.from_attrs(group.attrs["transform"])
-    radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], transform=transform)
     d = read_directions(group)
+    radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], transform=transform,
+                             theta_light=d.theta_light)
     coords = {name: (dim, getattr(d, name)) for name, dim in DIRECTION_COORDS.items()}
     coords["channel"] = ("channel", list(read_channels(group)))
     attrs = {**group.attrs, "rank_used": rank}
@@ -221,6 +229,7 @@ def dfmf_lines(meta: dict[str, Any], *, what: str = "file") -> list[str]:
              f"  XML: {len(xml)} characters" + (f", first line {first[:100]!r}"
                                                 + ("..." if len(first) > 100 else "")
                                                 if first else "")]
+    lines += [f"  read as btflib reads it: {note}" for note in meta.get("notes") or ()]
     return lines
 
 

@@ -244,22 +244,31 @@ def layer_coefficients(group, u_rows: np.ndarray, rank: int | None = None) -> np
     return (s[:, None] * u[..., :k].reshape(n * nc, k).T).astype(np.float32)
 
 
-def decode_tile_values(group, values: np.ndarray, layers: int) -> np.ndarray:
-    """Radiance ``(..., layer, channel)`` of tile values ``(..., layer * channel)``."""
+def decode_tile_values(group, values: np.ndarray, layers: int,
+                       scale: np.ndarray | None = None) -> np.ndarray:
+    """Radiance ``(..., layer, channel)`` of tile values ``(..., layer * channel)``.
+
+    ``scale``, one per layer, multiplies them (a cosine set's layer scale).
+    """
     from tasks.transform import Transform
 
     transform = Transform.from_attrs(group.attrs["transform"])
-    return transform.decode(values.reshape(*values.shape[:-1], layers, -1))
+    radiance = transform.decode(values.reshape(*values.shape[:-1], layers, -1))
+    if scale is not None:
+        radiance *= np.asarray(scale, np.float32)[:, None]
+    return radiance
 
 
-def tile_layers(group, tiles, u_rows: np.ndarray, *, rank: int | None = None) -> np.ndarray:
+def tile_layers(group, tiles, u_rows: np.ndarray, *, rank: int | None = None,
+                scale: np.ndarray | None = None) -> np.ndarray:
     """Radiance ``(tile, y, x, layer, channel)`` of ``u_rows`` ``(layer, channel, K)``.
 
     The layers' values are formed on the sample (``V diag(S) u^T``: a few numbers per texel)
-    and then prescribed, so no tile's eigentextures are ever held.
+    and then prescribed, so no tile's eigentextures are ever held. ``scale``: one per layer
+    (a cosine set's layer scale).
     """
     values = tile_values(group, tiles, layer_coefficients(group, u_rows, rank))
-    return decode_tile_values(group, values, len(u_rows))
+    return decode_tile_values(group, values, len(u_rows), scale)
 
 
 def sample_values(group, coef: np.ndarray) -> np.ndarray:
