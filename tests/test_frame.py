@@ -18,6 +18,7 @@ import zipfile
 
 import numpy as np
 import pytest
+import zarr
 from dfmf_files import write_dfmf
 
 from helpers import facing
@@ -204,6 +205,14 @@ def test_btf_export_writes_images_the_right_way_up(tmp_path, btf):
             planes = f.channels()
             images.append(np.stack([np.asarray(planes[c].pixels) for c in "RGB"], axis=-1))
     assert_upright(np.stack(images), "exported EXR")
+    # a scene of the store at the four side lights keeps the frame
+    rows = "".join(f"  - [{t}, {p}, 0, 0]\n" for t, p in LIGHTS[1:])
+    (tmp_path / "s.yaml").write_text(f"source: {tmp_path / 'm.zarr'}\ndirections:\n{rows}"
+                                     "format: zarr\n")
+    assert btf("scene", tmp_path / "s.yaml", tmp_path / "s.zarr", "--quiet").code == 0
+    scene = open_layers(tmp_path / "m.zarr")["radiance"].values[0].copy()
+    scene[1:] = zarr.open_group(tmp_path / "s.zarr", mode="r")["radiance"][...]
+    assert_upright(scene, "scene")
     # a DFMF file written by btf export is read back the same way up
     assert btf("export", tmp_path / "m.zarr", tmp_path / "back.btf", "--quiet").code == 0
     assert btf("ingest", tmp_path / "back.btf", tmp_path / "back.zarr", "--quiet").code == 0
