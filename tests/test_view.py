@@ -392,17 +392,23 @@ def test_the_sphere_is_its_replica_smooth_at_the_terminator_with_every_texel_in_
     tab.close()
 
 
-def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser,
-                                                                             compressed, btf):
+@pytest.fixture(scope="module")
+def tiles(compressed):
+    """A compressed tile set: btf quilt --corners 2 of the compressed store."""
+    from pipeline.cli import main
+
+    q = compressed.parent / "q.zarr"
+    assert main(["quilt", str(compressed), str(q), "--corners", "2", "--seed", "1", "-q"]) == 0
+    return q
+
+
+def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser, tiles):
     from pipeline.cli import main
     from pipeline.stores.tileset import stored_seed, tile_eigentextures
     from tasks.placement import cell_tiles, gather
 
-    q, page = compressed.parent / "q.zarr", compressed.parent / "q.html"
-    assert main(["quilt", str(compressed), str(q), "--corners", "2", "--seed", "1", "-q"]) == 0
+    q, page = tiles, tiles.parent / "q.html"
     assert main(["view", str(q), str(page), "--rank", str(RANK), "-q"]) == 0
-    big = btf("view", q, compressed.parent / "big.html", "--budget", "0.01")
-    assert big.code == 1 and "lower --rank, or raise --budget" in big.err  # not --level
     g = zarr.open_group(q, mode="r")
     tiles = tile_eigentextures(g, range(g["corners"].shape[0]), RANK)
     ty, tx = tiles.shape[1:3]
@@ -422,10 +428,210 @@ def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(bro
                                transform=Transform.from_attrs(g.attrs["transform"]))[0]
     scale = tab.evaluate("window.btfView.state.exposure")
     assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
-    tab.evaluate("window.btfView.set(null, null, null, 'sphere')")
-    ball = _pixels(tab).reshape(
-        SPHERE, SPHERE, 4)[..., :3]
-    assert ball[SPHERE // 2, SPHERE // 2].sum() > 0
+    # round the sphere: 2 x 2 cells across the disk, laid as btf render lays them
+    tab.evaluate("window.btfView.set([30, 200], null, null, 'sphere', 2)")
+    mosaic = gather(tiles, 0, 0, 2 * ty, 2 * tx, seed=seed, corners=2)
+    want, sure, _ = _replica(g, (30, 200), mosaic, 1, scale, RANK)
+    assert np.abs(_sphere_shown(tab) - want)[sure].max() <= BOUND
+    tab.close()
+
+
+def _data(page) -> dict:
+    import json
+
+    text = page.read_text()
+    return json.loads(text.split("const DATA = ")[1].split(";\n")[0])
+
+
+def _blob(page, name: str) -> str:
+    return page.read_text().split(f'id="blob-{name}">')[1].split("</script>")[0]
+
+
+def test_a_compressed_tile_set_fits_its_budget_at_a_level_or_a_region(browser, tiles, btf,
+                                                                      tmp_path):
+    """Issue 53, part 3's page: a tile set is shown within --budget, at a level of detail
+    (block means of every tile) or a region of the surface btf render lays, as any store."""
+    from pipeline.stores.tileset import stored_seed, tile_eigentextures
+    from tasks.placement import gather
+    from tasks.viewer import block_means
+
+    g = zarr.open_group(tiles, mode="r")
+    n = g["corners"].shape[0]
+    full = tile_eigentextures(g, range(n), RANK)  # corner-code order, as quilt stores them
+    whole = btf("view", tiles, tmp_path / "0.html", "--rank", str(RANK), "--level", "0")
+    assert whole.code == 0, whole.err
+    budget = (tmp_path / "0.html").stat().st_size * 0.6 / (1 << 20)
+    over = btf("view", tiles, tmp_path / "x.html", "--rank", str(RANK), "--level", "0",
+               "--budget", f"{budget:.4f}")
+    assert over.code == 1 and "over --budget" in over.err and "(--level 1)" in over.err
+    fits = btf("view", tiles, tmp_path / "1.html", "--rank", str(RANK), "--budget",
+               f"{budget:.4f}")  # the default level: the lowest that fits
+    assert fits.code == 0 and "at level 1 (block means of 2^2)" in fits.err, fits.err
+    assert (tmp_path / "1.html").stat().st_size <= budget * (1 << 20)
+    means = [block_means(t, 2) for t in full]
+    assert _blob(tmp_path / "1.html", "V") == base64.b64encode(np.concatenate(
+        [pack_eigentextures(t) for t in means]).tobytes()).decode()
+    data = _data(tmp_path / "1.html")
+    assert (data["tileHeight"], data["tileWidth"]) == means[0].shape[:2] and data["level"] == 1
+    # a region of the surface btf render lays: its texels, exactly
+    r = btf("view", tiles, tmp_path / "r.html", "--region", "10:50,20:90", "--rank", str(RANK))
+    assert r.code == 0 and "texels 10:50, 20:90 of the surface btf render lays" in r.err, r.err
+    seed = stored_seed(g)
+    region = gather(full, 10, 20, 40, 70, seed=seed, corners=int(g.attrs["corner_types"]))
+    assert _blob(tmp_path / "r.html", "V") == base64.b64encode(
+        pack_eigentextures(region).tobytes()).decode()
+    tab, _ = _open(browser, tmp_path / "r.html")
+    tv, pv, tl, pl = (g[k][...] for k in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    tab.evaluate(f"window.btfView.set([{tl[4]}, {pl[4]}], [{tv[2]}, {pv[2]}])")
+    shown = _pixels(tab).reshape(40, 70, 4)[::-1, :, :3].astype(int)
+    layer = reconstruct_layers(g["U"][2, 4, :, :RANK][None], g["S"][:RANK],
+                               region.astype(np.float16).astype(np.float32),
+                               transform=Transform.from_attrs(g.attrs["transform"]))[0]
+    scale = tab.evaluate("window.btfView.state.exposure")
+    assert np.abs(shown - to_uint8(tonemap(layer, scale=scale))).max() <= 1
+    tab.close()
+
+
+def test_the_page_says_its_rank_against_the_stores_and_the_energy_kept(browser, compressed,
+                                                                       btf, tmp_path):
+    """Issue 53: the default rank comes from the spectrum and the budget, and the page and the
+    log line say what rank is shown of the store's, the energy kept and what was dropped."""
+    import re
+
+    from pipeline.stores.compressed import total_energy
+    from tasks.viewer import shown_rank
+
+    g = zarr.open_group(compressed, mode="r")
+    s = g["S"][...].astype(np.float64)
+    total = total_energy(g, s)
+    channels = (g["U"][...].astype(np.float64) ** 2).sum(axis=(0, 1)) * s**2
+    want = shown_rank(s, total, most=64, channels=channels)
+    r = btf("view", compressed, tmp_path / "a.html")
+    assert r.code == 0 and f"at rank {want} of the store's 12" in r.err, r.err
+    assert _data(tmp_path / "a.html")["rank"] == want
+
+    def kept(text: str) -> float:
+        return float(re.search(r"([\d.]+)% of the energy \(sum", text).group(1)) / 100
+
+    assert kept(r.err) == pytest.approx((s[:want] ** 2).sum() / total, abs=6e-4)
+    # a budget for fewer components: at level 0 as many as fit, and what was dropped
+    # (rank 4 fills one texture layer of four; a fifth needs another, 24 kB more)
+    assert btf("view", compressed, tmp_path / "b.html", "--rank", "4").code == 0
+    budget = ((tmp_path / "b.html").stat().st_size + 6000) / (1 << 20)
+    r = btf("view", compressed, tmp_path / "c.html", "--budget", f"{budget:.5f}", "--level", "0")
+    k = _data(tmp_path / "c.html")["rank"]
+    assert r.code == 0 and k == 4 and f"as many as fit --budget {budget:.5f}" in r.err, r.err
+    dropped = (s[4:] ** 2).sum() / total
+    assert f"8 component(s) dropped, {100 * dropped:.2g}% of the energy" in r.err
+    # left to choose, fewer than 8 components at level 0 make it take level 1, with more
+    r = btf("view", compressed, tmp_path / "d.html", "--budget", f"{budget:.5f}")
+    assert r.code == 0 and "at level 1" in r.err and _data(tmp_path / "d.html")["rank"] >= 8
+    tab, _ = _open(browser, tmp_path / "c.html")
+    note = tab.evaluate("document.getElementById('rank').textContent")
+    assert note.startswith("Rank 4 of the store's 12") and "8 component(s) dropped" in note
+    assert kept(note) == pytest.approx((s[:4] ** 2).sum() / total, abs=6e-4)
+    tab.close()
+
+
+def test_the_address_drives_the_page_whenever_it_changes(browser, page):
+    """Issue 53: every key of the fragment (light, view, exposure, mode, repeat) is followed
+    when it changes, and the address the page writes back keeps them."""
+    tab, _ = _open(browser, page)
+    tab.evaluate("location.hash = '#light=40,90&view=10,0&exposure=1.5&mode=1&repeat=2'")
+    tab.wait_for_function("window.btfView.state.mode === 'sphere'", timeout=5000)
+    tab.wait_for_timeout(100)  # the frame it asked for
+    state = tab.evaluate("window.btfView.state")
+    assert state["light"] == [40, 90] and state["view"] == [10, 0]
+    assert state["exposure"] == 1.5 and state["repeat"] == 2
+    assert tab.evaluate("window.btfView.canvas.width") == SPHERE
+    address = tab.evaluate("location.hash")
+    assert "mode=1" in address and "repeat=2" in address and "light=40,90" in address
+    tab.evaluate("location.hash = '#mode=0'")  # the keys it lacks keep their state
+    tab.wait_for_function("window.btfView.state.mode === 'swatch'", timeout=5000)
+    state = tab.evaluate("window.btfView.state")
+    assert state["light"] == [40, 90] and state["repeat"] == 2
+    tab.close()
+
+
+def test_the_status_line_says_measured_at_a_measured_pair(browser, page, compressed):
+    """Issue 53: "2 measured pair(s) blended" at measured directions came from the address,
+    which kept one decimal: the store's directions (a Fibonacci spiral here, Bonn's radians
+    elsewhere) reopened a little off, a blend of two or three each. A link now reopens the
+    measured pair (two decimals, and a direction within 0.075 degrees of a measured one is it),
+    and the status line says which pair, or what it blends."""
+    g = zarr.open_group(compressed, mode="r")
+    tv, pv, tl, pl = (g[k][...] for k in ("theta_view", "phi_view", "theta_light", "phi_light"))
+    tab, _ = _open(browser, page)
+
+    def status() -> str:
+        return tab.evaluate("document.getElementById('frame').textContent")
+
+    for view, light in [(0, 0), (3, 7), (8, 2)]:
+        measured = f"measured pair: view {view} (" and f", light {light} ("
+        tab.evaluate(f"window.btfView.set([{tl[light]}, {pl[light]}], [{tv[view]}, {pv[view]}])")
+        assert "measured pair: view" in status() and measured in status(), status()
+        link = tab.evaluate("location.hash")
+        for address in (link, f"#light={tl[light]:.1f},{pl[light]:.1f}&view={tv[view]:.1f},"
+                              f"{pv[view]:.1f}"):  # the page's link, and today's one decimal
+            tab.evaluate("window.btfView.set([33, 33], [11, 11])")
+            tab.evaluate(f"location.hash = {address!r}")
+            tab.wait_for_function("window.btfView.state.light[1] !== 33", timeout=5000)
+            tab.wait_for_timeout(100)
+            assert "measured pair: view" in status() and measured in status(), (address,
+                                                                                 status())
+    points, tris = disk(tl, pl), triangulate(tl, pl, "light")
+    a, b = (int(i) for i in tris[0][:2])
+    x, y = (points[a] + points[b]) / 2
+    theta, phi = np.degrees(np.arcsin(np.hypot(x, y))), np.degrees(np.arctan2(y, x)) % 360
+    tab.evaluate(f"window.btfView.set([{theta}, {phi}], [{tv[0]}, {pv[0]}])")
+    assert "blend of 2 measured pairs: view 0 (" in status(), status()
+    assert f"lights {min(a, b)} 50% + {max(a, b)} 50%" in status() or \
+        f"lights {max(a, b)} 50% + {min(a, b)} 50%" in status(), status()
+    tab.close()
+
+
+def test_lit_from_plus_y_the_page_brightens_the_slopes_facing_the_top(browser, btf, tmp_path):
+    """Issue 53, part 1 on the page: the bump field of tests/test_frame.py, written as a DFMF
+    file by the test and ingested; lit from each side, the swatch brightens the slopes that
+    face the light (from phi = 90: those facing the top of the picture), and the sphere equals
+    its replica, whose middle shows the same."""
+    from test_frame import LIGHTS, SIDES, _dfmf, assert_upright, heights, layers
+
+    from helpers import facing
+
+    _dfmf(tmp_path / "m.btf")
+    for args in (["ingest", tmp_path / "m.btf", tmp_path / "m.zarr"],
+                 ["view", tmp_path / "m.zarr", tmp_path / "m.html", "--exposure", "1"]):
+        assert btf(*args, "-q").code == 0, args
+    g = zarr.open_group(tmp_path / "m.zarr", mode="r")
+    h, w = g["V"].shape[:2]
+    tab, _ = _open(browser, tmp_path / "m.html")
+    images = np.zeros((len(LIGHTS), h, w, 3))
+    for i in SIDES:
+        tab.evaluate(f"window.btfView.set([{LIGHTS[i][0]}, {LIGHTS[i][1]}])")
+        shown = _pixels(tab).reshape(h, w, 4)[::-1, :, :3] / 255  # rows from the top
+        images[i] = np.where(shown <= 0.04045, shown / 12.92, ((shown + 0.055) / 1.055) ** 2.4)
+    assert_upright(images, "the page's swatch")  # in linear radiance, as the store's
+    tab.evaluate("window.btfView.set([50, 90], null, null, 'sphere', 3)")
+    shown = _sphere_shown(tab)
+    want, sure, geometry = _replica(g, (50, 90), g["V"][...], 3, 1.0,
+                                    _data(tmp_path / "m.html")["rank"])
+    assert np.abs(shown - want)[sure].max() <= BOUND
+    # the replica's middle: bright where the texel shown faces the top (the light's side),
+    # and its texture the right way up (the lit layer's rows in the store's order)
+    from tasks.viewer import sphere_texels
+
+    rows, cols, _ = sphere_texels(geometry, (h, w), 3)
+    middle = (1 - geometry.view[..., 2] ** 2 < 0.35**2) & sure
+    lum = want[middle].mean(axis=-1)
+
+    def correlation(texels: np.ndarray) -> float:
+        return float(np.corrcoef(lum, texels[rows[middle], cols[middle]])[0, 1])
+
+    lit = layers()[2].mean(axis=-1)  # the store's layer lit from phi = 90
+    assert correlation(lit) > 0.9 and correlation(lit[::-1]) < 0.5
+    up, down = facing(heights(), 90), facing(heights(), 270)
+    assert correlation(up) > 0.8 and correlation(down) < -0.8
     tab.close()
 
 

@@ -147,7 +147,8 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
     fixed = _fixed_bytes(d, meshes)
     wanted = params.rank or most
     plan = plan_page(shown.size, rows=nv * nl * nc, fixed=fixed, budget=_budget(params),
-                     wanted=wanted, least=params.rank or min(wanted, MIN_DEFAULT_RANK),
+                     wanted=wanted, least=params.rank or (
+                         min(wanted, MIN_DEFAULT_RANK) if params.level is None else 1),
                      levels=_levels(params))
     if plan is None:  # before the compression, not after it
         _refuse(params, shown.size, nv * nl * nc, fixed, params.rank or 1)
@@ -451,7 +452,8 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     fixed = _fixed_bytes(d, meshes)
     energy_rank = shown_rank(s, total, most=stored, channels=_channel_energy(group))
     wanted = params.rank or min(energy_rank, MAX_RANK)
-    least = params.rank or min(wanted, MIN_DEFAULT_RANK)
+    # a floor for choosing the level only: at a given level, as many as fit
+    least = params.rank or (min(wanted, MIN_DEFAULT_RANK) if params.level is None else 1)
     plan = plan_page(shown.size, rows=rows, fixed=fixed, budget=_budget(params), wanted=wanted,
                      least=least, levels=_levels(params))
     if plan is None:
