@@ -494,3 +494,17 @@ def sphere_values(geometry: Sphere, surface: np.ndarray, us: np.ndarray, light_m
     rim = 1 - geometry.view[..., 2] ** 2  # |q|^2
     sure &= (np.abs(geometry.light[..., 2]) > 1e-3) & (np.abs(rim - 1) > 1e-3)
     return values.reshape(*shape, -1), sure
+
+
+def sphere_light_scale(geometry: Sphere, light_mesh: Mesh, scale: np.ndarray) -> np.ndarray:
+    """A cosine store's factor at every point of the sphere: the blend of its lights' ``scale``.
+
+    ``scale`` is one per measured light (``1 / cos theta_light``,
+    :meth:`tasks.transform.Transform.layer_scale`), blended with the weights of each point's
+    own local light, as the page's shader does; 1 where unlit.
+    """
+    out = np.ones(geometry.inside.shape)
+    lit = geometry.lit
+    labels, weights = locate(light_mesh, geometry.light[lit][:, :2])
+    out[lit] = (weights * np.asarray(scale, np.float64)[labels]).sum(axis=1)
+    return out

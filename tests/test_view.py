@@ -25,6 +25,7 @@ from tasks.viewer import (
     pack_eigentextures,
     sphere,
     sphere_at,
+    sphere_light_scale,
     sphere_values,
     triangulate,
 )
@@ -274,7 +275,11 @@ def _replica(g, light, surface, cells: float, scale: float, rank: int | None = N
     geometry = sphere(SPHERE, light)
     values, sure = sphere_values(geometry, surface[..., :k].astype(np.float16).astype(
         np.float32), us, *_meshes(g), cells=cells)
-    radiance = Transform.from_attrs(g.attrs["transform"]).decode(values)
+    transform = Transform.from_attrs(g.attrs["transform"])
+    radiance = transform.decode(values)
+    if transform.cosine:  # decoded values are radiance times cos theta_light
+        radiance *= sphere_light_scale(geometry, _meshes(g)[0], transform.layer_scale(
+            g["theta_light"][...]))[..., None].astype(np.float32)
     image = to_uint8(tonemap(radiance, scale=scale)).astype(int)
     image[~geometry.lit] = 0
     image[~geometry.inside] = BACKGROUND
@@ -692,10 +697,13 @@ def _bonn_factors(rng, model: int, texels: int):
     return u, sxv
 
 
-@pytest.mark.parametrize("model", [3, 9, 10, 11, 12])
-def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
+@pytest.mark.parametrize("model,cosine", [(3, False), (9, False), (10, False), (11, False),
+                                          (12, False), (12, True)])
+def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model, cosine):
     """Data the viewer was not made on: a DFMF file of each kind of colour model, ingested
-    (the YUV models are decoded by the shader), against the decoding of Bonn's own reader."""
+    (the YUV models are decoded by the shader), against the decoding of Bonn's own reader;
+    with the cosine flag, radiance is the decoded values over cos theta_light, in the swatch
+    and round the sphere."""
     from dfmf_files import reference_decode, write_dfmf
 
     from pipeline.cli import main
@@ -705,12 +713,12 @@ def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
     kw = {"color_matrix": np.array([[0.9, 0.1, 0.05], [0.2, 0.7, -0.1], [0.0, 0.3, 1.1]]),
           "color_mean": (0.2, 0.3, 0.25)} if model == 3 else {}
     write_dfmf(tmp_path / "f.btf", views=BONN_VIEWS, lights=BONN_LIGHTS, u=u, sxv=sxv,
-               width=w, height=h, color_model=model, scalar_size=4, **kw)
+               width=w, height=h, color_model=model, scalar_size=4, cosine=cosine, **kw)
     for args in (["ingest", tmp_path / "f.btf", tmp_path / "f.zarr"],
                  ["view", tmp_path / "f.zarr", tmp_path / "f.html"]):
         assert main([str(a) for a in args] + ["-q"]) == 0, args
     bonn = np.maximum(reference_decode(u, sxv, color_model=model, width=w, height=h,
-                                       lights=BONN_LIGHTS, **kw), 0)
+                                       lights=BONN_LIGHTS, cosine=cosine, **kw), 0)
     tab, _ = _open(browser, tmp_path / "f.html")
     scale = tab.evaluate("window.btfView.state.exposure")
     g = zarr.open_group(tmp_path / "f.zarr", mode="r")
@@ -721,7 +729,12 @@ def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model):
             h, w, 4)[::-1, :, :3].astype(int)
         want = to_uint8(tonemap(bonn[view, light].astype(np.float32), scale=scale)).astype(int)
         assert np.abs(shown - want).max() <= BOUND, (model, view, light)
-        assert np.ptp(want, axis=-1).mean() > 10  # coloured: the channels differ
+        assert cosine or np.ptp(want, axis=-1).mean() > 10  # coloured: the channels differ
+    if cosine:
+        k = _data(tmp_path / "f.html")["rank"]
+        tab.evaluate("window.btfView.set([40, 60], null, null, 'sphere', 2)")
+        want, sure, _ = _replica(g, (40, 60), g["V"][...], 2, scale, k)
+        assert np.abs(_sphere_shown(tab) - want)[sure].max() <= BOUND
     tab.close()
 
 

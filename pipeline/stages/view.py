@@ -356,10 +356,17 @@ def _check_directions(params: ViewParams, group):
 
 
 def _mesh_blobs(meshes) -> dict[str, np.ndarray]:
-    """The sphere's per-cell triangle lists of both meshes (:func:`tasks.viewer.cell_triangles`)."""
+    """The sphere's per-cell triangle lists of both meshes (:func:`tasks.viewer.cell_triangles`).
+
+    As uint16: each cell's count (the page adds them up into first items) and the items.
+    """
     blobs = {}
     for side, m in zip(("view", "light"), meshes, strict=True):
-        blobs[f"{side}Spans"], blobs[f"{side}Items"] = cell_triangles(m, GRID)
+        spans, items = cell_triangles(m, GRID)
+        if len(m.triangles) >= 1 << 16:
+            raise BTFError(f"{len(m.triangles)} {side} triangles: the page lists at most 65535")
+        blobs[f"{side}Counts"] = spans[..., 1].astype(np.uint16)
+        blobs[f"{side}Items"] = items.astype(np.uint16)
     return blobs
 
 
@@ -463,8 +470,10 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     page = shown.load(level, k, session)
     v = page["v"]
     iv, il = _initial_pair(d)
-    scale = params.exposure or exposure(
-        reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v[0], transform=transform))
+    light_scale = transform.layer_scale(d.theta_light)  # a cosine store's; else None
+    first = reconstruct_layers(us[iv, il][None], np.ones(k, np.float32), v[0],
+                               transform=transform)
+    scale = params.exposure or exposure(first * (1 if light_scale is None else light_scale[il]))
     rank_note = _rank_note(params, k, s, total, energy_rank)
     cells = page.get("cells", 1)
     index = page.get("index")
@@ -479,6 +488,7 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
                                                                       else 0),
         "indexed": index is not None, "channels": len(channels), "transform": transform.name,
         "eps": transform.eps, "exposure": float(scale), **_directions_data(d, meshes),
+        "lightScale": None if light_scale is None else light_scale.tolist(),
     }
     try:
         blobs = {"V": np.concatenate([pack_eigentextures(t) for t in v]), "US": us, **blobs}
