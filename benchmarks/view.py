@@ -4,7 +4,8 @@ A generated BTF (``--size``, ``--sampling``) is compressed (``--rank``) and writ
 by ``btf view``. Debian's chromium (headless, WebGL2 on SwiftShader: the CPU, no GPU) opens it
 ``--repeat`` times; "first frame" is the page's own clock from navigation start to its first
 frame drawn (and read back, which waits for it), "frame" the time of each of ``--frames`` frames
-while the light moves around the hemisphere (blend weights, uniforms, draw, finish). The
+while the light moves around the hemisphere (blend weights, uniforms, draw, finish), and a
+quarter as many of the sphere (every pixel its own blend of measured pairs). The
 reference, measured in the same run, is numpy rebuilding and tone-mapping the same layer on
 the CPU (``tasks.svd.reconstruct_layers`` + ``tasks.tonemap.tonemap``), as ``btf reconstruct``
 and the report do.
@@ -59,21 +60,29 @@ def _reference(store: Path, rank: int, repeat: int) -> float:
     return float(np.median(times))
 
 
-def _load(browser, page: Path, frames: int) -> tuple[float, list[float]]:
-    tab = browser.new_page()
-    tab.goto(page.as_uri())
-    tab.wait_for_function("window.btfView !== undefined && window.btfView.firstFrameMs !== null")
-    first = tab.evaluate("window.btfView.firstFrameMs")
+def _frames(tab, frames: int, mode: str) -> list[float]:
+    """Milliseconds of ``frames`` frames in ``mode`` while the light moves round."""
     ms = tab.evaluate(f"""() => {{
         const v = window.btfView, out = [];
         for (let i = 0; i < {frames}; i++) {{
-            v.set([15 + 60 * (i % 7) / 7, (360 * i / {frames}) % 360], null, null);
+            v.set([15 + 60 * (i % 7) / 7, (360 * i / {frames}) % 360], null, null, "{mode}");
             out.push(v.frames[v.frames.length - 1]);
         }}
         return out;
     }}""")
+    return [float(x) for x in ms]
+
+
+def _load(browser, page: Path, frames: int) -> tuple[float, list[float], list[float]]:
+    """Time to the first frame; swatch frames; sphere frames (a quarter as many, 2 or more)."""
+    tab = browser.new_page()
+    tab.goto(page.as_uri())
+    tab.wait_for_function("window.btfView !== undefined && window.btfView.firstFrameMs !== null")
+    first = tab.evaluate("window.btfView.firstFrameMs")
+    swatch = _frames(tab, frames, "swatch")
+    sphere = _frames(tab, max(2, frames // 4), "sphere")[1:]  # the first compiles the shader
     tab.close()
-    return float(first), [float(x) for x in ms]
+    return float(first), swatch, sphere
 
 
 def run(args) -> dict:
@@ -93,18 +102,20 @@ def run(args) -> dict:
         _btf("view", c, page, "--rank", args.rank)
         write_s = time.perf_counter() - start
         reference = _reference(c, args.rank, args.repeat)
-        firsts, frames = [], []
+        firsts, frames, spheres = [], [], []
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=exe, args=BROWSER_FLAGS)
             for _ in range(args.repeat):
-                first, ms = _load(browser, page, args.frames)
+                first, ms, sphere = _load(browser, page, args.frames)
                 firsts.append(first)
                 frames += ms
+                spheres += sphere
             browser.close()
         return {"machine": machine(), "revision": git_revision(), "size": args.size,
                 "sampling": args.sampling, "rank": args.rank,
                 "page_mb": page.stat().st_size / 2**20,
                 "write_s": write_s, "first_frame_ms": firsts, "frame_ms": frames,
+                "sphere_frame_ms": spheres,
                 "numpy_layer_ms": reference * 1000}
 
 
@@ -117,10 +128,11 @@ def report(r: dict) -> str:
         f"(at {r['revision']}, {r['machine']['cpus']} cores, {r['machine']['when']}):",
         "",
         "| page MB | btf view s | open to first frame ms (median, worst) | frame ms (median, "
-        "p95) | numpy layer ms | frame / numpy layer |",
-        "|---|---|---|---|---|---|",
+        "p95) | sphere frame ms (median) | numpy layer ms | frame / numpy layer |",
+        "|---|---|---|---|---|---|---|",
         f"| {r['page_mb']:.1f} | {r['write_s']:.1f} | {np.median(r['first_frame_ms']):.0f}, "
         f"{max(r['first_frame_ms']):.0f} | {np.median(frames):.1f}, "
-        f"{np.percentile(frames, 95):.1f} | {numpy_ms:.1f} | "
+        f"{np.percentile(frames, 95):.1f} | "
+        f"{np.median(r.get('sphere_frame_ms') or [np.nan]):.0f} | {numpy_ms:.1f} | "
         f"{np.median(frames) / numpy_ms:.2f} |",
     ])
