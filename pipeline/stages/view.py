@@ -4,10 +4,12 @@ The page holds the eigentextures ``V`` (half floats, four components a texture l
 rows ``U diag(S)`` of every measured (view, light) pair; its WebGL2 shader computes each
 texel's values as one dot product of length ``k`` per channel, decodes them with the store's
 transform and tone-maps them as the report does (:func:`tasks.tonemap.tonemap`). Between
-measured directions it blends measured pairs (:mod:`tasks.viewer`). A store too large for the
-page is shown at a level of detail (``--level``: block means of ``V``, exact for the values)
-or a region (``--region``). A radiance store is compressed at ``--rank`` on the way, into a
-temporary store that is removed with the page written.
+measured directions it blends measured pairs (:mod:`tasks.viewer`). The page's rank and level
+of detail come from the store's spectrum and ``--budget`` (:func:`tasks.viewer.shown_rank`,
+:func:`tasks.viewer.plan_page`); a level holds block means of ``V`` (exact for the values), a
+region a part; of a tile set, every tile's block means, or a region of the surface btf render
+lays. A radiance store is compressed on the way, into a temporary store that is removed with
+the page written.
 """
 
 from __future__ import annotations
@@ -527,10 +529,14 @@ STAGE = Stage("view", ViewParams, view,
               "write an HTML page that relights a compressed store in the browser",
               "Write one self-contained HTML file (WebGL2, no network) showing the material "
               "under a light and from a view that you drag over the hemisphere, with an "
-              "exposure control. Measured directions are drawn on the hemispheres; between "
-              "them the page blends measured pairs (barycentric weights over a Delaunay "
-              "triangulation). The initial light, view and exposure come from the URL: "
-              "OUT.html#light=THETA,PHI&view=THETA,PHI&exposure=E (degrees). A store larger "
-              "than --budget is refused: show a level of detail (--level) or a region "
-              "(--region). A radiance store is compressed at --rank on the way (btf compress "
-              "keeps the compressed store for other uses).")
+              "exposure control, as a swatch or round a sphere. Measured directions are drawn "
+              "on the hemispheres; between them the page blends measured pairs (barycentric "
+              "weights over a Delaunay triangulation, continued past the last measured ring). "
+              "The address sets the light, view, exposure, mode and repeats: "
+              "OUT.html#light=THETA,PHI&view=THETA,PHI&exposure=E&mode=M&repeat=N (degrees). "
+              "Without --rank the page shows the fewest components that keep 99.99% of the "
+              "store's energy, at most 64 and what fits --budget, at level 0 unless fewer than "
+              "8 would fit there; it says the rank, the energy kept and what was dropped. "
+              "--level shows block means, --region a part (of a tile set: of the surface btf "
+              "render lays). A radiance store is compressed on the way (btf compress keeps "
+              "the compressed store for other uses).")
