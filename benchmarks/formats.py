@@ -58,8 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="views of that zip (81 lights each)")
 
 
-def write_file(path: Path, sampling: str, texels: int, k: int, seed: int = 0) -> None:
-    """A DFMF file, colour model 11 in float16, with a plausible spectrum of components."""
+def write_file(path: Path, sampling: str, texels: int, k: int, seed: int = 0,
+               decay: float = 0.7) -> None:
+    """A DFMF file, colour model 11 in float16, with a plausible spectrum of components.
+
+    Component ``j`` has the scale ``decay^j``: 0.7 is steep (most components carry little and
+    compress well), about 0.97 is as flat as measured materials' spectra over 150 components.
+    """
     from pipeline.dfmf_io import COLOUR_MODEL
     from tasks.dfmf import DfmfHeader, channel_head, header_bytes, layout, radians
     from tasks.sampling import parse_sampling
@@ -79,7 +84,7 @@ def write_file(path: Path, sampling: str, texels: int, k: int, seed: int = 0) ->
     header = dataclasses.replace(header, channels=layout(start, 2, [k] * 3, rows,
                                                          texels * texels))
     rng = np.random.default_rng(seed)
-    decay = 0.7 ** np.arange(k)
+    decay = decay ** np.arange(k)
     with open(path, "wb") as f:
         f.write(header_bytes(header))
         for c, block in enumerate(header.channels):
