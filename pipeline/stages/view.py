@@ -147,13 +147,11 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
     most = min(MAX_RANK, nv * nl * nc, ny * nx)
     shown = _StoreWindow(params, None, ny, nx)
     fixed = _fixed_bytes(d, meshes)
-    wanted = params.rank or most
+    least = _least(params, params.rank or most)
     plan = plan_page(shown.size, rows=nv * nl * nc, fixed=fixed, budget=_budget(params),
-                     wanted=wanted, least=params.rank or (
-                         min(wanted, MIN_DEFAULT_RANK) if params.level is None else 1),
-                     levels=_levels(params))
+                     wanted=params.rank or most, least=least, levels=_levels(params))
     if plan is None:  # before the compression, not after it
-        _refuse(params, shown.size, nv * nl * nc, fixed, params.rank or 1)
+        _refuse(params, shown.size, nv * nl * nc, fixed, least)
     # the most components a page of any level could hold: those whose rows of U diag(S) fit
     k = params.rank or max(k for k in range(1, most + 1)
                            if k == 1 or page_bytes(1, k, nv * nl * nc, fixed) <= _budget(params))
@@ -165,6 +163,17 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
         compress.run(compress.params(store=params.store, out=compressed, rank=k), session)
         return _write_page(params, compressed, open_group(compressed), session,
                            name=params.store)
+
+
+def _least(params: ViewParams, wanted: int) -> int:
+    """The fewest components a page may hold.
+
+    ``--rank``'s; else, to choose the level, :data:`tasks.viewer.MIN_DEFAULT_RANK` (or
+    ``wanted``, if fewer); at a given level, 1.
+    """
+    if params.rank:
+        return params.rank
+    return min(wanted, MIN_DEFAULT_RANK) if params.level is None else 1
 
 
 def _budget(params: ViewParams) -> int:
@@ -461,8 +470,7 @@ def _write_page(params: ViewParams, store: str, group, session: Session, *,
     fixed = _fixed_bytes(d, meshes)
     energy_rank = shown_rank(s, total, most=stored, channels=_channel_energy(group))
     wanted = params.rank or min(energy_rank, MAX_RANK)
-    # a floor for choosing the level only: at a given level, as many as fit
-    least = params.rank or (min(wanted, MIN_DEFAULT_RANK) if params.level is None else 1)
+    least = _least(params, wanted)
     plan = plan_page(shown.size, rows=rows, fixed=fixed, budget=_budget(params), wanted=wanted,
                      least=least, levels=_levels(params))
     if plan is None:
