@@ -411,6 +411,9 @@ def s3_cluster(tmp_path, s3):
         yield address
 
 
+# slow: 18 s, and test_every_stage_on_s3_gives_the_bits_of_a_local_run covers every stage on S3
+# in the default set; this one adds configs/cluster.yaml on a cluster of shared-nothing workers
+@pytest.mark.slow
 @pytest.mark.distributed
 def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s3, s3_cluster):
     config = Path(__file__).resolve().parents[1] / "configs" / "cluster.yaml"
