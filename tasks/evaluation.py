@@ -1,7 +1,9 @@
 """Enlargement against ground truth: the error of paper 000's eq. (11) and two baselines.
 
 Pure numpy: the caller reads the stores. Coefficients are per texel, ``S V^T`` in a
-compressed store's basis ``U`` (rows in BTF-matrix order: view, light, channel).
+compressed store's basis ``U`` (rows in BTF-matrix order: view, light, channel). ``scale``,
+where given, is one number per row multiplying the decoded radiance (a cosine store's
+:meth:`~tasks.transform.Transform.layer_scale`, repeated over the channels).
 """
 
 from __future__ import annotations
@@ -12,17 +14,17 @@ from tasks.transform import Transform
 
 
 def abrdf_error(u: np.ndarray, coefficients: np.ndarray, transform: Transform, truth: np.ndarray,
-                mask: np.ndarray) -> float:
+                mask: np.ndarray, scale: np.ndarray | None = None) -> float:
     """Eq. (11) over the masked texels: mean of each texel's RMS radiance error (linear).
 
     ``u`` ``(rows, K)``; ``coefficients`` ``(H, W, K)``; ``truth`` ``(H, W, rows)`` linear
     radiance in the rows' order; ``mask`` ``(H, W)``: the texels that count.
     """
-    return float(np.mean(abrdf_errors(u, coefficients, transform, truth, mask)))
+    return float(np.mean(abrdf_errors(u, coefficients, transform, truth, mask, scale)))
 
 
 def abrdf_errors(u: np.ndarray, coefficients: np.ndarray, transform: Transform, truth: np.ndarray,
-                 mask: np.ndarray) -> np.ndarray:
+                 mask: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
     """Each masked texel's RMS radiance error (see :func:`abrdf_error`), 16384 at a time."""
     from tasks.svd import reconstruct
 
@@ -30,7 +32,8 @@ def abrdf_errors(u: np.ndarray, coefficients: np.ndarray, transform: Transform, 
     rows = truth.reshape(-1, truth.shape[-1])[mask.ravel()]
     errors = [np.zeros(0)]
     for k in range(0, len(texels), 16384):
-        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], transform=transform).T
+        approx = reconstruct(u, np.ones(u.shape[1]), texels[k : k + 16384], transform=transform,
+                             scale=scale).T
         errors.append(np.sqrt(np.mean((approx - rows[k : k + 16384]) ** 2, axis=1)))
     return np.concatenate(errors)
 
@@ -62,7 +65,8 @@ def tiling_baseline(sample_coef: np.ndarray, shape: tuple[int, int],
     return sample_coef[np.ix_(ys, xs)]
 
 
-def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, transform: Transform):
+def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, transform: Transform,
+                scale: np.ndarray | None = None):
     """The exact search index over the sample's ABRDFs in linear radiance (faiss, flat L2).
 
     It holds ``texels x rows`` float32 values: build it once for many searches.
@@ -72,15 +76,15 @@ def abrdf_index(u: np.ndarray, sample_coef: np.ndarray, transform: Transform):
     from tasks.svd import reconstruct
 
     flat = sample_coef.reshape(-1, sample_coef.shape[-1])
-    sample = np.ascontiguousarray(reconstruct(u, np.ones(u.shape[1]), flat, transform=transform).T,
-                                  np.float32)
+    sample = np.ascontiguousarray(reconstruct(u, np.ones(u.shape[1]), flat, transform=transform,
+                                              scale=scale).T, np.float32)
     index = faiss.IndexFlatL2(sample.shape[1])
     index.add(sample)
     return index
 
 
 def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, transform: Transform, truth: np.ndarray,
-                   index=None) -> np.ndarray:
+                   index=None, scale: np.ndarray | None = None) -> np.ndarray:
     """For every truth texel, the sample texel whose ABRDF is nearest to it (exact search).
 
     Nearest in eq. (11)'s measure: the RMS over the rows of linear radiance, the sample's
@@ -89,7 +93,7 @@ def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, transform: Transform,
     ``(H, W)``. Exact brute force (faiss, flat L2), so the oracle is the best any copy can do.
     ``index``: :func:`abrdf_index` of the same sample, if already built.
     """
-    index = abrdf_index(u, sample_coef, transform) if index is None else index
+    index = abrdf_index(u, sample_coef, transform, scale) if index is None else index
     rows = truth.reshape(-1, truth.shape[-1])
     found = np.empty(len(rows), np.int64)
     for k in range(0, len(rows), 16384):

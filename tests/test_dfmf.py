@@ -469,6 +469,18 @@ def test_inspect_quilt_and_enlarge_take_an_ingested_file(tmp_path, btf):
     # the photo (radiance) is encoded as the sample's values are (radiance x cos): on the
     # sample's own place it meets them (ignoring the cosine leaves 0.19 in log Y there)
     assert e.attrs["enlargement"]["sample_constraint_residual_rms"] < 1e-3
+    # the report's eq. 11 against the truth divides by the cosine too (ignoring it, the
+    # oracle's error alone is 0.10 of a mean radiance of 0.48)
+    from pipeline.stages.report import ReportParams, _enlargement
+
+    assert btf("reconstruct", tmp_path / "m.zarr", tmp_path / "truth.zarr", "--quiet").code == 0
+    truth = zarr.open_group(tmp_path / "truth.zarr", mode="r")[RADIANCE][...]
+    section = _enlargement(str(tmp_path / "e.zarr"),
+                           ReportParams(out=str(tmp_path / "r.html"),
+                                        truth=str(tmp_path / "truth.zarr")))
+    errors = {row[0]: float(row[1]) for row in section.tables[0].rows}
+    assert errors["oracle (nearest sample ABRDF)"] < 0.02 * truth.mean(), errors
+    assert errors["enlargement"] < 0.1 * truth.mean(), (errors, truth.mean())
     photo = zarr.open_group(tmp_path / "photo.zarr", mode="r")[RADIANCE][0, 0]
     got = e[RADIANCE].values[0, 1]
     assert np.abs(got - photo).mean() < 0.05 * photo.mean()  # the photo is met

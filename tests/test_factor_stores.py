@@ -50,6 +50,10 @@ def test_compress_truncates_a_compressed_store_whose_factors_are_an_svd(tmp_path
     assert g.attrs["transform"] == zarr.open_group(compressed, mode="r").attrs["transform"]
     part = g.attrs["error"]["dropped_relative_frobenius"]
     assert part == pytest.approx(np.sqrt(np.sum(s[3:] ** 2) / np.sum(s**2)), rel=1e-6)
+    # the report of such a store says it was made from factors (no radiance to compare)
+    r = btf("report", tmp_path / "r.html", "--compressed", tmp_path / "t.zarr", "--quiet")
+    assert r.code == 0, r.err
+    assert "made from a compressed store" in (tmp_path / "r.html").read_text()
     # the rank a compressed store does not hold is refused, and nothing is written
     r = btf("compress", compressed, tmp_path / "x.zarr", "--rank", "9")
     assert r.code == 1 and "more than the 8 components" in r.err, r.err

@@ -99,6 +99,15 @@ def _factors(path: str):
             Transform.from_attrs(group.attrs["transform"]))
 
 
+def _row_scale(group, transform: Transform) -> np.ndarray | None:
+    """A cosine store's scale of every BTF-matrix row (view, light, channel), else None."""
+    scale = transform.layer_scale(np.asarray(group["theta_light"][...], np.float64))
+    if scale is None:
+        return None
+    nv, nc = group["theta_view"].shape[0], group["channel"].shape[0]
+    return np.repeat(np.tile(scale, nv), nc)
+
+
 def _spread(count: int, lights: int) -> list[int]:
     return sorted({int(i) for i in np.linspace(0, lights - 1, min(count, lights))})
 
@@ -187,15 +196,21 @@ def _compression(path: str, params: ReportParams) -> Section:
             ("relative error, log domain (recorded)",
              _fmt(error.get("log_relative_frobenius")))]
     pictures = []
-    if source and storage.any_below(storage.parse(source)):
-        radiance = open_group(source)["radiance"]
+    row_scale = _row_scale(group, transform)
+    made_from = (open_group(source) if source and storage.any_below(storage.parse(source))
+                 else None)
+    if made_from is not None and "radiance" not in made_from:
+        rows.append(("ABRDF RMSE against the source", "- (made from a compressed store: "
+                                                      "compare with the radiance it came from)"))
+    elif made_from is not None:
+        radiance = made_from["radiance"]
         flat_u = u.reshape(-1, k)
         total, count = 0.0, 0
         for y0 in range(0, ny, BAND):
             ys = slice(y0, min(y0 + BAND, ny))
             coef = np.asarray(v[ys], np.float64) * s
-            e = abrdf_errors(flat_u, coef, transform, _rows(radiance, ys), np.ones(coef.shape[:2],
-                                                                             bool))
+            e = abrdf_errors(flat_u, coef, transform, _rows(radiance, ys),
+                             np.ones(coef.shape[:2], bool), row_scale)
             total, count = total + e.sum(), count + e.size
         rows.append(("ABRDF RMSE against the source, linear (eq. 11)", _fmt(total / count)))
         w = min(params.window, ny, nx)
@@ -205,8 +220,10 @@ def _compression(path: str, params: ReportParams) -> Section:
             scale = exposure(truth)
             pictures += [Picture(f"source, light {li}", _png(tonemap(truth, scale=scale))),
                          Picture(f"rank {k}, light {li}",
-                                 _png(tonemap(reconstruct_layers(u[0, li], s, vw,
-                                                                 transform=transform),
+                                 _png(tonemap(reconstruct_layers(
+                                     u[0, li], s, vw, transform=transform,
+                                     scale=None if row_scale is None
+                                     else row_scale[li * nc]),
                                               scale=scale)))]
     return Section(f"Compression: {path}", (
         "Log range reduction and a randomized SVD: any layer is exp(U S V^T) - eps.",),
@@ -228,7 +245,7 @@ def _truth(truth_path: str, path: str, texels: tuple[int, int], u_shape: tuple[i
 
 
 def _errors_outside(truth, v, s, flat_u, flat_us, sample, sample_keys, keys_of, origin,
-                    transform) -> tuple[dict[str, float], int]:
+                    transform, scale=None) -> tuple[dict[str, float], int]:
     """Mean ABRDF RMSE (eq. 11) outside the sample, and the texels counted.
 
     For the enlargement, its oracle and the two baselines, band by band of texels.
@@ -248,13 +265,13 @@ def _errors_outside(truth, v, s, flat_u, flat_us, sample, sample_keys, keys_of, 
         tiled = tiling_baseline(sample, (ys.stop - ys.start, nx), origin, (ys.start, 0))
         looked = lookup_baseline(sample, sample_keys, keys_of(ys))
         if index is None:  # the sample's ABRDFs, searched for every band
-            index = abrdf_index(flat_us, sample, transform)
+            index = abrdf_index(flat_us, sample, transform, scale)
         best = sample.reshape(-1, sample.shape[-1])[nearest_abrdfs(flat_us, sample, transform, rows,
-                                                                   index)]
+                                                                   index, scale)]
         for name, (basis, c) in {"oracle (nearest sample ABRDF)": (flat_us, best),
                                  "enlargement": (flat_u, coef), "tiling": (flat_us, tiled),
                                  "lookup": (flat_us, looked)}.items():
-            sums[name] += abrdf_errors(basis, c, transform, rows, mask).sum()
+            sums[name] += abrdf_errors(basis, c, transform, rows, mask, scale).sum()
         count += int(mask.sum())
     return {n: sums[n] / max(count, 1) for n in sums}, count
 
@@ -276,12 +293,18 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     sample = vs * ss
     sh, sw = sample.shape[:2]
     origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
-    photos = open_group(parameters["constraints"])["radiance"]
-    keys_of = lambda ys: _values(transform, _rows(photos, ys), u.shape[2])  # noqa: E731
+    photo_group = open_group(parameters["constraints"])
+    photos = photo_group["radiance"]
+    # a cosine sample's values are radiance x cos(theta_light): the photos' are made alike
+    photo_scale = _row_scale(photo_group, transform)
+    keys_of = lambda ys: _values(  # noqa: E731
+        transform, _rows(photos, ys) / (1.0 if photo_scale is None else photo_scale),
+        u.shape[2])
+    row_scale = _row_scale(group, transform)
     sample_keys = keys_of(slice(origin[0], origin[0] + sh))[:, origin[1] : origin[1] + sw]
     errors, count = _errors_outside(truth, v, s, u.reshape(-1, k),
                                     us.reshape(-1, us.shape[-1]), sample, sample_keys,
-                                    keys_of, origin, transform)
+                                    keys_of, origin, transform, row_scale)
     oracle = errors["oracle (nearest sample ABRDF)"]
     pictures, looks = [], {}
     w = min(params.window, ny, nx)
@@ -295,7 +318,9 @@ def _enlargement(path: str, params: ReportParams) -> Section:
         pictures.append(Picture(f"ground truth, light {li}", _png(tonemap(true, scale=scale))))
         for name, basis, c in (("enlargement", u, coef_w), ("tiling", us, tiled_w),
                                ("lookup", us, looked_w)):
-            layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, transform=transform)
+            layer = reconstruct_layers(basis[0, li], np.ones(c.shape[-1]), c, transform=transform,
+                                       scale=None if row_scale is None
+                                       else row_scale[li * u.shape[2]])
             pictures.append(Picture(f"{name}, light {li}", _png(tonemap(layer, scale=scale))))
             looks.setdefault(name, []).append(realism(log_luminance(layer),
                                                       log_luminance(true)))
