@@ -202,10 +202,14 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
         raise BTFError(f"{params.sample}: --mean-colour needs a log range reduction (its "
                        f"Jensen offset is of logs); the sample's transform is "
                        f"{transform.name!r}: give photos instead")
+    if params.mean_colour is not None and transform.cosine:
+        raise BTFError(f"{params.sample}: --mean-colour needs values that are radiance, and "
+                       "this sample's are radiance x cos(theta_light) (a DFMF file's cosine "
+                       "flag): give photos instead")
     if params.mean_colour is not None and not 0 <= params.mean_colour < nv * nl:
         raise BTFError(f"{path}: --mean-colour {params.mean_colour} is not a layer of the "
                        f"store ({nv * nl} layers, indices 0 to {nv * nl - 1})")
-    rows, offsets, described, layers = [], [], [], []
+    rows, offsets, described, layers, lit = [], [], [], [], []
     for k in range(nv * nl):
         j, i = divmod(k, nl)
         layers.append((j, i))
@@ -235,10 +239,13 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
                 f"{ds.phi_light[sl]:g}), is {angle:.2f} degrees away (--max-angle "
                 f"{params.max_angle:g})")
         rows.append(np.asarray(u[sv, sl], np.float64))
+        lit.append(ds.theta_light[sl])
         offsets += [0.0] * nc
         described.append({"layer": k, "kind": "photo", "sample_view": sv, "sample_light": sl,
                           "angle_deg": angle})
-    scale = transform.layer_scale(d.theta_light[[i for _, i in layers]])
+    # a cosine sample's values are radiance x cos of its layer's light: the photo that layer
+    # matches is multiplied alike before it is encoded
+    scale = transform.layer_scale(np.asarray(lit))
     guide = Guide(location(path), tuple(layers), tuple(offsets), transform,
                   tuple(group[RADIANCE].shape[2:4]),
                   None if scale is None else tuple(float(1.0 / x) for x in scale))
