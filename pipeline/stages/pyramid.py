@@ -11,11 +11,13 @@ viewers will not open it as one. Level 0 stays where it was: every stage reads t
 before.
 
 - Radiance stores: levels of ``radiance``, block means in linear radiance (exact).
-- Quilted tile sets: levels of each tile (``radiance``, or a compressed tile set's ``V`` as
-  below). The tiles' sides must be multiples of 2^n: corner placement puts tiles at multiples
-  of their size, so the surface laid from level-n tiles is then exactly level n of the surface
-  laid from level-0 tiles, and ``btf scene`` reads the tiles' level. Roller tile sets lie on a
-  sheared lattice, where that does not hold: they have no levels.
+- Quilted tile sets: levels of each tile (``radiance``, or the ``V`` of a compressed tile set
+  that stores every tile's, as below). The tiles' sides must be multiples of 2^n: corner
+  placement puts tiles at multiples of their size, so the surface laid from level-n tiles is
+  then exactly level n of the surface laid from level-0 tiles, and ``btf scene`` reads the
+  tiles' level. Roller tile sets lie on a sheared lattice, where that does not hold: they have
+  no levels; nor do compressed tile sets that keep the sample's ``V`` and their prescriptions
+  (what ``btf quilt`` writes now): their tiles, and so their levels, are computed on reading.
 - Compressed stores: levels of ``V``; ``U`` and ``S`` are shared, so a level is
   ``exp(U S V_n^T) - eps``. With ``--method projected`` (the default) ``V_n`` is the exact
   level's radiance (block means of the reconstructed radiance, linear) range-reduced and
@@ -198,8 +200,9 @@ def _mean32(block, axis=None):
 
 STAGE = Stage("pyramid", PyramidParams, pyramid,
               "add levels of detail (OME-NGFF multiscales) to a store",
-              "Add levels of detail to a radiance, compressed or quilted tile-set store (of its "
-              "tiles, whose sides must be multiples of 2^n): level n is the mean of "
+              "Add levels of detail to a radiance, compressed or quilted radiance tile-set store "
+              "(of its tiles, whose sides must be multiples of 2^n; a compressed tile set's "
+              "levels are computed where they are read): level n is the mean of "
               "2^n x 2^n texel blocks of level 0 in linear radiance (for a compressed store, "
               "projected back on U; --method mean-v averages V instead, a log-domain "
               "approximation), chunked like level 0, stored under pyramid/N/ and listed in an "

@@ -245,27 +245,33 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
     overlap = params.overlap if params.overlap is not None else block // 4
     th, tw = params.tile_shape((ny, nx), block - overlap)
     tiles = params.corners**4
-    values = src.rank if src.kind == "compressed" else nv * nl * nc
-    out = tiles * th * tw * values * 4
+    compressed = src.kind == "compressed"
+    values = src.rank if compressed else nv * nl * nc
+    # a compressed source's tile set copies the sample's V and keeps the prescriptions
+    prescriptions = tiles * th * tw * TERMS * 8
+    out = (ny * nx * values * 4 if compressed else tiles * th * tw * values * 4) + prescriptions
     # planning compares every tile position with every sample position: measured time grows
     # with their product (16 tiles of 1008^2 on a 1024^2 sample: 14.5 min, estimated 16.9)
     plan_seconds, source = rate("quilt_plan_seconds_per_texel_pair")
     per_core, _ = rate("quilt_values_per_core_second")
     side = src.side
     spatial = math.ceil(th / side) * math.ceil(tw / side)
-    groups = 1 if src.kind == "compressed" else max(1, math.ceil(nl / src.dir_chunk)) * nv
+    groups = max(1, math.ceil(nl / src.dir_chunk)) * nv
+    tasks = math.ceil(ny / src.chunk) if compressed else tiles * spatial * groups
+    task_bytes = (2 * src.chunk * nx * values * 4 if compressed
+                  else 3 * side * side * min(values, src.dir_chunk * nc) * 4 + th * tw * TERMS * 8)
     plan = StageEstimate("quilt", "", bytes_read=ny * nx * 3 * 4 + out, bytes_written=out,
-                         tasks=tiles * spatial * groups, passes=1, input_reads=1,
-                         task_bytes=3 * side * side * min(values, src.dir_chunk * nc) * 4
-                         + th * tw * TERMS * 8,
-                         client_bytes=ny * nx * 3 * 4 * 4 + tiles * th * tw * TERMS * 8,
-                         core_seconds=tiles * th * tw * values / per_core,
+                         tasks=tasks, passes=1, input_reads=1, task_bytes=task_bytes,
+                         client_bytes=ny * nx * 3 * 4 * 4 + prescriptions,
+                         core_seconds=(ny * nx * values if compressed
+                                       else tiles * th * tw * values) / per_core,
                          serial_seconds=tiles * th * tw * ny * nx * plan_seconds,
                          rate_source=source,
                          option="--size (smaller tiles)",
                          note=f"{tiles} tile(s) of {th} x {tw}"
-                         + (", compressed: V only" if src.kind == "compressed" else ""))
-    kind = "compressed-tileset" if src.kind == "compressed" else "tileset"
+                         + (", compressed: the sample's V and the prescriptions" if compressed
+                            else ""))
+    kind = "compressed-tileset" if compressed else "tileset"
     return plan, Shape(kind, (), 0, 0)
 
 
