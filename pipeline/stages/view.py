@@ -409,13 +409,16 @@ def _refuse(params: ViewParams, size, rows: int, fixed: int, least: int):
 def _channel_energy(group) -> np.ndarray:
     """Each channel's part of each component's energy, ``S_i^2 |U[..., c, i]|^2`` ``(C, K)``.
 
-    ``U`` is read a view at a time.
+    ``U`` is read a chunk of views at a time (a tile set's ``U`` is one chunk: reading it a
+    view at a time decompressed it once per view, 43 s for 151 views at rank 448).
     """
     u = group["U"]
     s = np.asarray(group["S"][...], np.float64)
     out = np.zeros((u.shape[2], u.shape[3]))
-    for view in range(u.shape[0]):
-        out += (np.asarray(u[view], np.float64) ** 2).sum(axis=0)
+    step = u.chunks[0]
+    for v0 in range(0, u.shape[0], step):
+        block = np.asarray(u[v0 : v0 + step], np.float32)
+        out += np.einsum("vlck,vlck->ck", block, block, dtype=np.float64)
     return out * s**2
 
 
