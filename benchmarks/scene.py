@@ -3,9 +3,9 @@
 A generated BTF (``--size``, ``--sampling``) is compressed (``--rank``) and quilted into a
 compressed tile set; the compressed store gets a pyramid (``btf pyramid``, 3 levels). The tile
 set keeps the sample's eigentextures and its prescriptions, so its levels are computed on the
-fly (block means of its tiles' layers). On each source, scenes ask for 1%, 10% and 100% of the measured layers (over the whole
-region or surface), and for 1% and 10% of the region's texels (a square at the origin, every
-layer), at levels 0 to 3. Each
+fly (block means of its tiles' layers). On each source, scenes ask for 1%, 10% and 100% of
+the measured layers (over the whole region or surface), and for 1% and 10% of the region's
+texels (a square at the origin, every layer), at levels 0 to 3. Each
 scene runs in this process (``pipeline.stages.scene.write_scene``, threads scheduler, zarr
 output), so the time is the scene's own, without interpreter start-up and imports; bytes and
 chunks are counted at zarr's store (every ``get`` of a chunk key). Ratios are against the
