@@ -23,7 +23,6 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
 
 from pipeline.errors import BTFError
 
@@ -297,8 +296,3 @@ def _duration(seconds: float) -> str:
     if seconds >= 60:
         return f"{seconds / 60:.1f} min"
     return f"{seconds:.1f} s"
-
-
-def plan_record(plans: list[StageEstimate]) -> list[dict[str, Any]]:
-    """The plan as JSON-ready records."""
-    return [dataclasses.asdict(p) for p in plans]

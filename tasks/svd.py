@@ -578,11 +578,6 @@ def verification(raw: np.ndarray, log_rows_: np.ndarray, u: np.ndarray, s: np.nd
     return linear, log_residual
 
 
-def average_abrdf_rmse(squared_errors: np.ndarray, rows: int) -> float:
-    """Paper 000, eq. (11): ``(1/n) sum_i sqrt(||M_i - M_hat_i||^2 / m)`` over n texels."""
-    return float(np.mean(np.sqrt(np.asarray(squared_errors, np.float64) / rows)))
-
-
 @dataclass
 class PassPart:
     """What one row block contributes to a pass, in the chunk / combine / aggregate shape.
