@@ -60,13 +60,6 @@ def aligned_chunks(array, *, grouped: bool = False) -> tuple[tuple[int, ...], ..
     return normalize_chunks(task_block(array, grouped=grouped), array.shape)
 
 
-def block_regions(array) -> list[tuple[slice, ...]]:
-    """The regions of ``array`` in task blocks (see :func:`task_block`), in C order."""
-    from dask.array.core import slices_from_chunks
-
-    return slices_from_chunks(aligned_chunks(array))
-
-
 def read_chunks(group, name: str) -> dict[str, int]:
     """Dask chunk size per dimension for reading variable ``name``: its task blocks."""
     array = group[name]
