@@ -8,8 +8,7 @@ just as well to the eigentextures of a compressed store. Stored as padded rows (
 ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
 applied as a scipy CSR matrix, by a compiled row loop over whole layers (:func:`apply`, the
 loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a quarter of a second and
-~100 MB to load), or as CSC, whose column slices are cheap, where the sample is read in bands
-(:func:`apply_texel_rows`).
+~100 MB to load).
 """
 
 from __future__ import annotations
@@ -74,16 +73,3 @@ def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[
     csr_product(matrix.indptr, matrix.indices, matrix.data, layers.reshape(-1, ny * nx, nc),
              out.reshape(-1, output[0] * output[1], nc))
     return out
-
-
-def apply_texel_rows(matrix: scipy.sparse.csc_matrix, texels: np.ndarray, start: int,
-                     out: np.ndarray) -> None:
-    """Add the part of ``P @ texels`` that comes from some sample texels to ``out``.
-
-    ``texels`` are the sample's texels ``start, start + 1, ...`` (flat, row-major: whole rows of
-    the sample) with trailing data such as eigentexture components; ``matrix`` is ``P`` as CSC,
-    whose column slices are cheap. Summed over row bands covering the sample, ``out`` is
-    ``P @ texels`` (up to float rounding) with only one band in memory at a time.
-    """
-    flat = np.asarray(texels).reshape(-1, out.shape[-1])
-    out += matrix[:, start : start + flat.shape[0]] @ flat

@@ -6,7 +6,7 @@ Choices where the paper is not specific:
 
 - **Tile size**: by default ``a, b`` whose rhomboid covers at most a quarter of the sample (the
   paper reports about 1:4), fits with its cut bands (and, for several tiles, with room for the
-  other tiles' positions), and is large without being elongated (:func:`choose_periods`).
+  other tiles' positions), and is large without being elongated (:func:`period_candidates`).
 - **Overlap errors** (eq. 1): ``psi_u(r) = |Y(r) - Y(r + U)|^2`` and ``psi_v(r) = |Y(r) -
   Y(r + V)|^2`` on the reference image (all channels).
 - **Optimal vertex** ``r*``: the admissible origin with the smallest ``psi_u + psi_v`` summed
@@ -149,11 +149,6 @@ def _lattice_shifts(u, v, reach: int = 6) -> list[tuple[int, int]]:
 
 
 DRIFT = 0.2  # texels: tile vectors this close to whole periods leave no visible jog
-
-
-def choose_periods(shape, u, v, params: RollerParams) -> tuple[int, int]:
-    """The preferred ``(a, b)`` of :func:`period_candidates`."""
-    return period_candidates(shape, u, v, params)[0]
 
 
 def period_candidates(shape, u, v, params: RollerParams) -> list[tuple[int, int]]:
