@@ -178,13 +178,3 @@ def impose_statistics(image: np.ndarray, statistics: list[ChannelStatistics], *,
     for k, stats in enumerate(statistics):
         out[..., k] = impose(out[..., k], stats, iterations=iterations)
     return out
-
-
-def statistical_synthesis(image: np.ndarray, sample: np.ndarray, *, params: StatisticsParams,
-                          channels: int | None = None) -> np.ndarray:
-    """Impose every channel's sample statistics on ``image`` (``(H, W, K)``, float32 result).
-
-    ``channels``: only the first ones (the leading components; the rest pass through).
-    """
-    stats = sample_statistics(sample, image.shape[:2], params=params, channels=channels)
-    return impose_statistics(image, stats, iterations=params.iterations)

@@ -15,8 +15,9 @@ from tasks.statistical_synthesis import (
     StatisticsParams,
     central_autocorrelation,
     impose,
+    impose_statistics,
     measure,
-    statistical_synthesis,
+    sample_statistics,
 )
 from tasks.svd import refactor
 from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
@@ -129,11 +130,12 @@ def test_statistics_imposed_on_itself_change_little_and_pull_noise_towards_the_s
             < 0.5 * np.linalg.norm(ac(noise) / ac(noise)[3, 3] - ac(sample) / ac(sample)[3, 3]))
 
 
-def test_statistical_synthesis_keeps_its_shape_and_passes_channels_through():
+def test_imposed_statistics_keep_the_shape_and_pass_other_channels_through():
     rng = np.random.default_rng(6)
     sample, image = _smooth_field(rng, (48, 48), 3), _smooth_field(rng, (64, 80), 3)
-    out = statistical_synthesis(image, sample, params=StatisticsParams(iterations=1),
-                                channels=2)
+    stats = sample_statistics(sample, image.shape[:2], params=StatisticsParams(iterations=1),
+                              channels=2)
+    out = impose_statistics(image, stats, iterations=1)
     assert out.shape == image.shape and out.dtype == np.float32
     assert np.array_equal(out[..., 2], image[..., 2]) and not np.allclose(out[..., 0],
                                                                           image[..., 0])
