@@ -74,9 +74,3 @@ class Canvas:
                      np.asarray(alpha, np.float32), y0 + py0, x0 + px0, py0, px0,
                      np.float32(_NEGLIGIBLE)):
             raise ValueError("a patch must cover empty canvas pixels with weight 1")
-
-    def rows_sum_to_one(self) -> bool:
-        """Whether every filled pixel's weights sum to 1 (and empty ones to 0)."""
-        total = self.weight.sum(axis=-1, dtype=np.float64)
-        return bool(np.allclose(total[self.filled], 1.0, atol=1e-5)
-                    and np.all(total[~self.filled] == 0))
