@@ -28,12 +28,12 @@ from pipeline.errors import BTFError
 
 GiB = 1 << 30
 BASE_PROCESS = 300 << 20  # interpreter, numpy, dask, zarr: a worker's memory before any task
-BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM, 2026-11-23 (BENCHMARKS.md)
+BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM (BENCHMARKS.md, "The terabyte plan")
     "generate_texel_directions_per_core_second": 6.2e6,
     "compress_bytes_per_core_second": 0.37e9,
     # --passes 1 (K = 64: k = 385, s = 771, sparse sign maps; 30603 x 65536, 8 GB), with the
-    # compiled sign products, 32 MiB blocks and the untransposed scratch (2026-11-28; 0.17e9
-    # before those two, 0.13e9 with scipy's products)
+    # compiled sign products, 32 MiB blocks and the untransposed scratch (BENCHMARKS.md, "The
+    # one pass's products compiled")
     "compress_one_pass_bytes_per_core_second": 0.19e9,
     "quilt_plan_seconds_per_texel_pair": 5.45e-11,  # per (tile texel x sample texel)
     "quilt_values_per_core_second": 3.1e6,

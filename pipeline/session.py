@@ -379,8 +379,8 @@ class Session:
         """Register :func:`_blas_plugin` with the scheduler, once a session.
 
         The scheduler sends it to every worker it has; a worker lost meanwhile makes that fail
-        with the connection's error (a kill -9 of a worker stopped a whole ``btf run``: the
-        fault campaign, 2026-11-28), so it is tried again while the scheduler drops the worker
+        with the connection's error, which would stop a whole ``btf run`` for one worker
+        killed, so it is tried again while the scheduler drops the worker
         (:data:`PLUGIN_WAITS`). Workers that join later get it from the scheduler.
         """
         from distributed.comm.core import CommClosedError
