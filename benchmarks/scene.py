@@ -6,7 +6,7 @@ set keeps the sample's eigentextures and its prescriptions, so its levels are co
 fly (block means of its tiles' layers). On each source, scenes ask for 1%, 10% and 100% of
 the measured layers (over the whole region or surface), and for 1% and 10% of the region's
 texels (a square at the origin, every layer), at levels 0 to 3. Each
-scene runs in this process (``pipeline.stages.scene.write_scene``, threads scheduler, zarr
+scene runs in this process (``pipeline.scenes.write_scene``, threads scheduler, zarr
 output), so the time is the scene's own, without interpreter start-up and imports; bytes and
 chunks are counted at zarr's store (every ``get`` of a chunk key). Ratios are against the
 100% request at the same level, measured in the same run; "start-up aside" subtracts the time
@@ -114,8 +114,8 @@ def _one(spec_text: str, tmp: Path, level: int, repeat: int) -> dict:
     import zarr
 
     from pipeline.scene_spec import load
+    from pipeline.scenes import write_scene
     from pipeline.session import RuntimeOptions, Session
-    from pipeline.stages.scene import write_scene
 
     path = tmp / "scene.yaml"
     path.write_text(spec_text + f"level: {level}\n")

@@ -332,7 +332,7 @@ def execute(plan: RunConfig, session: Session) -> None:
                                 "seconds": time.perf_counter() - began,
                                 "peak_rss": peak_rss() if peak else None})
     if plan.scene is not None:
-        from pipeline.stages.scene import write_scene
+        from pipeline.scenes import write_scene
 
         session.log(f"[scene] -> {plan.scene_out}")
         write_scene(plan.scene, plan.scene_out, session, overwrite=True)

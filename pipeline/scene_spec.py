@@ -19,7 +19,7 @@ render``). ``region``, ``size`` and ``origin`` are in level-0 texels; at level n
 holds the level-n texels whose blocks the region touches.
 
 Keys are checked here without opening the source (unknown keys, types, ranges, directions
-below the horizon); :mod:`pipeline.stages.scene` checks them against the source (a region
+below the horizon); :mod:`pipeline.scenes` checks them against the source (a region
 outside it, a level beyond its pyramid, a rank above the stored one) and names the key and
 its line the same way.
 """

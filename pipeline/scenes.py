@@ -1,4 +1,4 @@
-"""``btf scene SCENE.yaml OUT``: exactly the directions, region, level and rank a scene asks for.
+"""Scenes: exactly the directions, region, level and rank a scene spec asks of a store.
 
 The spec (:mod:`pipeline.scene_spec`) is resolved against its source: requested directions
 become interpolation terms over the measured layers (:mod:`tasks.directions`), the region and
@@ -16,7 +16,6 @@ output holds the images in memory; zarr output is written block by block.
 
 from __future__ import annotations
 
-import dataclasses
 import shlex
 from pathlib import Path
 from typing import Any
@@ -26,33 +25,24 @@ import numpy as np
 from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.params import option
 from pipeline.scene_needs import level_window, resolve, say_widened
-from pipeline.scene_spec import SceneSpec, load
+from pipeline.scene_spec import SceneSpec
 from pipeline.session import Session
-from pipeline.stage import Stage
-from pipeline.stores.base import RADIANCE, check_computed, location, open_group
+from pipeline.stores import (
+    CompressedStore,
+    RadianceStore,
+    Store,
+    SurfaceStore,
+    TileSetStore,
+    open_store,
+)
+from pipeline.stores.base import RADIANCE
 from pipeline.stores.levels import levels_of
 from tasks.transform import Transform
 
-SOURCE_KINDS = {"abtf": "radiance", "btf": "radiance", "compressed": "compressed",
-                "tileset": "tileset", "compressed-tileset": "tileset", "surface": "surface"}
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneParams:
-    """Parameters of ``btf scene``."""
-
-    scene: str = option(help="scene spec (YAML; see configs/scenes/)", positional=True,
-                        path="in", metavar="SCENE.yaml")
-    out: str = option(help="output: a .zarr store (format zarr) or a folder of images "
-                           "(exr, png)", positional=True, path="out")
-    overwrite: bool = option(False, record=False, help="replace OUT if it exists")
-
-
-def scene_stage(params: SceneParams, session: Session) -> Path:
-    """``btf scene``: load the spec and write what it asks for."""
-    return write_scene(load(params.scene), params.out, session, overwrite=params.overwrite)
+# what a scene reads, by the source's class (a compressed tile set is a tile set)
+SOURCES = ((RadianceStore, "radiance"), (CompressedStore, "compressed"),
+           (TileSetStore, "tileset"), (SurfaceStore, "surface"))
 
 
 def _restricted_region(group, spec: SceneSpec, request) -> None:
@@ -75,15 +65,15 @@ def _open_source(spec: SceneSpec):
     if not storage.any_below(source):
         raise spec.error("source", f"{spec.source!r} does not exist")
     try:
-        group = open_group(source)
+        store = open_store(source)
     except BTFError as exc:
         raise spec.error("source", str(exc)) from None
-    kind = group.attrs.get("btf_kind")
-    if kind not in SOURCE_KINDS:
-        raise spec.error("source", f"{spec.source}: a {kind or 'non-btf'} store; a scene takes "
-                                   "a radiance, compressed (or enlarged), tile-set or surface "
-                                   "store")
-    return group, SOURCE_KINDS[kind]
+    for cls, kind in SOURCES:
+        if isinstance(store, cls):
+            return store, kind
+    raise spec.error("source", f"{spec.source}: a {store.kind or 'non-btf'} store; a scene "
+                               "takes a radiance, compressed (or enlarged), tile-set or "
+                               "surface store")
 
 
 def _pyramid_level(spec: SceneSpec, group, variable: str, session: Session) -> str | None:
@@ -110,7 +100,8 @@ def _layer_scale(transform: Transform, group, layers) -> np.ndarray | None:
     return transform.layer_scale(theta[[li for _, li in layers]])
 
 
-def _check_keys(spec: SceneSpec, kind: str, group) -> None:
+def _check_keys(spec: SceneSpec, kind: str, store: Store) -> None:
+    group = store.group
     tiles = kind == "tileset"
     if tiles and spec.region is not None:
         raise spec.error("region", "a tile set covers an unbounded surface: give its part "
@@ -122,14 +113,14 @@ def _check_keys(spec: SceneSpec, kind: str, group) -> None:
         for key in ("size", "seed"):
             if getattr(spec, key) is not None:
                 raise spec.error(key, f"applies to tile sets only; {spec.source} is a "
-                                      f"{group.attrs['btf_kind']} store (use region)")
+                                      f"{store.kind} store (use region)")
         if spec.origin != (0, 0):
             raise spec.error("origin", f"applies to tile sets only; {spec.source} is a "
-                                       f"{group.attrs['btf_kind']} store (use region)")
+                                       f"{store.kind} store (use region)")
     if spec.rank is not None:
         if "S" not in group.array_keys():
             raise spec.error("rank", f"applies to compressed sources only; {spec.source} is "
-                                     f"a {group.attrs['btf_kind']} store")
+                                     f"a {store.kind} store")
         stored = group["S"].shape[0]
         if spec.rank > stored:
             raise spec.error("rank", f"{spec.rank} is above the {stored} components "
@@ -208,16 +199,16 @@ def build(spec: SceneSpec, session: Session):
     the window, the layers, weights and the chunks read out of all (``reads``).
     """
     from pipeline.graphs import scene as graphs
-    from pipeline.stores.base import read_channels, read_directions
 
-    group, kind = _open_source(spec)
-    _check_keys(spec, kind, group)
-    directions, weights, layers = resolve(spec, read_directions(group))
+    store, kind = _open_source(spec)
+    group = store.group
+    _check_keys(spec, kind, store)
+    directions, weights, layers = resolve(spec, store.directions)
     for v, li in layers:
-        check_computed(group, spec.source, v, li)
-    info: dict[str, Any] = {"kind": group.attrs["btf_kind"], "channels": read_channels(group),
+        store.check_computed(v, li)
+    info: dict[str, Any] = {"kind": store.kind, "channels": store.channels,
                             "layers": layers, "weights": weights, "level": spec.level}
-    path = location(spec.source)
+    path = store.location
 
     def request(window, stored, **extra):
         return graphs.Request(layers=layers, weights=weights, window=window, level=spec.level,
@@ -228,41 +219,38 @@ def build(spec: SceneSpec, session: Session):
     elif kind == "compressed":
         out, info["reads"] = _compressed(spec, group, path, layers, request, session)
     else:
-        out, info["reads"] = _tileset(spec, group, path, layers, request, session)
+        out, info["reads"] = _tileset(spec, store, path, layers, request, session)
     return out, directions, info
 
 
-def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Session):
+def _tileset(spec: SceneSpec, store: TileSetStore, path: str, layers, request,
+             session: Session):
     from pipeline.graphs import scene as graphs
-    from pipeline.stores.tileset import corner_order, prescribed, stored_seed
 
+    group = store.group
     f = 2**spec.level
     (h, w), (oy, ox) = spec.size, spec.origin
     window = (oy // f, -(-(oy + h) // f), ox // f, -(-(ox + w) // f))
     say_widened(session, f"size {list(spec.size)} at origin {list(spec.origin)}",
                 spec.level, window, (oy, oy + h, ox, ox + w))
-    n = group["corners"].shape[0]
-    lattice = group.attrs.get("placement") == "lattice"
-    placement = {"lattice": lattice, "tiles": n,
-                 "seed": spec.seed if spec.seed is not None else stored_seed(group)}
+    n = store.tiles
+    lattice = store.placement == "lattice"
+    placement = {"lattice": lattice, "tiles": n, "order": store.order(),
+                 "seed": spec.seed if spec.seed is not None else store.seed}
     if lattice:
-        lat = group.attrs["lattice"]
-        placement.update(order=np.arange(n), hnf=tuple(lat["hnf"]),
-                         basis=(tuple(lat["U"]), tuple(lat["V"])),
-                         representative=(group["representative"][...] if "representative"
-                                         in group.array_keys() else None))
+        placement.update(hnf=store.hnf, basis=store.basis,
+                         representative=store.representative)
     else:
-        placement.update(order=corner_order(spec.source, group["corners"][...],
-                                            int(group.attrs["corner_types"])),
-                         corners=int(group.attrs["corner_types"]))
-    compressed = group.attrs["btf_kind"] == "compressed-tileset"
+        placement.update(corners=store.corner_types)
+    compressed = store.compressed
+    prescribed = compressed and store.prescribed
     variable = "V" if compressed else RADIANCE
     stored = None
     if lattice and spec.level:
         session.log(f"scene: a roller tile set has no pyramid (its tiles lie on a sheared "
                     f"lattice): level {spec.level} is computed on the fly from level 0, which "
                     f"reads {4**spec.level}x the texels")
-    elif compressed and prescribed(group) and spec.level:
+    elif prescribed and spec.level:
         session.log(f"scene: level {spec.level} of a compressed tile set's tiles is computed "
                     "on the fly from its prescriptions")
     elif not lattice:
@@ -276,8 +264,8 @@ def _tileset(spec: SceneSpec, group, path: str, layers, request, session: Sessio
         transform = Transform.from_attrs(group.attrs["transform"])
         extra = {"u_rows": u_rows, "s": np.asarray(group["S"][:rank]), "transform": transform,
                  "scale": _layer_scale(transform, group, layers)}
-    out, read = graphs.tileset_graph(path, group, req, placement, level_path=stored, **extra)
-    if compressed and prescribed(group):  # the sample's V whole, and the tiles' prescriptions
+    out, read = graphs.tileset_graph(store, req, placement, level_path=stored, **extra)
+    if prescribed:  # the sample's V whole, and the tiles' prescriptions
         v = group["V"]
         total = graphs.total_chunks(v.shape, v.chunks)
         reads = {"V": [total, total],
@@ -345,10 +333,9 @@ def _zarr_target(tmp, spec, directions, shape, channels, attrs, data, *, source)
 
         return create_scene_store(tmp, directions=directions, shape=shape, channels=channels,
                                   chunk=spec.chunk, attrs=attrs)
-    from pipeline.stores.base import read_directions
     from pipeline.stores.radiance import Layout, create_radiance_store
 
-    d = read_directions(open_group(source))
+    d = open_store(source).directions
     group = create_radiance_store(tmp, directions=d, ny=shape[0], nx=shape[1],
                                   channels=channels, layout=Layout(chunk=min(spec.chunk, 512)),
                                   attrs=attrs)
@@ -381,14 +368,3 @@ def _write_images(out, images, directions, channels, fmt, overwrite) -> None:
                 write_png(tmp / name, image[..., 0] if image.shape[-1] == 1 else image)
             rows.append((name, tl, pl, tv, pv))
         write_manifest(tmp, rows)
-
-
-STAGE = Stage("scene", SceneParams, scene_stage,
-              "compute only what a scene needs: directions, region, level, rank",
-              "Write exactly what a scene spec (YAML, see configs/scenes/) asks of a store: "
-              "its light/view directions (measured or not: nearest or barycentric "
-              "interpolation over the measured ones), its texel region (a tile set: a surface "
-              "of any size at an origin), a level of detail (the store's pyramid level, or "
-              "block means of level 0 computed on the fly) and, for compressed sources, a "
-              "rank. Only the chunks the scene touches are read; the counts are logged and "
-              "recorded. Output: a .zarr store, or a folder of EXR or PNG images.")

@@ -217,26 +217,23 @@ def _tile_data(store: str, tile: int, layers, rank, path: str):
 
 
 def _open(store: str):
-    import zarr
+    """The compressed tile set at ``store`` (its stage checked it)."""
+    from pipeline.stores import CompressedTileSetStore, open_store
 
-    return zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
+    return open_store(store, CompressedTileSetStore, checked=False)
 
 
 def _sample_values(store: str, u_rows: np.ndarray, rank) -> np.ndarray:
     """A prescribed compressed tile set's sample values of some layers: ``(y, x, n * nc)``."""
-    from pipeline.stores.tileset import layer_coefficients, sample_values
-
-    group = _open(store)
-    return sample_values(group, layer_coefficients(group, u_rows, rank))
+    tiles = _open(store)
+    return tiles.sample_values(tiles.layer_coefficients(u_rows, rank))
 
 
 def _prescribed_tile(store: str, tile: int, values: np.ndarray, layers: int, scale
                      ) -> np.ndarray:
     """Radiance ``(y, x, layer, channel)`` of one tile of a prescribed compressed tile set."""
-    from pipeline.stores.tileset import decode_tile_values, prescribe
-
-    group = _open(store)
-    return decode_tile_values(group, prescribe(group, tile, values), layers, scale)
+    tiles = _open(store)
+    return tiles.decode(tiles.prescribe(tile, values), layers, scale)
 
 
 def _surface(tiles: dict, y0, x0, ny, nx, *, factor: int, placement: dict, u, s, transform,
@@ -270,10 +267,12 @@ def visible_tiles(y0: int, x0: int, ny: int, nx: int, *, factor: int, tile_shape
     return sorted({int(c) for c in np.unique(codes)})
 
 
-def tileset_graph(store: str, group, request: Request, placement: dict, *, u_rows=None,
+def tileset_graph(tileset, request: Request, placement: dict, *, u_rows=None,
                   s=None, transform: Transform | None = None, level_path: str | None = None,
                   scale: np.ndarray | None = None):
     """Scene of the surface a tile set covers; returns the dask array and the tiles read.
+
+    ``tileset`` is the :class:`pipeline.stores.TileSetStore` handle.
 
     With ``level_path`` (the tiles' stored level n, ``request.stored_level``) the surface is
     laid from the level-n tiles: tile sides are multiples of 2^n, so that equals the block
@@ -287,21 +286,20 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
     import dask
     import dask.array as da
 
-    from pipeline.stores.tileset import prescribed
-
     compressed = u_rows is not None
     # a compressed set that keeps the sample's V: its tiles are radiance computed per group of
     # layers (the sample's values formed once, then each tile prescribed), laid as a radiance
     # tile set's are
-    from_sample = compressed and prescribed(group)
+    from_sample = compressed and tileset.prescribed
+    store = tileset.location
     f = request.read_factor
-    tile_shape = tuple(t // (request.factor // f) for t in group.attrs["tile_shape"])
+    tile_shape = tuple(t // (request.factor // f) for t in tileset.tile_shape)
     path = level_path or ("V" if compressed else RADIANCE)
     order = placement["order"]  # placement code -> stored tile
     read: set = set()
     parts = []
     shared: dict = {}
-    nc = u_rows.shape[1] if compressed else group["channel"].shape[0]
+    nc = u_rows.shape[1] if compressed else len(tileset.channels)
     grid = [[(block, visible_tiles(block[0], block[2], block[1] - block[0],
                                    block[3] - block[2], factor=f, tile_shape=tile_shape,
                                    placement=placement)) for block in row]
@@ -314,7 +312,7 @@ def tileset_graph(store: str, group, request: Request, placement: dict, *, u_row
         shown = max(len(codes) for row in grid for _, codes in row)
         texels += shown * tile_shape[0] * tile_shape[1]
     if from_sample:  # and the sample's values of the group's layers
-        texels += int(np.prod(group.attrs["sample_shape"]))
+        texels += int(np.prod(tileset.sample_shape))
     most = request.layers_per_task((1, texels), nc)
     for dirs, used, w in direction_groups(request.weights, most):
         layers = None if compressed else [request.layers[k] for k in used]

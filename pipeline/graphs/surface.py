@@ -12,30 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import storage
 from pipeline.errors import BTFError
-from pipeline.stores.base import RADIANCE, check_computed, location
-from pipeline.stores.tileset import corner_order, open_tileset, stored_seed
+from pipeline.stores import TileSetStore, open_store
+from pipeline.stores.base import RADIANCE
 from tasks.placement import gather, lattice_gather
 
 
 def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = None
                  ) -> np.ndarray:
     """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32, in ``order``."""
-    import zarr
-
-    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
-    if group.attrs["btf_kind"] == "tileset":
-        tiles = group[RADIANCE][:, view, light]
+    tileset = open_store(store, TileSetStore, checked=False)
+    if not tileset.compressed:
+        tiles = tileset[RADIANCE][:, view, light]
     else:  # the layer's values formed on the sample, then each tile's prescription applied
-        from pipeline.stores.tileset import tile_layers
-        from tasks.transform import Transform
-
-        u = group["U"][view, light]  # (channel, component)
-        scale = Transform.from_attrs(group.attrs["transform"]).layer_scale(
-            group["theta_light"][light : light + 1])
-        tiles = tile_layers(group, range(group["corners"].shape[0]), u[None],
-                            scale=scale)[:, :, :, 0]
+        u = tileset["U"][view, light]  # (channel, component)
+        tiles = tileset.tile_layers(range(tileset.tiles), u[None],
+                                    scale=tileset.layer_scale([light]))[:, :, :, 0]
     if order is None or np.array_equal(order, np.arange(len(tiles))):
         return tiles
     return tiles[order]
@@ -53,39 +45,37 @@ def _lattice_block(tiles, block_info=None, *, origin, seed, hnf, basis, represen
                           basis=basis, representative=representative, seed=seed)
 
 
-def lazy_layer(path: str | Path, *, view: int, light: int, size: tuple[int, int],
-               origin: tuple[int, int] = (0, 0), seed: int | None = None, chunk: int = 2048):
+def lazy_layer(path: str | Path | TileSetStore, *, view: int, light: int,
+               size: tuple[int, int], origin: tuple[int, int] = (0, 0), seed: int | None = None,
+               chunk: int = 2048):
     """One layer of the surface tiled by a tile set, ``(y, x, channel)``, in blocks of ``chunk``.
 
-    ``seed=None``: the seed stored with the tile set.
+    ``path``: the tile set, or its handle. ``seed=None``: the seed stored with the tile set.
     """
     import dask
     import dask.array as da
     from dask.array.core import normalize_chunks
 
-    group = open_tileset(path)
-    nv, nl = group["theta_view"].shape[0], group["theta_light"].shape[0]
-    if not 0 <= view < nv:
-        raise BTFError(f"{path}: --view {view} is out of range (the tile set has {nv} views)")
-    if not 0 <= light < nl:
-        raise BTFError(f"{path}: --light {light} is out of range (the tile set has {nl} lights)")
-    check_computed(group, str(path), view, light)
+    tileset = path if isinstance(path, TileSetStore) else open_store(path, TileSetStore)
+    d = tileset.directions
+    if not 0 <= view < d.views:
+        raise BTFError(f"{tileset.path}: --view {view} is out of range (the tile set has "
+                       f"{d.views} views)")
+    if not 0 <= light < d.lights:
+        raise BTFError(f"{tileset.path}: --light {light} is out of range (the tile set has "
+                       f"{d.lights} lights)")
+    tileset.check_computed(view, light)
     if seed is None:
-        seed = stored_seed(group)
-    channels = group["channel"].shape[0]
-    lattice = group.attrs.get("placement") == "lattice"
-    order = None if lattice else corner_order(path, group["corners"][...],
-                                              int(group.attrs["corner_types"]))
-    tiles = dask.delayed(_layer_tiles, pure=True)(location(path), view, light, order)
+        seed = tileset.seed
+    channels = len(tileset.channels)
+    lattice = tileset.placement == "lattice"
+    order = None if lattice else tileset.order()
+    tiles = dask.delayed(_layer_tiles, pure=True)(tileset.location, view, light, order)
     chunks = normalize_chunks((chunk, chunk, channels), (*size, channels))
     meta = np.empty((0, 0, 0), np.float32)
     if lattice:
-        spec = group.attrs["lattice"]
-        rep = group["representative"][...] if "representative" in group.array_keys() else None
         return da.map_blocks(_lattice_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,
-                             origin=origin, seed=seed, hnf=tuple(spec["hnf"]),
-                             basis=(tuple(spec["U"]), tuple(spec["V"])),
-                             representative=rep)
-    corners = int(group.attrs["corner_types"])
+                             origin=origin, seed=seed, hnf=tileset.hnf, basis=tileset.basis,
+                             representative=tileset.representative)
     return da.map_blocks(_surface_block, tiles, chunks=chunks, dtype=np.float32, meta=meta,
-                         origin=origin, seed=seed, corners=corners)
+                         origin=origin, seed=seed, corners=tileset.corner_types)

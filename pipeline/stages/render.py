@@ -20,9 +20,8 @@ from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores.base import read_channels, read_directions
+from pipeline.stores import TileSetStore, open_store
 from pipeline.stores.surface import create_surface_store
-from pipeline.stores.tileset import open_tileset, stored_seed
 from tasks.tonemap import exposure, to_uint8, tonemap
 
 
@@ -59,11 +58,11 @@ class RenderParams:
 
 def render(params: RenderParams, session: Session) -> Path:
     """Render the requested region of one layer."""
-    group = open_tileset(params.store)
+    tileset = open_store(params.store, TileSetStore)
     h, w = params.size[0], params.size[-1]
-    layer = lazy_layer(params.store, view=params.view, light=params.light, size=(h, w),
+    layer = lazy_layer(tileset, view=params.view, light=params.light, size=(h, w),
                        origin=tuple(params.origin), seed=params.seed, chunk=params.chunk)
-    channels = read_channels(group)
+    channels = tileset.channels
     suffix = Path(params.out).suffix.lower()
     session.log(f"render: light {params.light}, view {params.view}, {h} x {w} texels at "
                 f"{tuple(params.origin)} -> {params.out}")
@@ -71,11 +70,11 @@ def render(params: RenderParams, session: Session) -> Path:
         with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:
             attrs = {"source": "render", "tileset": params.store, "light": params.light,
                      "view": params.view, "origin": list(params.origin),
-                     "seed": params.seed if params.seed is not None else stored_seed(group),
+                     "seed": params.seed if params.seed is not None else tileset.seed,
                      "provenance": provenance("render", params)}
             target = create_surface_store(
                 tmp, layer.shape, channels, chunk=params.chunk, attrs=attrs,
-                directions=read_directions(group).select([params.view], [params.light]))
+                directions=tileset.directions.select([params.view], [params.light]))
             session.compute(store_aligned([layer], [target]))
         return Path(params.out)
     (pixels,) = session.compute(layer)

@@ -15,8 +15,8 @@ variable in the project's codec. Each kind's module builds on these two.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -248,27 +248,77 @@ def sampling_lines(s: dict[str, Any]) -> list[str]:
     return lines
 
 
-@dataclass(frozen=True)
-class StoreKind:
-    """One kind of store: the ``btf_kind`` values it is written with, and what it offers.
+class Store:
+    """An opened store: where it is, its zarr group (read only) and what its attrs say.
 
-    Attributes
-    ----------
-    names
-        The ``btf_kind`` attribute values of this kind.
-    check
-        ``check(group, path)`` raises :class:`BTFError` naming what is wrong.
-    summary
-        ``summary(group)``: what ``btf inspect`` reports of it beyond variables and attrs,
-        from metadata (and small arrays) only.
-    lines
-        ``lines(summary)``: that summary as text lines.
-    open
-        ``open(path)``: the store as a lazy xarray Dataset (None where there is none).
+    One subclass per kind of store, in the kind's module, with the ``btf_kind`` values it is
+    written with (``names``) and its attributes as typed properties read in one place;
+    :func:`pipeline.stores.open_store` opens a path as the class its ``btf_kind`` names (this
+    class for a group no stage of btf wrote). Stages pass these handles, not paths and attrs.
+    The kind's hooks for ``btf inspect`` are static: ``check(group, path)``,
+    ``summary(group)`` and ``lines(summary)``.
     """
 
-    names: tuple[str, ...]
-    check: Callable[[Any, str | Path], None]
-    summary: Callable[[Any], dict[str, Any]]
-    lines: Callable[[dict[str, Any]], list[str]]
-    open: Callable[..., Any] | None = None
+    names: tuple[str, ...] = ()
+    what = "store"  # for messages: "a <what>"
+
+    def __init__(self, path: str | Path, group=None):
+        self.path = str(path)
+        self.group = open_group(path) if group is None else group
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.path!r})"
+
+    @staticmethod
+    def check(group, path: str | Path) -> None:
+        """Raise :class:`BTFError` naming what is wrong with ``group`` (nothing by default)."""
+
+    @staticmethod
+    def summary(group) -> dict[str, Any]:
+        """What ``btf inspect`` reports of the kind beyond variables and attrs."""
+        return {}
+
+    @staticmethod
+    def lines(summary: dict[str, Any]) -> list[str]:
+        """That summary as text lines."""
+        return []
+
+    def validate(self) -> None:
+        """:meth:`check` this store."""
+        self.check(self.group, self.path)
+
+    @property
+    def location(self) -> str:
+        """The store's location as handed to tasks (:func:`location`)."""
+        return location(self.path)
+
+    @property
+    def kind(self) -> str | None:
+        """The ``btf_kind`` attribute (None for a group btf did not write)."""
+        return self.group.attrs.get("btf_kind")
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """A copy of the group's attributes."""
+        return dict(self.group.attrs)
+
+    @cached_property
+    def directions(self) -> Directions:
+        """The view and light directions (degrees)."""
+        return read_directions(self.group)
+
+    @cached_property
+    def channels(self) -> tuple[str, ...]:
+        """The channel labels."""
+        return read_channels(self.group)
+
+    def has(self, name: str) -> bool:
+        """Whether the store holds the array ``name``."""
+        return name in set(self.group.array_keys())
+
+    def __getitem__(self, name: str):
+        return self.group[name]
+
+    def check_computed(self, view: int, light: int) -> None:
+        """Refuse a layer a store restricted to a scene did not compute (:func:`check_computed`)."""
+        check_computed(self.group, self.path, view, light)

@@ -17,6 +17,7 @@ coordinates and chunking of a radiance store. Each of its blocks is
 
 from __future__ import annotations
 
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from pipeline.stores.base import (
     RADIANCE,
     RADIANCE_DIMS,
     Directions,
-    StoreKind,
+    Store,
     add_array,
     check_coordinates,
     check_variables,
@@ -103,7 +104,7 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
         transform=transform)
 
 
-def open_compressed(path: str | Path, *, rank: int | None = None):
+def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     """Open a compressed store as a Dataset with a lazy ``radiance`` (and ``U``, ``S``, ``V``).
 
     Parameters
@@ -112,12 +113,14 @@ def open_compressed(path: str | Path, *, rank: int | None = None):
         The compressed store.
     rank
         Use only the first ``rank`` components (default: all).
+    group
+        Its zarr group, if already open.
     """
     import dask.array as da
     import xarray as xr
     import zarr
 
-    group = open_group(path)
+    group = open_group(path) if group is None else group
     check_compressed(group, path)
     full = group["S"].shape[0]
     rank = full if rank is None else rank
@@ -233,4 +236,42 @@ def dfmf_lines(meta: dict[str, Any], *, what: str = "file") -> list[str]:
     return lines
 
 
-KIND = StoreKind((NAME,), check_compressed, _summary, _lines, open_compressed)
+class CompressedStore(Store):
+    """A compressed store: ``U``, ``S``, ``V`` of the range-reduced BTF matrix, its transform."""
+
+    names = (NAME,)
+    what = "compressed store"
+    check = staticmethod(check_compressed)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+
+    @cached_property
+    def transform(self) -> Transform:
+        """How its values become radiance (:class:`tasks.transform.Transform`)."""
+        return Transform.from_attrs(self.group.attrs["transform"])
+
+    @property
+    def rank(self) -> int:
+        """Components stored."""
+        return int(self.group["S"].shape[0])
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """``(view, light, y, x, channel)`` of the radiance it describes."""
+        nv, nl, nc, _ = self.group["U"].shape
+        ny, nx = self.group["V"].shape[:2]
+        return (nv, nl, ny, nx, nc)
+
+    @property
+    def error(self) -> dict[str, Any]:
+        """The recorded errors (``error`` attribute; empty if none)."""
+        return dict(self.group.attrs.get("error") or {})
+
+    def layer_scale(self, lights) -> np.ndarray | None:
+        """A cosine store's scale of layers lit by ``lights`` (indices), else None."""
+        return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
+
+    def dataset(self, rank: int | None = None):
+        """The lazy Dataset of :func:`open_compressed` (``radiance`` rebuilt on demand)."""
+        return open_compressed(self.path, rank=rank, group=self.group)
+

@@ -21,7 +21,7 @@ from pipeline.stores.base import (
     RADIANCE,
     RADIANCE_DIMS,
     Directions,
-    StoreKind,
+    Store,
     add_array,
     check_variables,
     create_store,
@@ -109,4 +109,16 @@ def _lines(summary: dict[str, Any]) -> list[str]:
             f"RMSE {err.get('rmse', 0):.4g}, max {err.get('max', 0):.4g}"]
 
 
-KIND = StoreKind((NAME,), check_fitted, _summary, _lines, open_fitted)
+class FittedStore(Store):
+    """An HLS fit of an ABTF (``btf fit``): hue, saturation and lightness coefficients."""
+
+    names = (NAME,)
+    what = "HLS-fit store"
+    check = staticmethod(check_fitted)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+
+    def dataset(self):
+        """The lazy Dataset of :func:`open_fitted` (radiance rebuilt on demand)."""
+        return open_fitted(self.path)
+

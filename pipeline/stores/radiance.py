@@ -30,7 +30,7 @@ from pipeline.stores.base import (
     RADIANCE,
     RADIANCE_DIMS,
     Directions,
-    StoreKind,
+    Store,
     add_array,
     check_coordinates,
     create_store,
@@ -188,4 +188,38 @@ def _lines(summary: dict[str, Any]) -> list[str]:
     return sampling_lines(summary["sampling"]) if "sampling" in summary else []
 
 
-KIND = StoreKind(NAMES, check_radiance, _summary, _lines, open_radiance)
+class RadianceStore(Store):
+    """A radiance store: its layers ``radiance`` ``(view, light, y, x, channel)``."""
+
+    names = NAMES
+    what = "radiance store"
+    check = staticmethod(check_radiance)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+
+    @property
+    def radiance(self):
+        """The layers (a zarr array)."""
+        return self.group[RADIANCE]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """``(view, light, y, x, channel)``."""
+        return tuple(self.radiance.shape)
+
+    @property
+    def layout(self) -> Layout:
+        """The chunking it was written with."""
+        a = self.radiance
+        return Layout(chunk=a.chunks[2], dir_chunk=a.chunks[1],
+                      shard=a.shards[2] if a.shards else 0)
+
+    @property
+    def truth(self) -> bool:
+        """Whether it holds a generated material's ground-truth fields."""
+        return all(self.has(name) for name in TRUTH_DIMS)
+
+    def dataset(self):
+        """The store as a lazy xarray Dataset, dask chunks in task blocks."""
+        return open_dataset(self.path, self.group)
+

@@ -22,7 +22,7 @@ import numpy as np
 from pipeline import checksums
 from pipeline.errors import BTFError
 from pipeline.scene_spec import DIRECTION_FIELDS
-from pipeline.stores.base import RADIANCE, StoreKind, add_array, check_variables, create_store
+from pipeline.stores.base import RADIANCE, Store, add_array, check_variables, create_store
 
 NAME = "scene"
 DIMS = ("direction", "y", "x", "channel")
@@ -83,4 +83,12 @@ def _lines(summary: dict[str, Any]) -> list[str]:
             f"{s['source']}"]
 
 
-KIND = StoreKind((NAME,), check_scene, _summary, _lines)
+class SceneStore(Store):
+    """What ``btf scene`` computed: radiance in the requested directions."""
+
+    names = (NAME,)
+    what = "scene store"
+    check = staticmethod(check_scene)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+

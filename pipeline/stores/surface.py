@@ -13,7 +13,7 @@ from typing import Any
 from pipeline.stores.base import (
     RADIANCE,
     Directions,
-    StoreKind,
+    Store,
     add_array,
     check_variables,
     create_store,
@@ -49,4 +49,12 @@ def _lines(summary: dict[str, Any]) -> list[str]:
             f"{f['view']} at {tuple(f['origin'])}, seed {f['seed']}, from {f['tileset']}"]
 
 
-KIND = StoreKind((NAME,), check_surface, _summary, _lines)
+class SurfaceStore(Store):
+    """One layer of a surface rendered from a tile set (``btf render`` to zarr)."""
+
+    names = (NAME,)
+    what = "surface store"
+    check = staticmethod(check_surface)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+

@@ -25,6 +25,7 @@ A tile-set store holds
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -36,16 +37,16 @@ from pipeline.stores.base import (
     DIRECTION_COORDS,
     RADIANCE,
     Directions,
-    StoreKind,
+    Store,
     add_array,
     create_store,
-    open_group,
     read_channels,
     read_directions,
     sampling_lines,
     sampling_summary,
 )
 from tasks.placement import corner_code
+from tasks.transform import Transform
 
 NAMES = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
@@ -172,117 +173,6 @@ def check_tileset(group, path: str | Path) -> None:
             raise BTFError(f"{path}: variable {name!r} is missing")
 
 
-def prescribed(group) -> bool:
-    """Whether a compressed tile set holds the sample's ``V`` (its tiles' computed on reading).
-
-    False for radiance tile sets and for compressed sets that store every tile's ``V``.
-    """
-    return group.attrs.get("btf_kind") == NAMES[1] and group["V"].ndim == 3
-
-
-def tile_prescription(group, tile: int):
-    """Tile ``tile``'s prescription as a CSR matrix (tile texels x sample texels)."""
-    from tasks.prescription import to_csr
-
-    sy, sx = group.attrs["sample_shape"]
-    return to_csr(group["prescription_index"][tile], group["prescription_weight"][tile],
-                  sy * sx)
-
-
-def _sample_values(v, coef: np.ndarray) -> np.ndarray:
-    """``V coef`` ``(sample_y, sample_x, n)`` float32, reading ``V`` a band of chunk rows at a time.
-
-    ``coef`` is ``(K, n)``: memory holds the result and one band, not the sample's ``V``.
-    """
-    sy, sx = v.shape[:2]
-    coef = np.asarray(coef, np.float32)
-    out = np.empty((sy, sx, coef.shape[1]), np.float32)
-    for y0 in range(0, sy, v.chunks[0]):
-        band = np.asarray(v[y0 : y0 + v.chunks[0], :, : coef.shape[0]], np.float32)
-        out[y0 : y0 + len(band)] = band @ coef
-    return out
-
-
-def tile_values(group, tiles, coef: np.ndarray) -> np.ndarray:
-    """Values ``(tile, y, x, n)`` of ``n`` linear combinations of eigentextures, of ``tiles``.
-
-    ``coef`` ``(K', n)`` with ``K' <= K``: e.g. ``diag(S) U[rows]^T`` for some layers' values,
-    or the identity's first columns for the eigentextures themselves. Prescribed sets apply each
-    tile's prescription to the sample's values (the sample is read once); others read the
-    stored tiles.
-    """
-    tiles = list(tiles)
-    coef = np.asarray(coef, np.float32)
-    ty, tx = group.attrs["tile_shape"]
-    out = np.empty((len(tiles), ty, tx, coef.shape[1]), np.float32)
-    if not prescribed(group):
-        for i, t in enumerate(tiles):
-            v = np.asarray(group["V"][t, :, :, : coef.shape[0]], np.float32)
-            out[i] = v @ coef
-        return out
-    sample = _sample_values(group["V"], coef)
-    for i, t in enumerate(tiles):
-        out[i] = prescribe(group, t, sample)
-    return out
-
-
-def tile_eigentextures(group, tiles, rank: int | None = None) -> np.ndarray:
-    """The first ``rank`` eigentextures ``(tile, y, x, rank)`` of ``tiles`` (default: all)."""
-    k = group["S"].shape[0] if rank is None else rank
-    return tile_values(group, tiles, np.eye(group["S"].shape[0], k, dtype=np.float32))
-
-
-def layer_coefficients(group, u_rows: np.ndarray, rank: int | None = None) -> np.ndarray:
-    """``diag(S) u^T`` ``(K', layer * channel)``: what takes eigentextures to layers' values.
-
-    ``u_rows`` is ``(layer, channel, K)``; the first ``rank`` components (default: all).
-    """
-    u = np.asarray(u_rows, np.float64)
-    k = u.shape[-1] if rank is None else rank
-    s = np.asarray(group["S"][:k], np.float64)
-    n, nc = u.shape[:2]
-    return (s[:, None] * u[..., :k].reshape(n * nc, k).T).astype(np.float32)
-
-
-def decode_tile_values(group, values: np.ndarray, layers: int,
-                       scale: np.ndarray | None = None) -> np.ndarray:
-    """Radiance ``(..., layer, channel)`` of tile values ``(..., layer * channel)``.
-
-    ``scale``, one per layer, multiplies them (a cosine set's layer scale).
-    """
-    from tasks.transform import Transform
-
-    transform = Transform.from_attrs(group.attrs["transform"])
-    radiance = transform.decode(values.reshape(*values.shape[:-1], layers, -1))
-    if scale is not None:
-        radiance *= np.asarray(scale, np.float32)[:, None]
-    return radiance
-
-
-def tile_layers(group, tiles, u_rows: np.ndarray, *, rank: int | None = None,
-                scale: np.ndarray | None = None) -> np.ndarray:
-    """Radiance ``(tile, y, x, layer, channel)`` of ``u_rows`` ``(layer, channel, K)``.
-
-    The layers' values are formed on the sample (``V diag(S) u^T``: a few numbers per texel)
-    and then prescribed, so no tile's eigentextures are ever held. ``scale``: one per layer
-    (a cosine set's layer scale).
-    """
-    values = tile_values(group, tiles, layer_coefficients(group, u_rows, rank))
-    return decode_tile_values(group, values, len(u_rows), scale)
-
-
-def sample_values(group, coef: np.ndarray) -> np.ndarray:
-    """``V coef`` ``(sample_y, sample_x, n)`` of a prescribed set's sample, by bands of ``V``."""
-    return _sample_values(group["V"], coef)
-
-
-def prescribe(group, tile: int, values: np.ndarray) -> np.ndarray:
-    """Tile ``tile`` of sample values ``(sample_y, sample_x, n)``: ``(y, x, n)``."""
-    from tasks.prescription import apply
-
-    return apply(tile_prescription(group, tile), values, output=tuple(group.attrs["tile_shape"]))
-
-
 def read_plan(path) -> TileSet:
     """The :class:`TileSet` a tile-set store (complete or partial) was created for.
 
@@ -303,13 +193,6 @@ def read_plan(path) -> TileSet:
                    if "representative" in group else None)
 
 
-def open_tileset(path: str | Path):
-    """Open a tile-set store (zarr group), checking its kind and variables."""
-    group = open_group(path)
-    check_tileset(group, path)
-    return group
-
-
 def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
     """Stored tile of each corner combination, in :func:`tasks.placement.cell_tiles` order.
 
@@ -322,12 +205,6 @@ def corner_order(path, corners: np.ndarray, types: int) -> np.ndarray:
         raise BTFError(f"{path}: variable 'corners' does not hold every combination of "
                        f"{types} corner types exactly once")
     return np.argsort(codes)
-
-
-def stored_seed(group) -> int:
-    """The placement seed recorded with a tile set (older quilt sets: the planning seed)."""
-    attrs = group.attrs
-    return int(attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0)))
 
 
 def _summary(group) -> dict[str, Any]:
@@ -367,4 +244,207 @@ def _lines(summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-KIND = StoreKind(NAMES, check_tileset, _summary, _lines)
+def _sample_values(v, coef: np.ndarray) -> np.ndarray:
+    """``V coef`` ``(sample_y, sample_x, n)`` float32, reading ``V`` a band of chunk rows at a time.
+
+    ``coef`` is ``(K, n)``: memory holds the result and one band, not the sample's ``V``.
+    """
+    sy, sx = v.shape[:2]
+    coef = np.asarray(coef, np.float32)
+    out = np.empty((sy, sx, coef.shape[1]), np.float32)
+    for y0 in range(0, sy, v.chunks[0]):
+        band = np.asarray(v[y0 : y0 + v.chunks[0], :, : coef.shape[0]], np.float32)
+        out[y0 : y0 + len(band)] = band @ coef
+    return out
+
+
+class TileSetStore(Store):
+    """A tile set of ``btf quilt`` or ``btf roller``: its tiles, placement and prescriptions.
+
+    Its placement is a field: ``"corners"`` (quilting's corner tiles: ``corner_types``, laid by
+    a hash of the lattice vertices) or ``"lattice"`` (the roller's tiles on a sheared lattice:
+    ``lattice``, ``hnf``, ``basis``, ``representative``); ``seed`` is the placement seed.
+    """
+
+    names = (NAMES[0],)
+    what = "tile set"
+    check = staticmethod(check_tileset)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
+
+    @property
+    def compressed(self) -> bool:
+        """Whether its tiles are eigentextures with ``U`` and ``S`` (else radiance)."""
+        return False
+
+    @property
+    def tiles(self) -> int:
+        """The number of stored tiles."""
+        return int(self.group["corners"].shape[0])
+
+    @property
+    def tile_shape(self) -> tuple[int, int]:
+        """Texels of a stored tile ``(y, x)``."""
+        return tuple(int(n) for n in self.group.attrs["tile_shape"])
+
+    @property
+    def sample_shape(self) -> tuple[int, int]:
+        """Texels of the sample the tiles were planned on ``(y, x)``."""
+        return tuple(int(n) for n in self.group.attrs["sample_shape"])
+
+    @property
+    def placement(self) -> str:
+        """``"lattice"`` (the roller's tiles) or ``"corners"`` (quilting's)."""
+        return "lattice" if self.group.attrs.get("placement") == "lattice" else "corners"
+
+    @property
+    def corner_types(self) -> int:
+        """Corner types of a corner set (1 for a periodic tile)."""
+        return int(self.group.attrs.get("corner_types") or 1)
+
+    @property
+    def seed(self) -> int:
+        """The placement seed recorded with the set (older quilt sets: the planning seed)."""
+        attrs = self.group.attrs
+        return int(attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0)))
+
+    @property
+    def lattice(self) -> dict[str, Any] | None:
+        """A roller set's lattice (``u``, ``v``, ``U``, ``V``, ``hnf``, ...), else None."""
+        return self.group.attrs.get("lattice")
+
+    @property
+    def hnf(self) -> tuple[int, int, int]:
+        """A roller set's Hermite normal form ``(h, w, shear)`` of its tile lattice."""
+        return tuple(self.lattice["hnf"])
+
+    @property
+    def basis(self) -> tuple[tuple, tuple]:
+        """A roller set's tile vectors ``(U, V)``."""
+        return (tuple(self.lattice["U"]), tuple(self.lattice["V"]))
+
+    @property
+    def representative(self) -> np.ndarray | None:
+        """Where each stored texel of a roller set lies in its cut tile, or None."""
+        return self.group["representative"][...] if self.has("representative") else None
+
+    def order(self) -> np.ndarray:
+        """Stored tile of each placement code: corner order, or all tiles of a lattice set."""
+        if self.placement == "lattice":
+            return np.arange(self.tiles)
+        return corner_order(self.path, self.group["corners"][...], self.corner_types)
+
+    def prescription(self, tile: int):
+        """Tile ``tile``'s prescription as a CSR matrix (tile texels x sample texels)."""
+        from tasks.prescription import to_csr
+
+        sy, sx = self.sample_shape
+        return to_csr(self.group["prescription_index"][tile],
+                      self.group["prescription_weight"][tile], sy * sx)
+
+
+class CompressedTileSetStore(TileSetStore):
+    """A tile set of a compressed store: ``U``, ``S`` and eigentextures ``V``, its transform.
+
+    Written now with the sample's ``V`` and the prescriptions (``prescribed``): a tile's
+    eigentextures are ``P_t V`` and its layers ``P_t`` applied to the sample's values of the
+    layer, computed where they are read. Older sets hold every tile's ``V``.
+    """
+
+    names = (NAMES[1],)
+    what = "compressed tile set"
+
+    @property
+    def compressed(self) -> bool:
+        """Always true: eigentextures with ``U`` and ``S``."""
+        return True
+
+    @cached_property
+    def transform(self) -> Transform:
+        """How its values become radiance (the source's)."""
+        return Transform.from_attrs(self.group.attrs["transform"])
+
+    @property
+    def rank(self) -> int:
+        """Components stored."""
+        return int(self.group["S"].shape[0])
+
+    @property
+    def prescribed(self) -> bool:
+        """Whether it holds the sample's ``V`` (its tiles' computed on reading)."""
+        return self.group["V"].ndim == 3
+
+    def layer_scale(self, lights) -> np.ndarray | None:
+        """A cosine set's scale of layers lit by ``lights`` (indices), else None."""
+        return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
+
+    def sample_values(self, coef: np.ndarray) -> np.ndarray:
+        """``V coef`` ``(sample_y, sample_x, n)`` of the sample, reading ``V`` by bands."""
+        return _sample_values(self.group["V"], coef)
+
+    def prescribe(self, tile: int, values: np.ndarray) -> np.ndarray:
+        """Tile ``tile`` of sample values ``(sample_y, sample_x, n)``: ``(y, x, n)``."""
+        from tasks.prescription import apply
+
+        return apply(self.prescription(tile), values, output=self.tile_shape)
+
+    def tile_values(self, tiles, coef: np.ndarray) -> np.ndarray:
+        """Values ``(tile, y, x, n)`` of ``n`` linear combinations of eigentextures, of ``tiles``.
+
+        ``coef`` ``(K', n)`` with ``K' <= K``: e.g. ``diag(S) U[rows]^T`` for some layers'
+        values, or the identity's first columns for the eigentextures themselves. A prescribed
+        set applies each tile's prescription to the sample's values (the sample is read once);
+        an older one reads the stored tiles.
+        """
+        tiles = list(tiles)
+        coef = np.asarray(coef, np.float32)
+        ty, tx = self.tile_shape
+        out = np.empty((len(tiles), ty, tx, coef.shape[1]), np.float32)
+        if not self.prescribed:
+            for i, t in enumerate(tiles):
+                v = np.asarray(self.group["V"][t, :, :, : coef.shape[0]], np.float32)
+                out[i] = v @ coef
+            return out
+        sample = self.sample_values(coef)
+        for i, t in enumerate(tiles):
+            out[i] = self.prescribe(t, sample)
+        return out
+
+    def tile_eigentextures(self, tiles, rank: int | None = None) -> np.ndarray:
+        """The first ``rank`` eigentextures ``(tile, y, x, rank)`` of ``tiles`` (default: all)."""
+        k = self.rank if rank is None else rank
+        return self.tile_values(tiles, np.eye(self.rank, k, dtype=np.float32))
+
+    def layer_coefficients(self, u_rows: np.ndarray, rank: int | None = None) -> np.ndarray:
+        """``diag(S) u^T`` ``(K', layer * channel)``: what takes eigentextures to layers' values.
+
+        ``u_rows`` is ``(layer, channel, K)``; the first ``rank`` components (default: all).
+        """
+        u = np.asarray(u_rows, np.float64)
+        k = u.shape[-1] if rank is None else rank
+        s = np.asarray(self.group["S"][:k], np.float64)
+        n, nc = u.shape[:2]
+        return (s[:, None] * u[..., :k].reshape(n * nc, k).T).astype(np.float32)
+
+    def decode(self, values: np.ndarray, layers: int,
+               scale: np.ndarray | None = None) -> np.ndarray:
+        """Radiance ``(..., layer, channel)`` of tile values ``(..., layer * channel)``.
+
+        ``scale``, one per layer, multiplies them (a cosine set's layer scale).
+        """
+        radiance = self.transform.decode(values.reshape(*values.shape[:-1], layers, -1))
+        if scale is not None:
+            radiance *= np.asarray(scale, np.float32)[:, None]
+        return radiance
+
+    def tile_layers(self, tiles, u_rows: np.ndarray, *, rank: int | None = None,
+                    scale: np.ndarray | None = None) -> np.ndarray:
+        """Radiance ``(tile, y, x, layer, channel)`` of ``u_rows`` ``(layer, channel, K)``.
+
+        The layers' values are formed on the sample (``V diag(S) u^T``: a few numbers per
+        texel) and then prescribed, so no tile's eigentextures are ever held. ``scale``: one
+        per layer (a cosine set's layer scale).
+        """
+        values = self.tile_values(tiles, self.layer_coefficients(u_rows, rank))
+        return self.decode(values, len(u_rows), scale)
+
