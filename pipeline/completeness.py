@@ -19,10 +19,10 @@ btf closes that gap in three steps:
   gives): a chunk object that a read-only open does not find is a
   :class:`~pipeline.checksums.MissingChunkError` naming the store, the array and the chunk.
 
-Stores written before this, and partial outputs, are read as before (a missing chunk is fill
-values): a partial output lacks the chunks it has not written yet. So is a store computed only
-for a scene (``computed_for_scene``): it holds only the chunks its scene reads, and is not
-sealed.
+Unsealed stores (made by a btf that did not seal, and partial outputs) are read leniently (a
+missing chunk is fill values): a partial output lacks the chunks it has not written yet. So
+is a store computed only for a scene (``computed_for_scene``): it holds only the chunks its
+scene reads, and is not sealed.
 """
 
 from __future__ import annotations

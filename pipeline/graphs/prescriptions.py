@@ -142,8 +142,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
         writes, what = apply_tileset(source, tmp, tiles, source_group=group,
                                      share=session.share, parallelism=session.parallelism,
                                      needs=needs)
-        # the writes' names carry the session's parallelism (they used to depend on it): a
-        # rerun with other workers keeps nothing of the killed run's
+        # the writes' names carry the session's parallelism: a rerun with other workers keeps
+        # nothing of the killed run's
         grouping = f"{len(writes)}x{session.parallelism}"
         todo, done = progress.pending((f"write-{grouping}-{i}", w)
                                       for i, w in enumerate(writes))

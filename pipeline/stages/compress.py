@@ -70,7 +70,7 @@ TEXEL_SIDE_BYTES = 256 << 20  # auto: the texel side while its client sketches s
 ONE_PASS_RANGE = 6  # --passes 1: range sketch columns per component (BENCHMARKS.md, issue 27)
 SCRATCH = "sketch-scratch"  # the one-view co-range sketch, inside the partial output
 # the scratch's layout, in the name the sketch pass's sums are kept under: sums kept by a btf
-# that wrote another layout ((y, x, s) before 2026-11-28) are not taken, and the pass runs again
+# that wrote another layout (such as (y, x, s)) are not taken, and the pass runs again
 SCRATCH_LAYOUT = "s-y-x"
 
 

@@ -17,7 +17,7 @@ before.
   then exactly level n of the surface laid from level-0 tiles, and ``btf scene`` reads the
   tiles' level. Roller tile sets lie on a sheared lattice, where that does not hold: they have
   no levels; nor do compressed tile sets that keep the sample's ``V`` and their prescriptions
-  (what ``btf quilt`` writes now): their tiles, and so their levels, are computed on reading.
+  (what ``btf quilt`` writes): their tiles, and so their levels, are computed on reading.
 - Compressed stores: levels of ``V``; ``U`` and ``S`` are shared, so a level is
   ``exp(U S V_n^T) - eps``. With ``--method projected`` (the default) ``V_n`` is the exact
   level's radiance (block means of the reconstructed radiance, linear) range-reduced and
