@@ -14,9 +14,9 @@ from scipy import ndimage
 
 from helpers import SLOW_PROCESSES, generate_store, quilt
 from pipeline.graphs.surface import lazy_layer
+from pipeline.stores import open_store
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
-from pipeline.stores.tileset import tile_eigentextures, tile_layers
 from tasks.canvas import TERMS, Canvas
 from tasks.corner_tiles import INTERIOR_ATTEMPTS, BorderCheck, SeamError, plan_tiles
 from tasks.prescription import apply, check, to_csr
@@ -361,7 +361,8 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
     n = v.shape[0] * v.shape[1]
     # the store holds the prescriptions and the sample's eigentextures, not 16 tiles' worth
     assert group["V"].shape == v.shape and np.array_equal(group["V"][:], v)
-    tiles = tile_eigentextures(group, range(16))
+    tileset = open_store(tmp_path / "q.zarr")
+    tiles = tileset.tile_eigentextures(range(16))
     assert tiles.shape == (16, 24, 24, v.shape[-1])
     for t in range(16):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
@@ -381,7 +382,7 @@ def test_quilting_a_compressed_store_gives_a_compressed_tile_set(tmp_path, btf, 
         tile = reconstruct_layers(group["U"][0, 2], group["S"][:], tiles[t],
                                   transform=Transform("log", eps)).reshape(-1, 3)
         # the layer formed on the sample, then prescribed: the same radiance
-        assert np.allclose(tile_layers(group, [t], group["U"][0, 2][None])[0, :, :, 0]
+        assert np.allclose(tileset.tile_layers([t], group["U"][0, 2][None])[0, :, :, 0]
                            .reshape(-1, 3), tile, rtol=1e-4, atol=1e-6), t
         single = (weight > 0).sum(axis=1) == 1
         # The tile's prescription P_t applied to the measured layer itself (not to its rank-8

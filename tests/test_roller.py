@@ -12,9 +12,9 @@ from scipy import ndimage
 from helpers import generate_store, no_partial_outputs
 from pipeline.graphs.surface import lazy_layer
 from pipeline.images import read_image, write_exr
+from pipeline.stores import open_store
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
-from pipeline.stores.tileset import tile_eigentextures
 from tasks.periodicity import detect_lattice
 from tasks.placement import lattice_cells
 from tasks.prescription import check, to_csr
@@ -293,7 +293,7 @@ def test_the_roller_on_a_compressed_store_gives_a_compressed_tile_set(btf, store
     v = zarr.open_array(tmp_path / "c.zarr", path="V")[:]
     n = v.shape[0] * v.shape[1]
     assert np.array_equal(group["V"][:], v)  # the sample's eigentextures, and prescriptions
-    tiles = tile_eigentextures(group, range(2))
+    tiles = open_store(tmp_path / "t.zarr").tile_eigentextures(range(2))
     for t in range(2):
         matrix = to_csr(group["prescription_index"][t], group["prescription_weight"][t], n)
         assert np.allclose(tiles[t], (matrix @ v.reshape(n, -1)).reshape(tiles.shape[1:]),

@@ -409,16 +409,17 @@ def tiles(compressed):
 
 def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser, tiles):
     from pipeline.cli import main
-    from pipeline.stores.tileset import stored_seed, tile_eigentextures
+    from pipeline.stores import open_store
     from tasks.placement import cell_tiles, gather
 
     q, page = tiles, tiles.parent / "q.html"
     assert main(["view", str(q), str(page), "--rank", str(RANK), "-q"]) == 0
     g = zarr.open_group(q, mode="r")
-    tiles = tile_eigentextures(g, range(g["corners"].shape[0]), RANK)
+    handle = open_store(q)
+    tiles = handle.tile_eigentextures(range(handle.tiles), RANK)
     ty, tx = tiles.shape[1:3]
     cells = max(1, min(4, 512 // max(ty, tx)))
-    seed = stored_seed(g)
+    seed = handle.seed
     tab, _ = _open(browser, page)
     ids = cell_tiles(0, 0, cells, cells, seed=seed, corners=2)
     assert tab.evaluate("window.btfView.swatchMap") == ids.ravel().tolist()
@@ -456,13 +457,14 @@ def test_a_compressed_tile_set_fits_its_budget_at_a_level_or_a_region(browser, t
                                                                       tmp_path):
     """Issue 53, part 3's page: a tile set is shown within --budget, at a level of detail
     (block means of every tile) or a region of the surface btf render lays, as any store."""
-    from pipeline.stores.tileset import stored_seed, tile_eigentextures
+    from pipeline.stores import open_store
     from tasks.placement import gather
     from tasks.viewer import block_means
 
     g = zarr.open_group(tiles, mode="r")
     n = g["corners"].shape[0]
-    full = tile_eigentextures(g, range(n), RANK)  # corner-code order, as quilt stores them
+    handle = open_store(tiles)
+    full = handle.tile_eigentextures(range(n), RANK)  # corner-code order, as quilt stores them
     whole = btf("view", tiles, tmp_path / "0.html", "--rank", str(RANK), "--level", "0")
     assert whole.code == 0, whole.err
     budget = (tmp_path / "0.html").stat().st_size * 0.6 / (1 << 20)
@@ -481,8 +483,8 @@ def test_a_compressed_tile_set_fits_its_budget_at_a_level_or_a_region(browser, t
     # a region of the surface btf render lays: its texels, exactly
     r = btf("view", tiles, tmp_path / "r.html", "--region", "10:50,20:90", "--rank", str(RANK))
     assert r.code == 0 and "texels 10:50, 20:90 of the surface btf render lays" in r.err, r.err
-    seed = stored_seed(g)
-    region = gather(full, 10, 20, 40, 70, seed=seed, corners=int(g.attrs["corner_types"]))
+    seed = handle.seed
+    region = gather(full, 10, 20, 40, 70, seed=seed, corners=handle.corner_types)
     assert _blob(tmp_path / "r.html", "V") == base64.b64encode(
         pack_eigentextures(region).tobytes()).decode()
     tab, _ = _open(browser, tmp_path / "r.html")
@@ -642,7 +644,7 @@ def test_lit_from_plus_y_the_page_brightens_the_slopes_facing_the_top(browser, b
 
 def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser, tmp_path):
     from pipeline.cli import main
-    from pipeline.stores.tileset import stored_seed, tile_eigentextures
+    from pipeline.stores import open_store
     from tasks.placement import lattice_gather
 
     t = generate_store(tmp_path / "t.zarr", "--material", "tiles", "--size", "96", "--scale",
@@ -661,10 +663,11 @@ def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser,
     shown = _pixels(tab).reshape(
         h, w, 4)[::-1, :, :3].astype(int)
     rep = g["representative"][...] if "representative" in g.array_keys() else None
-    tiles = tile_eigentextures(g, range(g["corners"].shape[0]))
+    handle = open_store(tmp_path / "r.zarr")
+    tiles = handle.tile_eigentextures(range(handle.tiles))
     mosaic = lattice_gather(tiles.astype(np.float16).astype(np.float32), 0, 0, h, w,
                             hnf=tuple(spec["hnf"]), basis=(tuple(spec["U"]), tuple(spec["V"])),
-                            representative=rep, seed=stored_seed(g))
+                            representative=rep, seed=handle.seed)
     layer = reconstruct_layers(g["U"][2, 5][None], g["S"][...], mosaic,
                                transform=Transform.from_attrs(g.attrs["transform"]))[0]
     scale = tab.evaluate("window.btfView.state.exposure")
