@@ -1,9 +1,9 @@
 """Compiled loops (numba) of quilting's planning: the cut, the blend, the check's distances.
 
 Threads plan the tiles of a set at once (:func:`tasks.corner_tiles.plan_tiles`); these are the
-steps that held the GIL (or the most memory traffic) per patch, each now one loop that
-releases it (``nogil``) and keeps a fixed order, so the same inputs give the same bits on
-every thread and run. Compiled code is kept in numba's on-disk cache, as
+steps that would hold the GIL (or make the most memory traffic) per patch in numpy, each one
+loop that releases it (``nogil``) and keeps a fixed order, so the same inputs give the same
+bits on every thread and run. Compiled code is kept in numba's on-disk cache, as
 :mod:`tasks.sketch_kernel`'s. BENCHMARKS.md, "Quilting", has the figures.
 
 - :func:`cheapest_loop`, the boundary cut's search (:func:`tasks.quilting.boundary_cut`). The
@@ -13,15 +13,15 @@ every thread and run. Compiled code is kept in numba's on-disk cache, as
   cheapest path from ``(r, col)`` to ``(r, col + 1)`` that does not step across the slit,
   plus that step: Dijkstra's search from each such row in turn, with a binary heap on
   arrays, each search stopped once nothing it could still reach beats the best loop so far.
-  It replaces a sparse graph built in Python per patch for scipy's Dijkstra: the same loops,
-  up to the choice among loops of equal cost.
+  It finds the loops scipy's Dijkstra finds on a sparse graph built per patch, up to the
+  choice among loops of equal cost, without building the graph in Python.
 - :func:`blend`, a patch blended into a canvas (:meth:`tasks.canvas.Canvas.place`), pixel by
-  pixel in the arithmetic of the twenty numpy calls it replaces (float32 products, a float64
-  sum of a pixel's weights): the same bits.
+  pixel in the arithmetic of twenty numpy calls (float32 products, a float64 sum of a
+  pixel's weights; the tests' reference): the same bits.
 - :func:`smallest`, the candidate search's ``k`` best positions
   (:meth:`tasks.quilting.CandidateSearch.choose`) in one pass over the error image, where
-  ``argpartition`` and ``argsort`` held the GIL for 1-2 ms a patch (29% of the default
-  ``btf quilt``'s samples on a fabric sample); ties go to the lower index.
+  ``argpartition`` and ``argsort`` would hold the GIL for 1-2 ms a patch (29% of the
+  default ``btf quilt``'s samples on a fabric sample); ties go to the lower index.
 - :func:`nearest_ssd`, the border check's re-ranking (:meth:`tasks.seams.PatchExemplar.
   distances`): each query patch's squared distance to the nearest of its candidates, read
   from the sample in place instead of gathering every candidate's patch (19 MB a check).
