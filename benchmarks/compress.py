@@ -597,7 +597,7 @@ def _disk_report(d: dict) -> list[str]:
 
 
 def _floor(row: dict) -> str:
-    """A run's time over one read of its store (``-`` in results from before it was kept)."""
+    """A run's time over one read of its store (``-`` for results that do not record it)."""
     return (f"{row['seconds'] / row['one_read']:.2f}x ({row['one_read']:.1f} s)"
             if row.get("one_read") else "-")
 

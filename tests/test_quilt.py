@@ -656,7 +656,7 @@ def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
 
 
 def _numpy_place(canvas: Canvas, patch_index, patch_value, alpha, y0: int, x0: int) -> None:
-    """Canvas.place as twenty numpy calls (before it was compiled): the reference."""
+    """Canvas.place as twenty numpy calls: the reference the compiled blend must match."""
     rows, cols = canvas.window(y0, x0, *alpha.shape)
     py, px = rows - y0, cols - x0
     a = alpha[np.ix_(py, px)].astype(np.float32)

@@ -292,7 +292,7 @@ def test_a_write_landing_after_a_failed_run_s_cleanup_is_removed_by_the_next_run
     """A failed run's cleanup lists and removes its partial output; a write still in flight
     (a retry that got through once the server was back) can land after it. The record that
     marks the prefix as btf's stays while anything is left, so the next run removes the rest
-    rather than refusing a prefix it takes for someone else's (the fault campaign found it)."""
+    rather than refusing a prefix it takes for someone else's."""
     import pipeline.stages.generate as gen
 
     url = s3.url("late/wood.zarr")

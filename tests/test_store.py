@@ -160,8 +160,8 @@ def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler, sha
 def test_an_input_several_outputs_share_is_computed_once_per_block(tmp_path):
     """As in ``btf generate``: radiance and four truth arrays from one block of fields each.
 
-    Optimised output by output, dask fused the shared input into each output's tasks, and every
-    block of fields was computed five times.
+    Optimised output by output, dask would fuse the shared input into each output's tasks and
+    compute every block of fields five times.
     """
     from pipeline.resume import Progress
 

@@ -561,10 +561,9 @@ def test_the_address_drives_the_page_whenever_it_changes(browser, page):
 
 
 def test_the_status_line_says_measured_at_a_measured_pair(browser, page, compressed):
-    """Issue 53: "2 measured pair(s) blended" at measured directions came from the address,
-    which kept one decimal: the store's directions (a Fibonacci spiral here, Bonn's radians
-    elsewhere) reopened a little off, a blend of two or three each. A link now reopens the
-    measured pair (two decimals, and a direction within 0.075 degrees of a measured one is it),
+    """A link reopens the measured pair (two decimals, and a direction within 0.075 degrees of
+    a measured one is it; with one decimal alone the store's directions, a Fibonacci spiral
+    here, Bonn's radians elsewhere, would reopen a little off, a blend of two or three each),
     and the status line says which pair, or what it blends."""
     g = zarr.open_group(compressed, mode="r")
     tv, pv, tl, pl = (g[k][...] for k in ("theta_view", "phi_view", "theta_light", "phi_light"))
@@ -579,7 +578,7 @@ def test_the_status_line_says_measured_at_a_measured_pair(browser, page, compres
         assert "measured pair: view" in status() and measured in status(), status()
         link = tab.evaluate("location.hash")
         for address in (link, f"#light={tl[light]:.1f},{pl[light]:.1f}&view={tv[view]:.1f},"
-                              f"{pv[view]:.1f}"):  # the page's link, and today's one decimal
+                              f"{pv[view]:.1f}"):  # the page's link, and one with one decimal
             tab.evaluate("window.btfView.set([33, 33], [11, 11])")
             tab.evaluate(f"location.hash = {address!r}")
             tab.wait_for_function("window.btfView.state.light[1] !== 33", timeout=5000)

@@ -137,7 +137,7 @@ def test_the_sphere_map_is_conformal_with_no_pole_on_the_visible_hemisphere():
             else:
                 lonlat = max(lonlat, sv[0] / sv[1])
     assert worst < 1.001, worst
-    assert lonlat > 5  # what the longitude/latitude map of the old page did near its poles
+    assert lonlat > 5  # what a longitude/latitude map does near its poles
     centre = sphere_at(np.zeros((1, 2)), (50.0, 90.0))
     assert np.allclose(centre.texture, 0.5)  # the middle of the texture at the centre
     assert centre.light[0, 1] > 0.7 and abs(centre.light[0, 0]) < 1e-9  # lit from +y: the top
