@@ -2,13 +2,13 @@
 
 A plan made on the reference image (quilting, the roller) compiles to ``P``, a
 ``(output pixels) x (sample pixels)`` matrix whose rows are blend weights summing to 1
-(DESIGN.md, "Prescription"). Applying it is ``layer_out = P @ layer_in`` for every layer, which
-is what makes the transfer identical for all light and view directions; being linear, it applies
-just as well to the eigentextures of a compressed store. Stored as padded rows (an ELL matrix:
-``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1 for unused terms) and
-applied as a scipy CSR matrix, by a compiled row loop over whole layers (:func:`apply`, the
-loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a quarter of a second and
-~100 MB to load).
+(docs/README.md, "Design in brief"). Applying it is ``layer_out = P @ layer_in`` for every
+layer, which is what makes the transfer identical for all light and view directions; being
+linear, it applies just as well to the eigentextures of a compressed store. Stored as padded
+rows (an ELL matrix: ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1
+for unused terms) and applied as a scipy CSR matrix, by a compiled row loop over whole layers
+(:func:`apply`, the loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a
+quarter of a second and ~100 MB to load).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Small Bonn UBO2014 DFMF ``.btf`` files for tests, written from the format description.
 
 Independent of the project's code on purpose (no ``pipeline`` import): a test oracle for the
-DFMF reader and exporter. Byte layout (little-endian), as in ``shared/notes/formats.md``:
+DFMF reader and exporter. Byte layout (little-endian), as Bonn's own readers (cgbonn/btflib,
+``btf.hh``) read it:
 
 - signature ``!DFMF08FC`` (+ ``R`` when a rotations block follows the image size);
 - metadata: ``u32`` size in bytes (this field included), ``u32`` version, 3 x ``char[80]``,

@@ -1,4 +1,4 @@
-"""The store contract (DESIGN.md): layout, validation, and shard-safe writes."""
+"""The store contract (docs/README.md): layout, validation, and shard-safe writes."""
 
 from __future__ import annotations
 

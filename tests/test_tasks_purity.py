@@ -1,4 +1,4 @@
-"""tasks/ is pure numpy: no dask, zarr, xarray, OpenEXR or file I/O (DESIGN.md, the split)."""
+"""tasks/ is pure numpy: no dask, zarr, xarray, OpenEXR or file I/O (docs/README.md, the split)."""
 
 from __future__ import annotations
 
