@@ -14,6 +14,8 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+from pipeline.params import option
+
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
@@ -39,7 +41,8 @@ class Stage:
         Why it computes its whole output even when a config's scene reads only part of it
         (``btf run --check``); None for stages that make no store a scene could read.
     for_scene
-        It restricts its work to what a scene reads, through its ``for_scene`` parameter.
+        It restricts its work to what a scene reads, through its ``for_scene`` parameter
+        (:func:`for_scene_option`).
     directions
         ``directions(params, source) -> Directions | None``: its output's light and view
         directions, from those of its input store (``source``, None when it has none or
@@ -56,6 +59,15 @@ class Stage:
     whole: str | None = None
     for_scene: bool = False
     directions: Callable[[Any, Any], Any] | None = None
+
+
+def for_scene_option():
+    """The ``--for-scene`` parameter of a stage declared with ``for_scene=True``."""
+    return option(None, metavar="SCENE.yaml", path="in",
+                  help="write only what this scene spec (or a run config's scene: section) "
+                       "reads of OUT: its layers, and its texels unless OUT is a tile set; OUT "
+                       "keeps its full shape, the rest unwritten (a tile set of a compressed "
+                       "store is written whole: its eigentextures serve every layer)")
 
 
 def same_directions(params, source):

@@ -23,7 +23,7 @@ from pipeline.params import ParamError, check_seed, option
 from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
 from pipeline.session import Session
-from pipeline.stage import Stage, same_directions
+from pipeline.stage import Stage, for_scene_option, same_directions
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.tileset import TileSet
@@ -69,11 +69,7 @@ class QuiltStageParams:
     weights: str = option("1,0.5,0.5", metavar="D,H,R", help=WEIGHTS_HELP)
     view: int | None = option(None, metavar="J",
                               help="view for the reference image (default: closest to normal)")
-    for_scene: str | None = option(
-        None, metavar="SCENE.yaml", path="in",
-        help="apply the plan only to the layers this scene spec (or a run config's scene: "
-             "section) reads of OUT (radiance sources; the eigentextures of a compressed "
-             "one serve every layer); the others stay unwritten")
+    for_scene: str | None = for_scene_option()
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):

@@ -21,7 +21,7 @@ from pipeline.params import ParamError, check_region, option, parse_region
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
-from pipeline.stage import Stage, selected_directions
+from pipeline.stage import Stage, for_scene_option, selected_directions
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
 from pipeline.stores.compressed import open_compressed
 from pipeline.stores.radiance import Layout, create_radiance_store
@@ -44,10 +44,7 @@ class ReconstructParams:
     rank: int | None = option(None, metavar="R", help="components to use (default: all)")
     format: str = option("zarr", choices=("zarr", "exr"),
                          help="zarr: a radiance store; exr: one float32 EXR per layer")
-    for_scene: str | None = option(
-        None, metavar="SCENE.yaml", path="in",
-        help="compute only the layers and texels this scene spec (or a run config's scene: "
-             "section) reads of OUT; the store keeps its full shape, the rest unwritten")
+    for_scene: str | None = for_scene_option()
     chunk: int = option(128, help="texels per side of a stored chunk (zarr output)")
     dir_chunk: int = option(16, help="light directions per stored chunk (zarr output)")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")

@@ -25,7 +25,7 @@ from pipeline.graphs.reference import compute_reference
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
-from pipeline.stage import Stage, same_directions
+from pipeline.stage import Stage, for_scene_option, same_directions
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.tileset import TileSet
@@ -64,11 +64,7 @@ class RollerStageParams:
     image: str = option("layer", choices=("layer", "reference"),
                         help="image to analyse: the perpendicularly lit layer, or quilting's "
                              "reference image")
-    for_scene: str | None = option(
-        None, metavar="SCENE.yaml", path="in",
-        help="apply the tiles only to the layers this scene spec (or a run config's scene: "
-             "section) reads of OUT (radiance sources; the eigentextures of a compressed "
-             "one serve every layer); the others stay unwritten")
+    for_scene: str | None = for_scene_option()
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
