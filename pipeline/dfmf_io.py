@@ -6,7 +6,10 @@ float32 rounding, as the store's one orthonormal ``U``, decreasing ``S`` and ``V
 (:func:`tasks.dfmf.joint_u`, :func:`tasks.dfmf.svd_map`), and the colour model becomes the
 store's ``transform`` (:mod:`tasks.transform`). Two passes over the file's ``S V`` by texel
 tiles (its Gram matrix, then ``V`` itself) read it twice and hold one tile at a time; ``U`` is
-small (rows x components) and read whole.
+small (rows x components) and read whole. ``btf ingest`` comes here through the DFMF entry of
+:mod:`pipeline.sources`; what it makes of the colour model is said in one line
+(:func:`dfmf_colour_note`), as export says what the readers make of it
+(:func:`dfmf_readers_note`).
 
 Export writes a compressed store as a DFMF file that Bonn's readers (btflib, ``btf.hh``,
 btf-extractor) open: each channel's values ``U_c S V^T`` at the channel's own rank
@@ -40,8 +43,6 @@ from pipeline.session import Session
 from pipeline.stores.base import Directions, open_group, read_channels, read_directions
 from pipeline.stores.compressed import check_compressed, create_compressed_store
 from tasks.dfmf import (
-    DFMF,
-    OTHER_SIGNATURES,
     ChannelBlock,
     DfmfError,
     DfmfHeader,
@@ -65,18 +66,12 @@ GEMM_ROWS = 8
 # transform name -> DFMF colour model written by export
 COLOUR_MODEL = {"log": 12, "linear": 0, "ylog-uv": 9, "ylog-ulog-vlog": 10,
                 "ylog-uv-over-y": 11}
-
-
-def is_bonn_file(path: str | Path) -> bool:
-    """Whether ``path`` is one of Bonn's ``.btf`` files: by its suffix or its signature."""
-    path = Path(path)
-    if path.suffix.lower() == ".btf":
-        return True
-    if not path.is_file():
-        return False
-    with path.open("rb") as f:
-        head = f.read(16)
-    return any(head.startswith(sig) for sig in (DFMF, *OTHER_SIGNATURES))
+# the colour models' values in a few words (tasks.transform.DFMF_MODELS has the formulas)
+DFMF_MODEL_WORDS = {
+    0: "RGB, linear", 1: "YUV, linear", 3: "PCA, linear", 4: "YCoCg, linear",
+    9: "Y log, U/V linear; YUV to linear RGB", 10: "Y log, U/V signed log; YUV to linear RGB",
+    11: "Y log, U/V over Y; YUV to linear RGB", 12: "log of each channel",
+}
 
 
 def read_header(path: str | Path) -> DfmfHeader:
@@ -294,6 +289,23 @@ def store_transform(header: DfmfHeader) -> dict:
     return out
 
 
+def dfmf_colour_note(model: int, *, cosine: bool = False) -> str:
+    """What ingest does with a DFMF file's colour model ``model`` (one line)."""
+    name, formula = DFMF_MODELS[model]
+    words = DFMF_MODEL_WORDS.get(model, formula)
+    if name == "linear":
+        note = (f"DFMF colour model {model} ({words}) kept as linear values (transform linear)"
+                if model == 0 else
+                f"DFMF colour model {model} ({words}) folded into U: the store holds linear "
+                "RGB (transform linear)")
+    else:
+        note = (f"DFMF colour model {model} ({words}, eps {DFMF_EPS:g}) kept as the store's "
+                f"transform ({name})")
+    if cosine:
+        note += "; the file's cosine flag is set: values divided by cos(theta_light)"
+    return note
+
+
 def _joint_u(params, src: str, header: DfmfHeader) -> tuple[np.ndarray, bool]:
     """The file's per-channel ``U`` as one (:func:`tasks.dfmf.joint_u`), errors naming the file."""
     try:
@@ -305,11 +317,8 @@ def _joint_u(params, src: str, header: DfmfHeader) -> tuple[np.ndarray, bool]:
 def _log_file(session: Session, header: DfmfHeader, out: str) -> None:
     """Log the file's sampling, size, channels, components and colour model, and its reading.
 
-    The colour line says what ingest makes of the model
-    (:func:`pipeline.source_formats.dfmf_colour_note`).
+    The colour line says what ingest makes of the model (:func:`dfmf_colour_note`).
     """
-    from pipeline.source_formats import dfmf_colour_note
-
     ks = [b.k for b in header.channels]
     session.log(f"ingest: Bonn DFMF file, {len(header.theta_view)} views x "
                 f"{len(header.theta_light)} lights, {header.height} x "
@@ -411,6 +420,34 @@ def ingest_dfmf(params, session: Session) -> Path:
     return Path(params.out)
 
 
+def dfmf_readers_note(model: int) -> str:
+    """What the common DFMF readers return for colour model ``model`` (one line, for export).
+
+    From their code (docs/formats.md, "Which reader opens what"): btflib decodes every model;
+    ``btf.hh`` and btf-extractor (the Mitsuba BTF plugin's reader) decode models 0 and 11
+    only, clamp model 11 to [0, 1] and return the channel sums of any other model.
+    """
+    words = DFMF_MODEL_WORDS.get(model, DFMF_MODELS[model][1])
+    if model == 0:
+        return (f"colour model 0 ({words}): btflib, btf.hh and btf-extractor (the Mitsuba BTF "
+                "plugin's reader) all return the values as they are")
+    if model == 11:
+        return (f"colour model 11 ({words}): btflib, btf.hh and btf-extractor (the Mitsuba BTF "
+                "plugin's reader) decode it, but btf-extractor clamps RGB to [0, 1] (values "
+                "above 1 are lost), writes U = a1 Y + eps for btflib's a1 (Y + eps) (up to "
+                "2.5e-5 apart) and returns BGR")
+    if model == 12:
+        return (f"colour model 12 ({words}): btflib decodes it; btf.hh, btf-extractor and the "
+                "Mitsuba BTF plugin decode only models 0 and 11 and return this model's "
+                "channel sums a without the exp: radiance is exp(a) - "
+                f"{DFMF_EPS:g} per channel; or export the layers as EXR for them "
+                "(btf export STORE FOLDER)")
+    return (f"colour model {model} ({words}): btflib decodes it; btf.hh, btf-extractor and the "
+            "Mitsuba BTF plugin decode only models 0 and 11 and return this model's channel "
+            "sums undecoded (log Y and U, V, not RGB); export the layers as EXR for them "
+            "(btf export STORE FOLDER)")
+
+
 def _written_header(group, directions: Directions, channels: tuple[str, ...], model: int,
                     ks: list[int], scalar: int, ny: int, nx: int, *, cosine: bool = False
                     ) -> DfmfHeader:
@@ -471,8 +508,6 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
     session.log(f"export: {d.views} views x {d.lights} lights, {ny} x {nx} texels as a DFMF "
                 f"file, colour model {model} ({transform.name}), components "
                 f"{'+'.join(map(str, ks))}, {'float16' if half else 'float32'} -> {out}")
-    from pipeline.source_formats import dfmf_readers_note
-
     session.log(f"export: readers: {dfmf_readers_note(model)}")
     if transform.name != "linear" and transform.eps != DFMF_EPS:
         session.log(f"export: note: the store's eps is {transform.eps:g}, Bonn's readers "

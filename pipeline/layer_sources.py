@@ -1,18 +1,18 @@
-"""Where ``btf ingest`` finds a measurement's layers: their directions and how to read each one.
+"""What every image format of ``btf ingest`` becomes: directions, a grid of images, a reader.
 
-A :class:`LayerSource` is what every input format becomes: the view and light directions, a
-``[view][light]`` grid of :class:`Entry` (one image each), the size and channels of the layers,
-and a reader that turns one entry's key into float32 ``(height, width, channels)`` linear
-values. Readers are small frozen dataclasses, so tasks on any scheduler can carry them.
+A :class:`LayerSource` is what an image format's entry (:mod:`pipeline.sources`) opens a path
+as: the view and light directions, a ``[view][light]`` grid of :class:`Entry` (one image
+each), the size and channels of the layers, a reader that turns one entry's key into float32
+``(height, width, channels)`` linear values, and one line saying how the values were read.
+Readers are small frozen dataclasses, so tasks on any scheduler can carry them.
 
-This module holds the common part and the folders of images (EXR/PNG with a manifest or
-UTIA-style names, and UTIA's database folders); :mod:`pipeline.archive_sources` holds Bonn's
-zip archives and UTIA's BIG files.
+This module holds what the formats share: the options they are opened with
+(:class:`ReadOptions`), the checks of angles, the view x light grid, and the words of the
+colour line (:func:`display_note`, :func:`xyz_note`).
 """
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,16 +21,30 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BTFError
-from pipeline.images import IMAGE_SUFFIXES, ImageInfo, image_info, read_image
-from pipeline.layer_files import MANIFEST, MANIFEST_COLUMNS, UTIA_NAME
+from pipeline.images import ImageInfo
+from pipeline.layer_files import MANIFEST_COLUMNS
 from pipeline.stores.base import Directions
-from tasks.archive_names import utia_angles
-from tasks.colour import decode_values, xyz_to_linear_srgb
 from tasks.sampling import canonical_direction
 
 XYZ_MODES = ("srgb", "keep", "none")
 LINEAR_SRGB = "linear sRGB primaries, D65 white"
 XYZ = "CIE XYZ, D65 white"
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    """The options of ``btf ingest`` that say how a source's values are read, with its defaults.
+
+    ``manifest``: a folder's directions (a CSV); ``decode``: the transfer curve of 8/16-bit
+    values (``"auto"``: the format's own); ``xyz``: what becomes of CIE XYZ images
+    (:data:`XYZ_MODES`); ``hdr_rows``: the row order of ATRIUM's ``.hdr`` images. A format
+    uses the ones that apply to it.
+    """
+
+    manifest: str | Path | None = None
+    decode: str = "auto"
+    xyz: str = "srgb"
+    hdr_rows: str = "bottom-up"
 
 
 @dataclass(frozen=True)
@@ -52,7 +66,9 @@ class LayerSource:
 
     ``reader(key)`` returns float32 ``(height, width, channels)`` linear values of ``info``'s
     size and channels; ``reader.where(key)`` names the image in messages. ``attrs`` says how
-    the values were decoded and converted, for the store's attrs.
+    the values were decoded and converted, for the store's attrs; ``colour_note`` says it in
+    one line with the option that changes it (``btf ingest`` prints it, ``btf inspect`` shows
+    it), written by the format from the reader it made: what was done, not what was asked.
     """
 
     directions: Directions
@@ -60,6 +76,7 @@ class LayerSource:
     info: ImageInfo
     reader: Callable[[Any], np.ndarray]
     attrs: dict[str, Any] = field(default_factory=dict)
+    colour_note: str = ""
 
     @property
     def first(self) -> Entry:
@@ -132,180 +149,37 @@ def layer_grid(entries: list[Entry], where: str, *, ordered: bool
     return directions, grid
 
 
-# --- folders of images ----------------------------------------------------------------------
-
-def _from_manifest(src: Path, manifest: Path) -> list[Entry]:
-    if not manifest.is_file():
-        raise BTFError(f"{manifest}: manifest not found")
-    with manifest.open(newline="") as f:
-        reader = csv.DictReader(f)
-        missing = set(MANIFEST_COLUMNS) - set(reader.fieldnames or ())
-        if missing:
-            raise BTFError(f"{manifest}: missing column(s) {', '.join(sorted(missing))}; "
-                           f"expected {','.join(MANIFEST_COLUMNS)}")
-        entries = []
-        for row in reader:
-            where = f"{manifest}:{reader.line_num}"
-            path = Path(row["file"]) if Path(row["file"]).is_absolute() else src / row["file"]
-            if not path.is_file():
-                raise BTFError(f"{where}: file {row['file']!r} not found in {src}")
-            angles = check_angles([row[c] for c in MANIFEST_COLUMNS[1:]], where)
-            entries.append(Entry(path, angles, where, path.name))
-    return entries
+def refuse_manifest(path: Path, options: ReadOptions) -> None:
+    """Refuse ``--manifest`` for a single-file format, whose directions are its own."""
+    if options.manifest is not None:
+        raise BTFError(f"{path}: --manifest is for folders of images; an archive's directions "
+                       "come from its member names or its list of directions")
 
 
-def _image_files(src: Path) -> list[Path]:
-    """Images in ``src``, or if it holds none, in its subfolders (UTIA: a folder per view)."""
-    def images(folder: Path) -> list[Path]:
-        return sorted(p for p in folder.iterdir()
-                      if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-
-    found = images(src)
-    if not found:
-        found = [p for d in sorted(src.iterdir()) if d.is_dir() for p in images(d)]
-    return found
+def plane_channels(planes: int) -> tuple[str, ...]:
+    """Channel names of images with ``planes`` planes: Y, R,G,B, else c0, c1, ..."""
+    return {1: ("Y",), 3: ("R", "G", "B")}.get(planes, tuple(f"c{k}" for k in range(planes)))
 
 
-def _from_names(files: list[Path]) -> list[Entry]:
-    entries = []
-    for path in files:
-        match = UTIA_NAME.fullmatch(path.name)
-        if match is None:
-            raise BTFError(f"{path}: name does not follow tl{{theta}}_pl{{phi}}_tv{{theta}}_"
-                           "pv{phi}.exr|png; name the files so or give a --manifest")
-        entries.append(Entry(path, check_angles(match.groups()[:4], str(path)), str(path),
-                             path.name))
-    return entries
+# --- the colour line ------------------------------------------------------------------------
+
+_DECODED = {"srgb": "decoded from sRGB to linear",
+            "gamma2.2": "decoded as (v/max)^2.2 to linear (the Mitsuba BTF plugin's curve)",
+            "none": "taken as linear, v/max, not decoded"}
+AS_NAMED = "stored as they are (linear), channels as named (--xyz none: no XYZ conversion; " \
+           "--xyz srgb converts XYZ to linear sRGB primaries)"
 
 
-def check_headers(grid: list[list[Entry]]) -> ImageInfo:
-    """Read every header; all images must have the first one's size and channels."""
-    first = None
-    for entry in (e for row in grid for e in row):
-        info = image_info(entry.key)
-        if first is None:
-            first, first_path = info, entry.key
-        elif info != first:
-            raise BTFError(f"{entry.key}: {info.height}x{info.width} with channels "
-                           f"{','.join(info.channels)}, but {first_path.name} is "
-                           f"{first.height}x{first.width} with {','.join(first.channels)}")
-    return first
+def display_note(kind: str, decoding: str) -> str:
+    """The colour line of display-encoded ``kind`` values (JPEG, PNG) decoded by ``decoding``."""
+    others = " or ".join(d for d in ("srgb", "gamma2.2", "none") if d != decoding)
+    return f"{kind} values {_DECODED[decoding]} (--decode {decoding}; --decode {others} to change)"
 
 
-def exr_channel_names(path: str | Path) -> tuple[str, ...]:
-    """All channel names of an EXR file, from its header."""
-    import OpenEXR
-
-    try:
-        with OpenEXR.File(str(path), header_only=True) as f:
-            return tuple(str(c.name) for c in f.header()["channels"])
-    except Exception as exc:  # the bindings raise RuntimeError with a short text
-        raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
-
-
-def _xyz_planes(path: Path, *, utia: bool) -> tuple[str, str, str] | None:
-    """The channels holding X, Y, Z in the EXR at ``path``, or None if it is not XYZ.
-
-    Channels named X, Y, Z are XYZ anywhere; UTIA's database documents its EXRs as XYZ, so
-    in a UTIA folder R, G, B channels are taken as holding X, Y, Z.
-    """
-    names = set(exr_channel_names(path))
-    if {"X", "Y", "Z"} <= names:
-        return ("X", "Y", "Z")
-    if utia and {"R", "G", "B"} <= names:
-        return ("R", "G", "B")
-    return None
-
-
-@dataclass(frozen=True)
-class FolderReader:
-    """Reads an image file of a folder: PNG decoded by ``decode``, EXR as is or from XYZ.
-
-    ``xyz``: the EXR channels holding X, Y, Z (``None``: EXRs are read as named); ``keep``:
-    XYZ stays XYZ rather than becoming linear sRGB.
-    """
-
-    decode: str
-    xyz: tuple[str, str, str] | None = None
-    keep: bool = False
-
-    def where(self, key) -> str:
-        """The file, for messages."""
-        return str(key)
-
-    def __call__(self, key) -> np.ndarray:
-        """Linear float32 ``(height, width, channels)`` values of the file ``key``."""
-        path = Path(key)
-        if path.suffix.lower() == ".exr" and self.xyz is not None:
-            return self._xyz(path)
-        pixels, _ = read_image(path, srgb=self.decode == "srgb")
-        if path.suffix.lower() == ".png" and self.decode == "gamma2.2":
-            pixels = decode_values(pixels, "gamma2.2")
-        return pixels
-
-    def _xyz(self, path: Path) -> np.ndarray:
-        import OpenEXR
-
-        try:
-            with OpenEXR.File(str(path), separate_channels=True) as f:
-                channels = f.channels()
-                planes = [np.asarray(channels[name].pixels) for name in self.xyz]
-        except KeyError as exc:
-            raise BTFError(f"{path}: no EXR channel {exc} (XYZ expected in channels "
-                           f"{','.join(self.xyz)})") from None
-        except Exception as exc:
-            raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
-        if any(p.dtype.kind != "f" for p in planes):
-            raise BTFError(f"{path}: EXR channels must be half or float, not integer")
-        xyz = np.stack(planes, axis=-1).astype(np.float32)
-        return xyz if self.keep else xyz_to_linear_srgb(xyz)
-
-
-def folder_source(src: str | Path, manifest: str | Path | None = None, *, decode: str = "auto",
-                  xyz: str = "srgb") -> LayerSource:
-    """The layers of a folder of EXR/PNG images.
-
-    Directions come from a manifest (``SRC/manifest.csv`` if present) or from the names.
-    Without images in ``src`` itself, its subfolders are searched (a folder per view). A
-    folder whose images all have UTIA's database names (``tl000_pl000_tv000_pv000``, three
-    digits) is a UTIA folder: ``decode="auto"`` decodes its PNGs from sRGB, and its EXRs are
-    XYZ. Elsewhere ``auto`` reads PNG values linearly (``v / max``) and only EXRs with X, Y, Z
-    channels are XYZ. XYZ becomes linear sRGB unless ``xyz`` is ``"keep"`` (or ``"none"``:
-    read EXR channels as named).
-
-    Raises
-    ------
-    BTFError
-        Naming the file: no images, a manifest row naming a missing file, an unparsable name,
-        two images with the same directions, a missing view x light combination, or images
-        of different sizes or channels.
-    """
-    src = Path(src)
-    if not src.is_dir():
-        raise BTFError(f"{src}: not a folder")
-    if manifest is None and (src / MANIFEST).is_file():
-        manifest = src / MANIFEST
-    utia = False
-    if manifest:
-        entries = _from_manifest(src, Path(manifest))
-    else:
-        files = _image_files(src)
-        utia = bool(files) and all(utia_angles(p.name) is not None for p in files)
-        entries = _from_names(files)
-    if not entries:
-        raise BTFError(f"{src}: no .exr or .png images found")
-    directions, grid = layer_grid(entries, str(src), ordered=manifest is not None)
-    info = check_headers(grid)
-    if decode == "auto":
-        decode = "srgb" if utia else "none"
-    first = grid[0][0].key
-    planes = (_xyz_planes(first, utia=utia)
-              if xyz != "none" and Path(first).suffix.lower() == ".exr" else None)
-    keep = xyz == "keep"
-    if planes is not None:
-        info = ImageInfo(info.height, info.width, ("X", "Y", "Z") if keep else ("R", "G", "B"))
-    attrs = {"format": "UTIA image folder" if utia else "image folder",
-             "decoding": decode,
-             "colour": (XYZ if keep else f"{LINEAR_SRGB} (converted from {XYZ})")
-             if planes is not None else "as stored"}
-    return LayerSource(directions, grid, info, FolderReader(decode, planes, keep), attrs)
+def xyz_note(origin: str, keep: bool) -> str:
+    """The colour line of CIE XYZ values from ``origin``, kept or converted to linear sRGB."""
+    if keep:
+        return (f"{origin} stored as X,Y,Z (--xyz keep; --xyz srgb converts them to linear sRGB "
+                "primaries, --xyz none reads the channels as named)")
+    return (f"{origin} converted to linear sRGB primaries (--xyz keep stores X,Y,Z; --xyz none "
+            "reads the channels as named)")

@@ -10,7 +10,7 @@ caller's choice (``atrium_rows``, see docs/formats.md).
 
 **BIG** (UTIA): little-endian; the magic ``42 49 47 00 00 00 00 00``; then chunks of ``u64 id``,
 ``u64 length`` and a payload padded to a multiple of 8 bytes. The chunk walk needs the file (see
-:mod:`pipeline.archive_sources`); :func:`big_layout` interprets what it found.
+:mod:`pipeline.sources`); :func:`big_layout` interprets what it found.
 """
 
 from __future__ import annotations

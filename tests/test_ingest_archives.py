@@ -368,7 +368,7 @@ class Crash(Exception):
 
 @pytest.mark.parametrize("route", ["whole images", "staged"])
 def test_a_killed_zip_ingest_resumes_with_the_images_left(tmp_path, btf, monkeypatch, route):
-    import pipeline.archive_sources as sources
+    import pipeline.sources.zip as sources
 
     if route == "staged":  # layers larger than a task block go through the scratch array
         monkeypatch.setattr("pipeline.graphs.blocks.TASK_TEXELS", 4)

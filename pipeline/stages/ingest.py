@@ -1,15 +1,10 @@
-"""``btf ingest``: measured layers into a radiance store, the format found from SRC itself.
+"""``btf ingest``: a measured BTF into a store, the format found from SRC itself.
 
-- a **folder** of EXR or PNG layers: directions from a manifest CSV (``file,theta_light,
-  phi_light,theta_view,phi_view``; ``SRC/manifest.csv`` is used when present) or from UTIA
-  file names ``tl{theta}_pl{phi}_tv{theta}_pv{phi}.{exr,png}``, in SRC or, if SRC holds no
-  images, in its subfolders (UTIA's folder per view); UTIA database folders (three-digit names)
-  hold sRGB PNGs and XYZ EXRs (:func:`pipeline.layer_sources.folder_source`);
-- a **zip** archive of Bonn's UBO2003/ATRIUM (JPEG or Radiance RGBE members named
-  ``... tl{ddd} pl{ddd} tv{ddd} pv{ddd}.jpg``), read member by member;
-- a UTIA **BIG** file, read image by image at its offset
-  (:mod:`pipeline.archive_sources`); a Bonn DFMF ``.btf`` file goes to
-  :mod:`pipeline.dfmf_io`.
+The format is the one entry of :mod:`pipeline.sources` that can open SRC (a folder of EXR or
+PNG layers, a UBO2003/ATRIUM zip archive, a UTIA BIG file, a Bonn DFMF ``.btf`` file, ...).
+An image format opens it as a :class:`~pipeline.layer_sources.LayerSource`, streamed here
+into a radiance store; a format that writes its own store does so (a DFMF file becomes a
+compressed store without expansion).
 
 The directions must form a full view x light grid, checked before anything is written (with
 the headers of a folder's images; an archive's images are checked against its first one as
@@ -38,12 +33,12 @@ from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned
 from pipeline.images import ImageInfo
-from pipeline.layer_sources import XYZ_MODES, LayerSource
+from pipeline.layer_sources import XYZ_MODES, LayerSource, ReadOptions
 from pipeline.params import ParamError, option
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
-from pipeline.source_formats import colour_note, open_layers
+from pipeline.sources import FORMATS, formats_help, source_format
 from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import Layout, create_radiance_store
@@ -57,8 +52,8 @@ STAGING = "_staging"  # scratch array inside the partial store, removed before i
 class IngestParams:
     """Parameters of ``btf ingest``."""
 
-    src: str = option(help="folder of EXR/PNG layers, UBO2003/ATRIUM .zip archive, UTIA .big "
-                           "file or Bonn .btf file", positional=True, path="in")
+    src: str = option(help="the measured BTF: one of the formats listed above",
+                      positional=True, path="in")
     out: str = option(help="output radiance store (a .zarr directory)", positional=True,
                       path="out")
     manifest: str | None = option(
@@ -101,11 +96,10 @@ class IngestParams:
         """The ``--decode`` asked for, ``--srgb`` being ``srgb``; ``auto`` left to the format."""
         return "srgb" if self.srgb else self.decode
 
-
-def open_source(params: IngestParams) -> LayerSource:
-    """The layers of ``params.src`` (:func:`pipeline.source_formats.open_layers`)."""
-    return open_layers(params.src, manifest=params.manifest, decode=params.decoding(),
-                       xyz=params.xyz, hdr_rows=params.hdr_rows)
+    def read_options(self) -> ReadOptions:
+        """How the source's values are read (its format uses the options that apply to it)."""
+        return ReadOptions(manifest=self.manifest, decode=self.decoding(), xyz=self.xyz,
+                           hdr_rows=self.hdr_rows)
 
 
 def _task_key(key):
@@ -191,16 +185,17 @@ def _staged(source: LayerSource, group, tmp, progress: Progress, session: Sessio
 
 
 def ingest(params: IngestParams, session: Session) -> Path:
-    """Ingest the measurement described by ``params`` into a radiance store; returns its path.
+    """Ingest the measurement described by ``params`` into a store; returns its path.
 
-    Layers that fit a task block whole (up to ``TASK_TEXELS`` a side) are read straight into
-    the task blocks of the store, one pass; larger ones go through the scratch array.
+    The format of ``params.src`` (:func:`pipeline.sources.source_format`) writes its own store
+    or opens the source's layers. Layers that fit a task block whole (up to ``TASK_TEXELS`` a
+    side) are read straight into the task blocks of a radiance store, one pass; larger ones go
+    through the scratch array.
     """
-    from pipeline.dfmf_io import ingest_dfmf, is_bonn_file
-
-    if is_bonn_file(params.src):
-        return ingest_dfmf(params, session)
-    source = open_source(params)
+    found = source_format(params.src)
+    if found.ingest is not None:  # a format that is not layers (a DFMF file's factors)
+        return found.ingest(params, session)
+    source = found.open(Path(params.src), params.read_options())
     directions, info = source.directions, source.info
     attrs = {"btf_kind": directions.kind, "source": "ingest", "ingest": source.attrs,
              "provenance": provenance("ingest", params)}
@@ -223,7 +218,7 @@ def ingest(params: IngestParams, session: Session) -> Path:
         session.log(f"ingest: {directions.views} x {directions.lights} layers of "
                     f"{info.height} x {info.width} texels ({','.join(info.channels)}) -> "
                     f"{params.out}")
-        session.log(f"ingest: colour: {colour_note(source, xyz=params.xyz)}")
+        session.log(f"ingest: colour: {source.colour_note}")
         if progress.count():
             session.log(f"ingest: resuming: {progress.count()} images and blocks already "
                         "written")
@@ -239,13 +234,8 @@ def ingest(params: IngestParams, session: Session) -> Path:
 
 
 STAGE = Stage("ingest", IngestParams, ingest,
-              "read measured BTFs (folders, zip archives, BIG, Bonn .btf) into a store",
-              "Read a measured BTF into a store; the format comes from SRC. A folder of EXR or "
-              "PNG layers (directions from a manifest CSV file,theta_light,phi_light,theta_view,"
-              "phi_view, SRC/manifest.csv when present, or UTIA names tl{theta}_pl{phi}_tv"
-              "{theta}_pv{phi}.exr, also a folder per view), a Bonn UBO2003/ATRIUM .zip archive "
-              "of JPEG or RGBE images (read from the zip), or a UTIA .big file becomes a "
-              "radiance store, streamed a block of directions at a time. A Bonn UBO2014 .btf "
-              "(DFMF) file becomes a compressed store without expansion: its factors, exactly, "
-              "with its colour model. See docs/formats.md.", makes_store=True,
-              whole="a measurement: the stages after it read all of it")
+              f"read measured BTFs ({', '.join(FORMATS)}) into a store",
+              "Read a measured BTF into a store; the format comes from SRC (its name or first "
+              "bytes), one of:\n" + formats_help() + "\nImage formats become a radiance store, "
+              "streamed a block of directions at a time. See docs/formats.md.",
+              makes_store=True, whole="a measurement: the stages after it read all of it")

@@ -1,7 +1,7 @@
 """``btf inspect``: what a store holds, from its metadata; its values only when asked.
 
 Given a measured source (a ``.btf``, ``.zip`` or ``.big`` file, a folder of images) rather
-than a store, it describes that from its headers (:mod:`pipeline.source_report`).
+than a store, its format describes it from its headers (:mod:`pipeline.sources`).
 
 By default only metadata is read (array shapes, chunking, codecs, attrs, bytes on disk from the
 file listing, and the small direction coordinates). ``--scan`` reads every data variable block
@@ -27,6 +27,7 @@ from pipeline.errors import BTFError
 from pipeline.graphs.reductions import bad_chunks, read_array, statistics
 from pipeline.params import option
 from pipeline.session import Session
+from pipeline.sources import formats_help
 from pipeline.stage import Stage
 from pipeline.stores import KINDS, kind_of
 from pipeline.stores.base import DIRECTION_COORDS, location, open_group, read_directions
@@ -40,8 +41,7 @@ class InspectParams:
     """Parameters of ``btf inspect``."""
 
     store: str = option(help="zarr store to describe, or a measured source to look at before "
-                             "ingesting it: a Bonn .btf (DFMF) file, a UBO2003/ATRIUM .zip, a "
-                             "folder of EXR/PNG images (UTIA's too) or a UTIA .big file",
+                             "ingesting it: one of the formats listed above",
                         positional=True, path="in")
     json: bool = option(False, help="print one JSON object instead of text")
     scan: bool = option(False, help="read all data chunk by chunk: min, max, mean, NaN/Inf "
@@ -263,7 +263,7 @@ def is_source(path: str | Path) -> bool:
 
 def _inspect_source(params: InspectParams) -> dict[str, Any]:
     """Describe a measured source (``btf inspect FILE.btf|ARCHIVE.zip|FOLDER|FILE.big``)."""
-    from pipeline.source_report import describe_source, format_source
+    from pipeline.sources import describe_source, format_source
 
     for flag in ("scan", "plot"):
         if getattr(params, flag):
@@ -312,10 +312,10 @@ STAGE = Stage("inspect", InspectParams, inspect,
               "codecs, bytes in memory and on disk, direction sampling and provenance (and for "
               "a store ingested from a .btf file its colour model and the file's header). "
               "--scan reads the data chunk by chunk for min/max/mean and NaN/Inf/negative "
-              "counts. Given a measured source instead (FILE.btf, ARCHIVE.zip, FOLDER of "
-              "images, FILE.big), describe it without ingesting it, from its headers and names "
-              "only: format, file size, texels, channels, directions (views x lights, the "
-              "sampling named when it is ubo2014's or ubo2003's), for a .btf file its colour "
-              "model, components, scalar type, cosine flag and descriptive header, the colour "
-              "reading btf ingest would apply (and the option that changes it) and the store "
-              "it would make, with its size. See docs/formats.md.")
+              "counts. Given a measured source instead, describe it without ingesting it, from "
+              "its headers and names only: format, file size, texels, channels, directions "
+              "(views x lights, the sampling named when it is ubo2014's or ubo2003's), for a "
+              ".btf file its colour model, components, scalar type, cosine flag and "
+              "descriptive header, the colour reading btf ingest would apply (and the option "
+              "that changes it) and the store it would make, with its size. The formats of a "
+              "source:\n" + formats_help() + "\nSee docs/formats.md.")
