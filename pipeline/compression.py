@@ -1,4 +1,7 @@
-"""``btf compress``: out-of-core randomized SVD of a radiance store (paper 000, section 2.1).
+"""Compression: out-of-core randomized SVD of a radiance store (paper 000, section 2.1).
+
+The engine of ``btf compress`` (:mod:`pipeline.stages.compress` declares the stage) and of the
+compression ``btf view`` does on the way.
 
 The store is streamed one pass at a time as the driver (:mod:`tasks.rsvd`) asks for passes;
 between passes only a sketch lives on the client, where it is re-orthonormalised. The sketch is
@@ -55,14 +58,12 @@ from pipeline.graphs.tile_passes import (
     tile_pass_graph,
 )
 from pipeline.params import ParamError, check_seed, option
-from pipeline.planning import Shape, StageEstimate, human_bytes, rate
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
-from pipeline.stage import Stage, same_directions
-from pipeline.stores.base import RADIANCE, location, open_group, read_channels, read_directions
+from pipeline.stores import CompressedStore, RadianceStore, open_store
+from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.compressed import create_compressed_store
-from pipeline.stores.radiance import check_radiance
 from tasks.rsvd import SIDES, randomized_svd, randomized_svd_rows
 from tasks.svd import PassPart, Sketch
 
@@ -75,8 +76,12 @@ SCRATCH_LAYOUT = "s-y-x"
 
 
 @dataclasses.dataclass(frozen=True)
-class CompressParams:
-    """Parameters of ``btf compress``."""
+class CompressSettings:
+    """What a compression is asked: the store, the output and the SVD's options.
+
+    ``btf compress``'s parameters (:class:`pipeline.stages.compress.CompressParams`, which
+    adds nothing) and what ``btf view`` compresses a radiance store with on the way.
+    """
 
     store: str = option(help="radiance store to compress, or a compressed store to bring to a "
                              "lower --rank (its factors truncated, or re-factored exactly)",
@@ -198,7 +203,7 @@ class _Passes:
     """
 
     def __init__(self, store: str, blocks: list[RowBlock], tiles: list[TexelTile],
-                 tile_rows: list[RowBlock], out: str, planned: int, params: CompressParams,
+                 tile_rows: list[RowBlock], out: str, planned: int, params: CompressSettings,
                  session: Session):
         self.store, self.blocks, self.params, self.session = store, blocks, params, session
         self.tiles, self.tile_rows, self.out, self.planned = tiles, tile_rows, out, planned
@@ -259,7 +264,7 @@ class _Passes:
         return result
 
 
-def _memory(params: CompressParams, shape: tuple[int, ...], dir_chunk: int,
+def peak_memory(params: CompressSettings, shape: tuple[int, ...], dir_chunk: int,
             tile: tuple[int, int], workers: int) -> dict[str, int]:
     """Peak memory of compressing a store of ``shape``, in bytes.
 
@@ -283,7 +288,7 @@ def _memory(params: CompressParams, shape: tuple[int, ...], dir_chunk: int,
                            extra=extra, workers=workers)
 
 
-def _output_attrs(params: CompressParams, source: dict, shape: tuple[int, ...]) -> dict:
+def _output_attrs(params: CompressSettings, source: dict, shape: tuple[int, ...]) -> dict:
     """The compressed store's attrs before the SVD: its source, transform and provenance."""
     attrs = {
         "source": "compress",
@@ -299,7 +304,7 @@ def _output_attrs(params: CompressParams, source: dict, shape: tuple[int, ...]) 
     return attrs
 
 
-def _method(params: CompressParams, side: str) -> str:
+def _method(params: CompressSettings, side: str) -> str:
     """The ``svd.method`` attribute: how the factors were found."""
     if params.one_pass:
         return "one-view sketch"
@@ -321,7 +326,7 @@ def _verified(passes: _Passes, u: np.ndarray, s: np.ndarray, n: int, norm: float
                 "ABRDF (all view x light x channel values), linear radiance")}
 
 
-def _say_plan(params: CompressParams, session: Session, m: int, n: int, side: str,
+def _say_plan(params: CompressSettings, session: Session, m: int, n: int, side: str,
               sketch: Sketch, memory: dict[str, int]) -> None:
     """Log the matrix, the sketch and the expected peak memory before the passes."""
     session.log(f"compress: {m} x {n} BTF matrix ({m * n * 4 / 2**30:.2f} GiB float32) to "
@@ -337,7 +342,7 @@ def _say_plan(params: CompressParams, session: Session, m: int, n: int, side: st
                 f"{memory['task'] / 2**30:.2f} GiB)")
 
 
-def _factor_attrs(params: CompressParams, source: dict) -> dict:
+def _factor_attrs(params: CompressSettings, source: dict) -> dict:
     """The attrs of a compressed store made from a compressed one: its transform kept."""
     attrs = {key: source[key] for key in ("source_btf_kind", "source_shape", "transform",
                                           "dfmf", "source_sampling", "source_material")
@@ -362,7 +367,8 @@ def _combined_error(source: dict, norm: float, part: float) -> dict:
     return out
 
 
-def compress_factors(params: CompressParams, group, session: Session) -> Path:
+def compress_factors(params: CompressSettings, store: CompressedStore, session: Session
+                     ) -> Path:
     """``btf compress`` of a compressed store: its first components, as an exact SVD.
 
     If ``U`` and ``V`` are orthonormal and ``S`` sorted (what ``btf compress`` and ``btf
@@ -377,10 +383,10 @@ def compress_factors(params: CompressParams, group, session: Session) -> Path:
 
     from pipeline.graphs.blocks import store_aligned
     from pipeline.graphs.factors import dropped, gram, is_svd, mapped_v
-    from pipeline.stores.compressed import check_compressed, create_compressed_store
+    from pipeline.stores.compressed import create_compressed_store
     from tasks.dfmf import svd_map
 
-    check_compressed(group, params.store)
+    group = store.group
     nv, nl, nc, k = group["U"].shape
     ny, nx = group["V"].shape[:2]
     name = group.attrs["transform"].get("name", "log")
@@ -415,8 +421,8 @@ def compress_factors(params: CompressParams, group, session: Session) -> Path:
     chunk, dir_chunk = group["V"].chunks[0], group["U"].chunks[1]
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
-        out = create_compressed_store(tmp, directions=read_directions(group),
-                                      channels=read_channels(group), ny=ny, nx=nx, rank=rank,
+        out = create_compressed_store(tmp, directions=store.directions,
+                                      channels=store.channels, ny=ny, nx=nx, rank=rank,
                                       chunk=chunk, dir_chunk=dir_chunk, attrs=attrs)
         out["U"][...] = new_u[:, :rank].reshape(nv, nl, nc, rank).astype(np.float32)
         out["S"][...] = s_all[:rank].astype(np.float32)
@@ -426,15 +432,13 @@ def compress_factors(params: CompressParams, group, session: Session) -> Path:
     return Path(params.out)
 
 
-def compress(params: CompressParams, session: Session) -> Path:
+def compress(params: CompressSettings, session: Session) -> Path:
     """Compress the store of ``params`` into U, S, V; returns the output path."""
-    from pipeline.stores.compressed import NAME as COMPRESSED
-
-    group = open_group(params.store)  # zarr metadata only: no xarray needed here
-    if group.attrs.get("btf_kind") == COMPRESSED:
-        return compress_factors(params, group, session)
-    check_radiance(group, params.store)
-    shape = tuple(group[RADIANCE].shape)
+    store = open_store(params.store, RadianceStore, CompressedStore)  # metadata only
+    if isinstance(store, CompressedStore):
+        return compress_factors(params, store, session)
+    group = store.group
+    shape = store.shape
     nv, nl, ny, nx, nc = shape
     m, n = nv * nl * nc, ny * nx
     if params.rank > min(m, n):
@@ -452,7 +456,7 @@ def compress(params: CompressParams, session: Session) -> Path:
     attrs = _output_attrs(params, dict(group.attrs), shape)
     sketch = Sketch.for_rank(params.rank, extra, m)
     _say_plan(params, session, m, n, side, sketch,
-              _memory(params, shape, dir_chunk, v_chunk, workers=session.read_parallelism))
+              peak_memory(params, shape, dir_chunk, v_chunk, workers=session.read_parallelism))
     planned = (1 if params.one_pass else iterations + (2 if side == "rows" else 1)) \
         + params.verify
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
@@ -460,7 +464,7 @@ def compress(params: CompressParams, session: Session) -> Path:
         progress = Progress(tmp)
         progress.distrust_damaged(lambda line: session.log(f"compress: {line}"))
         out = progress.skeleton(lambda: create_compressed_store(  # passes: see _Passes
-            tmp, directions=read_directions(group), channels=read_channels(group),
+            tmp, directions=store.directions, channels=store.channels,
             ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs))
         passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),
                          planned, params, session)
@@ -493,98 +497,3 @@ def compress(params: CompressParams, session: Session) -> Path:
                     + (f", average ABRDF RMSE {error['abrdf_rmse']:.4g}"
                        if params.verify else ""))
     return Path(params.out)
-
-
-
-def _estimate(params: CompressParams, shapes: dict, *,
-              alternative: bool = True) -> tuple[StageEstimate, Shape]:
-    """``btf run --plan``'s estimate, with the other mode (one pass or several) beside it."""
-    src = shapes[params.store]
-    nv, nl, ny, nx, nc = src.radiance
-    if src.kind == "compressed":  # its factors: V read twice, U held, V written
-        k, rank = src.rank or params.rank, min(params.rank, src.rank or params.rank)
-        v_bytes, u_bytes = ny * nx * k * 4, nv * nl * nc * k * 8
-        per_core, source = rate("compress_bytes_per_core_second")
-        plan = StageEstimate("compress", "", bytes_read=2 * v_bytes + u_bytes // 2,
-                             bytes_written=(nv * nl * nc + ny * nx + 1) * rank * 4,
-                             tasks=2 * max(1, math.ceil(ny / src.chunk) * math.ceil(
-                                 nx / src.chunk)), passes=2, input_reads=2,
-                             task_bytes=2 * src.chunk**2 * k * 8, client_bytes=3 * u_bytes,
-                             core_seconds=2 * v_bytes / per_core, rate_source=source,
-                             option="--rank",
-                             note="a compressed store: its factors truncated or re-factored")
-        return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=rank,
-                           unit=src.chunk)
-    m, n = nv * nl * nc, ny * nx
-    extra = min(params.extra, min(m, n) - params.rank)
-    side = params.side(m, n)
-    iterations = params.iterations(side)
-    matrix = m * n * 4
-    tile = (min(src.chunk, ny), min(src.chunk, nx))
-    texels = tile[0] * tile[1]
-    tiles = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
-    note = f"sketches on the {side} side"
-    memory = _memory(params, src.radiance, src.dir_chunk, tile, workers=1)
-    task, client = memory["task"], memory["client"]
-    if params.one_pass:
-        sketch = Sketch.for_rank(params.rank, extra, m)
-        passes = reads = 1 + params.verify
-        tasks = tiles
-        note = (f"one view (k = {sketch.k}, s = {sketch.s}) by texel tiles; scratch "
-                f"{human_bytes(n * sketch.s * 4)} written once, read once")
-        option = "--oversample (a smaller sketch: less memory per task, more error)"
-    elif side == "rows":
-        cache = params.tile_cache_bytes
-        twice = m * texels * 4 > cache  # a tile's column read twice per pass
-        passes = iterations + 2 + params.verify
-        reads = (iterations + 1) * (2 if twice else 1) + 1 + params.verify
-        tasks = tiles
-        if twice:  # each pass would read once if a tile's column were kept
-            note += (f"; {reads} reads: a tile's column ({human_bytes(m * texels * 4)}) exceeds "
-                     f"--tile-cache ({human_bytes(cache)}); --tile-cache "
-                     f"{math.ceil(m * texels * 4 / 2**30)}GiB would keep it: "
-                     f"{iterations + 2 + params.verify} reads")
-        option = ("--rank, --tile-cache, or the source's --chunk (smaller texel tiles: each "
-                  "task holds a tile's rows)")
-    else:
-        passes = reads = iterations + 1 + params.verify
-        tasks = len(plan_row_blocks(src.radiance, src.dir_chunk))
-        option = "--sketch rows (client memory then grows with the rows only)"
-    per_core, source = rate("compress_bytes_per_core_second")
-    seconds = reads * matrix / per_core
-    if params.one_pass:  # its own rate (sparse sketches: about the same work per value at any
-        one, source = rate("compress_one_pass_bytes_per_core_second")  # k, s), or one read
-        seconds = max(matrix / per_core, matrix / one) + params.verify * matrix / per_core
-    plan = StageEstimate("compress", "", bytes_read=reads * matrix,
-                         bytes_written=(m + n + 1) * params.rank * 4, tasks=tasks * passes,
-                         passes=passes, input_reads=reads, task_bytes=task,
-                         client_bytes=client, core_seconds=seconds, rate_source=source,
-                         option=option, note=note)
-    if alternative:  # the other mode: one pass (texel side), or the default passes
-        other = dataclasses.replace(params, passes="auto" if params.one_pass else "1",
-                                    sketch="auto" if params.one_pass else "texels",
-                                    power_iters=None, oversample=None)
-        plan.alternatives = [_estimate(other, shapes, alternative=False)[0]]
-        plan.alternatives[0].name = ("compress (default passes)" if params.one_pass else
-                                     "compress --passes 1")
-    return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
-                       unit=src.chunk)
-
-
-STAGE = Stage("compress", CompressParams, compress,
-              "out-of-core randomized SVD of a store into U, S, V",
-              "Factorise the range-reduced BTF matrix log(radiance + eps) (rows: view x light x "
-              "channel textures, columns: texels) as U S V^T with a randomized SVD that streams "
-              "the store in row blocks: power iterations + 1 passes (each A^T A fused into one "
-              "pass), or one read with --passes 1 (a one-view sketch by texel tiles, its co-range "
-              "sketch kept in a scratch array that is removed at the end). The relative error "
-              "comes from an exact identity (or, for one pass, an error sketch); --verify adds "
-              "a pass for the average ABRDF RMSE in linear radiance. Memory: a few blocks and "
-              "sketches; with --sketch rows or --passes 1 nothing grows with the texels. "
-              "A compressed store (btf compress, btf ingest FILE.btf, btf enlarge) is brought "
-              "to a lower --rank from its factors, keeping its transform: truncated if its U "
-              "and V are orthonormal (an SVD already), else re-factored exactly first; the log "
-              "says which and the share of the values dropped.",
-              makes_store=True,
-              estimate=_estimate, whole="the SVD needs every layer and texel",
-              directions=same_directions)

@@ -235,7 +235,7 @@ def test_auto_keeps_the_sketch_on_the_side_that_fits(tmp_path, btf, monkeypatch)
     store = store_from_log_matrix(tmp_path / "s.zarr", a, SHAPE)
     *_, attrs = _compress(btf, store, tmp_path / "small.zarr", "--rank", "6")
     assert attrs["svd"]["sketch_side"] == "texels"  # 768 texels: a tiny texel-side sketch
-    monkeypatch.setattr("pipeline.stages.compress.TEXEL_SIDE_BYTES", 1 << 10)
+    monkeypatch.setattr("pipeline.compression.TEXEL_SIDE_BYTES", 1 << 10)
     *_, attrs = _compress(btf, store, tmp_path / "wide.zarr", "--rank", "6")
     assert attrs["svd"]["sketch_side"] == "rows" and attrs["svd"]["passes"] == 4
     *_, attrs = _compress(btf, store, tmp_path / "exact.zarr", "--rank", "6", "--passes", "3")

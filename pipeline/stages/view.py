@@ -28,8 +28,15 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, check_region, option, parse_region
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores.base import open_group, read_channels, read_directions
-from pipeline.stores.compressed import check_compressed, total_energy
+from pipeline.stores import (
+    CompressedStore,
+    CompressedTileSetStore,
+    RadianceStore,
+    TileSetStore,
+    open_store,
+)
+from pipeline.stores.base import read_channels, read_directions
+from pipeline.stores.compressed import total_energy
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure
 from tasks.transform import Transform
@@ -110,27 +117,22 @@ def view(params: ViewParams, session: Session) -> Path:
 
     if not params.overwrite and storage.exists(storage.parse(params.out, what="output")):
         raise BTFError(f"{params.out}: already exists; pass --overwrite to replace it")
-    group = open_group(params.store)
-    kind = group.attrs.get("btf_kind")
-    if kind == "compressed":
-        check_compressed(group, params.store)
-        return _write_page(params, params.store, group, session)
-    if kind == "compressed-tileset":
-        from pipeline.stores.tileset import check_tileset
-
-        check_tileset(group, params.store)
-        return _write_page(params, params.store, group, session)
-    if kind == "tileset":
+    store = open_store(params.store, checked=False)  # its kind first, then its checks
+    if isinstance(store, CompressedStore | CompressedTileSetStore):
+        store.validate()
+        return _write_page(params, store, session)
+    if isinstance(store, TileSetStore):
         raise BTFError(f"{params.store}: a tile set of radiance; btf view lays compressed tile "
                        "sets: quilt the compressed store (btf compress, then btf quilt "
                        "COMPRESSED.zarr TILES.zarr)")
-    if kind not in ("btf", "abtf"):
+    if not isinstance(store, RadianceStore):
         raise BTFError(f"{params.store}: btf view shows a compressed or a radiance store; this "
-                       f"is a {kind or 'non-BTF'} store")
-    return _compressed_on_the_way(params, group, session)
+                       f"is a {store.kind or 'non-BTF'} store")
+    store.validate()
+    return _compressed_on_the_way(params, store, session)
 
 
-def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
+def _compressed_on_the_way(params: ViewParams, store: RadianceStore, session: Session) -> Path:
     """Compress a radiance store into a temporary store, then write its page.
 
     At ``--rank``, else at the most components any level's page could hold (the page then
@@ -138,12 +140,11 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
     """
     import tempfile
 
-    from pipeline.stages import STAGES  # by name, as btf run composes stages
-    from pipeline.stores.radiance import check_radiance
+    from pipeline.compression import CompressSettings
+    from pipeline.compression import compress as compress_store
 
-    check_radiance(group, params.store)
-    d, _, meshes = _check_directions(params, group)
-    nv, nl, ny, nx, nc = group["radiance"].shape
+    d, _, meshes = _check_directions(params, store.group)
+    nv, nl, ny, nx, nc = store.shape
     most = min(MAX_RANK, nv * nl * nc, ny * nx)
     shown = _StoreWindow(params, None, ny, nx)
     fixed = _fixed_bytes(d, meshes)
@@ -159,9 +160,8 @@ def _compressed_on_the_way(params: ViewParams, group, session: Session) -> Path:
         compressed = str(Path(tmp) / "compressed.zarr")
         session.log(f"view: {params.store} is a radiance store: compressing it at rank {k} "
                     f"first (btf compress {params.store} OUT.zarr --rank {k} keeps it)")
-        compress = STAGES["compress"]
-        compress.run(compress.params(store=params.store, out=compressed, rank=k), session)
-        return _write_page(params, compressed, open_group(compressed), session,
+        compress_store(CompressSettings(store=params.store, out=compressed, rank=k), session)
+        return _write_page(params, open_store(compressed, CompressedStore), session,
                            name=params.store)
 
 
@@ -241,21 +241,18 @@ class _TileSet:
     With ``--region``: those texels of the surface, gathered as btf render gathers them.
     """
 
-    def __init__(self, params: ViewParams, group):
-        from pipeline.stores.tileset import corner_order, stored_seed
-
-        self.params, self.group = params, group
-        self.n = group["corners"].shape[0]
-        self.ty, self.tx = (int(n) for n in group.attrs["tile_shape"])
-        self.seed = stored_seed(group)
-        self.lattice = group.attrs.get("placement") == "lattice"
+    def __init__(self, params: ViewParams, tileset: CompressedTileSetStore):
+        self.params, self.tileset = params, tileset
+        self.n = tileset.tiles
+        self.ty, self.tx = tileset.tile_shape
+        self.seed = tileset.seed
+        self.lattice = tileset.placement == "lattice"
         self.region = _region(params)
         if not self.lattice:
-            self.types = int(group.attrs["corner_types"])
-            self.order = corner_order(params.store, group["corners"][...], self.types)
+            self.types = tileset.corner_types
+            self.order = tileset.order()
         else:
-            spec = group.attrs["lattice"]
-            h, w, shear = spec["hnf"]
+            h, w, shear = tileset.hnf
             rows = h * (w // math.gcd(shear, w))  # down this far, the lattice is back in column
             self.swatch = (rows * max(1, min(4, 512 // rows)), w * max(1, min(4, 512 // w)))
 
@@ -277,11 +274,9 @@ class _TileSet:
         sample's where the set keeps only those
         (:func:`pipeline.stores.tileset.tile_eigentextures`).
         """
-        from pipeline.stores.tileset import tile_eigentextures
-
         ids = [int(i) for i in (range(self.n) if which is None else which)]
         stored = [int(self.order[i]) if not self.lattice else i for i in ids]
-        return dict(zip(ids, tile_eigentextures(self.group, stored, k), strict=True))
+        return dict(zip(ids, self.tileset.tile_eigentextures(stored, k), strict=True))
 
     def _surface(self, k: int, y0: int, x0: int, ny: int, nx: int) -> np.ndarray:
         """Texels ``[y0, y0+ny) x [x0, x0+nx)`` of the surface btf render lays, at rank ``k``."""
@@ -292,13 +287,10 @@ class _TileSet:
                                           seed=self.seed, corners=self.types))
             return gather(self._tiles(k, need), y0, x0, ny, nx, seed=self.seed,
                           corners=self.types)
-        spec, g = self.group.attrs["lattice"], self.group
         tiles = self._tiles(k)
         return lattice_gather(np.stack([tiles[i] for i in range(self.n)]), y0, x0, ny, nx,
-                              hnf=tuple(spec["hnf"]),
-                              basis=(tuple(spec["U"]), tuple(spec["V"])),
-                              representative=g["representative"][...]
-                              if "representative" in g.array_keys() else None, seed=self.seed)
+                              hnf=self.tileset.hnf, basis=self.tileset.basis,
+                              representative=self.tileset.representative, seed=self.seed)
 
     def load(self, level: int, k: int, session: Session) -> dict:
         from tasks.placement import lattice_gather
@@ -325,14 +317,11 @@ class _TileSet:
         if level:
             return {"v": block_means(self._surface(k, 0, 0, h, w), f)[None],
                     "note": what + at}
-        spec, g = self.group.attrs["lattice"], self.group
         ids = np.arange(self.n * self.ty * self.tx, dtype=np.int32).reshape(
             self.n, self.ty, self.tx)
-        index = lattice_gather(ids, 0, 0, h, w, hnf=tuple(spec["hnf"]),
-                               basis=(tuple(spec["U"]), tuple(spec["V"])),
-                               representative=g["representative"][...]
-                               if "representative" in g.array_keys() else None,
-                               seed=self.seed)
+        index = lattice_gather(ids, 0, 0, h, w, hnf=self.tileset.hnf,
+                               basis=self.tileset.basis,
+                               representative=self.tileset.representative, seed=self.seed)
         tiles = self._tiles(k)
         return {"v": np.stack([tiles[i] for i in range(self.n)]), "index":
                 index.astype(np.int32), "note": what}
@@ -456,17 +445,18 @@ def _rank_note(params: ViewParams, k: int, s: np.ndarray, total: float,
     return note
 
 
-def _write_page(params: ViewParams, store: str, group, session: Session, *,
-                name: str | None = None) -> Path:
+def _write_page(params: ViewParams, store: CompressedStore | CompressedTileSetStore,
+                session: Session, *, name: str | None = None) -> Path:
     """The page of the compressed store or tile set ``store`` (``name``: the one given)."""
+    group = store.group
     d, channels, transform, meshes = _check_shown(params, group)
     s = np.asarray(group["S"][...], np.float32)
     stored, total = len(s), total_energy(group, np.asarray(s, np.float64))
     if params.rank is not None and params.rank > stored:
         raise BTFError(f"{params.store}: --rank {params.rank} is larger than the store's "
                        f"rank {stored}")
-    tiled = group.attrs.get("btf_kind") == "compressed-tileset"
-    shown = _TileSet(params, group) if tiled else _StoreWindow(params, store,
+    tiled = isinstance(store, CompressedTileSetStore)
+    shown = _TileSet(params, store) if tiled else _StoreWindow(params, store.path,
                                                               *group["V"].shape[-3:-1])
     rows = int(np.prod(group["U"].shape[:-1]))
     blobs = _mesh_blobs(meshes)
