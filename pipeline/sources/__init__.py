@@ -21,9 +21,12 @@ import importlib
 import pkgutil
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import BTFError
+
+if TYPE_CHECKING:
+    from pipeline.layer_sources import LayerSource, ReadOptions
 
 ORDER = ("folder", "zip", "big", "dfmf")
 
@@ -70,7 +73,7 @@ class SourceFormat:
     describe: Callable[[Path], dict[str, Any]]
     lines: Callable[[dict[str, Any]], list[str]]
     suffixes: tuple[str, ...] = ()
-    open: Callable[..., Any] | None = None
+    open: Callable[[Path, ReadOptions], LayerSource] | None = None
     ingest: Callable[[Any, Any], Path] | None = None
 
     def __post_init__(self):
