@@ -120,22 +120,20 @@ class StageEstimate:
 
 def shape_of(path: str) -> Shape | None:
     """The shape of an existing store from its metadata (None if it is no store btf knows)."""
-    from pipeline.stores.base import open_group
+    from pipeline.stores import CompressedStore, RadianceStore, open_store
 
     try:
-        group = open_group(path)
+        store = open_store(path, checked=False)
     except BTFError:
         return None
-    kind = group.attrs.get("btf_kind")
-    if "radiance" in group and kind in ("abtf", "btf"):
-        a = group["radiance"]
-        return Shape(kind, tuple(a.shape), a.chunks[2], a.chunks[1],
-                     unit=(a.shards or a.chunks)[2], truth="height" in group)
-    if kind == "compressed":
-        u, v = group["U"], group["V"]
-        return Shape(kind, (u.shape[0], u.shape[1], v.shape[0], v.shape[1], u.shape[2]),
-                     v.chunks[0], u.chunks[1], rank=u.shape[3])
-    return Shape(str(kind), (), 0, 0)
+    if isinstance(store, RadianceStore) and store.has("radiance"):
+        layout = store.layout
+        return Shape(store.directions.kind, store.shape, layout.chunk, layout.dir_chunk,
+                     unit=layout.shard or layout.chunk, truth=store.has("height"))
+    if isinstance(store, CompressedStore):
+        return Shape("compressed", store.shape, store["V"].chunks[0], store["U"].chunks[1],
+                     rank=store.rank)
+    return Shape(str(store.kind), (), 0, 0)
 
 
 def plan_stages(stages, shapes: dict | None = None) -> list[StageEstimate]:
@@ -187,7 +185,7 @@ def planned_directions(stages, path: str):
     its own (``generate``).
     """
     from pipeline.params import names_path
-    from pipeline.stores.base import open_group, read_directions
+    from pipeline.stores import open_store
 
     for step in reversed(stages):
         if not names_path(step.params, "out", path):
@@ -198,7 +196,7 @@ def planned_directions(stages, path: str):
         store = getattr(step.params, "store", None)
         return derive(step.params, None if store is None else planned_directions(stages, store))
     try:
-        return read_directions(open_group(path))
+        return open_store(path, checked=False).directions
     except BTFError:
         return None
 

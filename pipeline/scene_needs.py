@@ -14,7 +14,6 @@ import numpy as np
 
 from pipeline.scene_spec import SceneSpec, load
 from pipeline.session import Session
-from pipeline.stores.base import open_group
 
 
 def resolve(spec: SceneSpec, d) -> tuple[Any, np.ndarray, list]:
@@ -101,17 +100,17 @@ def tileset_needs(for_scene: str | None, store: str, out: str, session: Session,
     None (every layer) without a spec, or for a compressed source: the tiles' eigentextures
     serve every layer. Raises the spec's error when it reads another store than ``out``.
     """
-    from pipeline.stores.base import read_directions
+    from pipeline.stores import CompressedStore, open_store
 
     if for_scene is None:
         return None
     spec = spec_for_output(for_scene, out)
-    group = open_group(store)
-    if group.attrs.get("btf_kind") == "compressed":
+    source = open_store(store)
+    if isinstance(source, CompressedStore):
         session.log(f"{label}: the scene cannot restrict a compressed source: the tiles' "
                     "eigentextures serve every layer")
         return None
-    needs = needs_of(spec, read_directions(group))
+    needs = needs_of(spec, source.directions)
     session.log(f"{label}: applying the prescriptions only to the {len(needs.layers)} of "
                 f"{needs.of} layers {for_scene} needs")
     return needs

@@ -85,24 +85,25 @@ def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_
             if needs is None or needs.keeps(v, range(l0, min(l0 + dir_chunk, nl)))]
 
 
-def apply_tileset(source: str, out, tiles, *, source_group, share, parallelism: int,
-                  needs=None) -> tuple[list, str]:
+def apply_tileset(source, out, tiles, *, share, needs=None) -> tuple[list, str]:
     """Delayed tasks filling a tile-set store at ``out`` from ``source``, and what they do.
 
-    ``tiles`` is the :class:`pipeline.stores.tileset.TileSet` the store was created for;
-    ``share`` makes the prescriptions a task argument every task reads
-    (:meth:`pipeline.session.Session.share`); ``parallelism`` is how many tasks run at once.
+    ``source`` is the sample's store handle; ``tiles`` the
+    :class:`pipeline.stores.tileset.TileSet` the store was created for; ``share`` makes the
+    prescriptions a task argument every task reads (:meth:`pipeline.session.Session.share`).
     """
-    if source_group.attrs.get("btf_kind") == "compressed":
+    from pipeline.stores import CompressedStore
+
+    if isinstance(source, CompressedStore):
         # the tiles are their prescriptions applied to the sample's eigentextures, computed
         # where they are read (pipeline.stores.tileset.tile_values): only V is copied
-        writes = sample_copies(source, out)
+        writes = sample_copies(source.location, out)
         return writes, (f"{len(tiles.index)} prescription(s) kept with the sample's "
                         f"eigentextures ({len(writes)} band(s) of V copied)")
     matrices = tiles.matrices()
     handle = share(matrices)
-    radiance = source_group[RADIANCE]
-    writes = layer_writes(source, out, handle, shape=radiance.shape,
+    radiance = source[RADIANCE]
+    writes = layer_writes(source.location, out, handle, shape=radiance.shape,
                           dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape,
                           needs=needs)
     return writes, f"{len(matrices)} prescription(s) to {len(writes)} blocks of layers"
@@ -123,10 +124,10 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
     """
     from pipeline.atomic import atomic_output
     from pipeline.resume import Progress
-    from pipeline.stores.base import open_group
+    from pipeline.stores import CompressedStore, RadianceStore, open_store
     from pipeline.stores.tileset import read_plan, write_tileset_store
 
-    group = open_group(source)
+    sample = open_store(source, RadianceStore, CompressedStore)
     with atomic_output(out, directory=True, overwrite=overwrite,
                        resume=tiles.attrs.get("provenance") if record is None else record
                        ) as tmp:
@@ -137,11 +138,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
             tiles = read_plan(tmp)
         elif callable(tiles):
             tiles = tiles()
-        progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=source,
-                                                      source_group=group))
-        writes, what = apply_tileset(source, tmp, tiles, source_group=group,
-                                     share=session.share, parallelism=session.parallelism,
-                                     needs=needs)
+        progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=sample))
+        writes, what = apply_tileset(sample, tmp, tiles, share=session.share, needs=needs)
         # the writes' names carry the session's parallelism: a rerun with other workers keeps
         # nothing of the killed run's
         grouping = f"{len(writes)}x{session.parallelism}"

@@ -16,9 +16,8 @@ from pipeline.errors import BTFError
 from pipeline.graphs.reductions import layer_light_sums, light_sums
 from pipeline.params import ParamError
 from pipeline.session import Session
-from pipeline.stores import open_layers
-from pipeline.stores.base import RADIANCE, Directions, open_group
-from pipeline.stores.compressed import NAME as COMPRESSED
+from pipeline.stores import CompressedStore, open_layers, open_store
+from pipeline.stores.base import RADIANCE, Directions
 from tasks.reference import ReferenceMaps, reference_maps
 from tasks.sampling import direction_vectors
 
@@ -55,7 +54,7 @@ def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
         raise BTFError(f"{path}: --view {view} is out of range (the store has "
                        f"{d.theta_view.size} views)")
     lights = direction_vectors(d.theta_light, d.phi_light)
-    if open_group(path).attrs.get("btf_kind") == COMPRESSED:  # layers reconstructed in tasks
+    if isinstance(open_store(path), CompressedStore):  # layers reconstructed in tasks
         sums, blocks = layer_light_sums(ds[RADIANCE].data[view], lights)
     else:
         sums, blocks = light_sums(path, view, lights)

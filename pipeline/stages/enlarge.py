@@ -51,16 +51,15 @@ from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage
+from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.base import (
     RADIANCE,
     add_array,
     location,
-    open_group,
     read_channels,
     read_directions,
 )
-from pipeline.stores.compressed import check_compressed, create_compressed_store
-from pipeline.stores.radiance import check_radiance
+from pipeline.stores.compressed import create_compressed_store
 from tasks.enlargement import EnlargementParams, enlarge, mean_colour_rows
 from tasks.registration import AMBIGUITY, Match, locate
 from tasks.sampling import nearest_layer
@@ -412,11 +411,9 @@ def _output_attrs(params: EnlargeParams, sample_group, shape: list[int], rank: i
 
 def _open_inputs(params: EnlargeParams):
     """The sample's compressed group and the photos' radiance group, checked."""
-    sample_group = open_group(params.sample)
-    check_compressed(sample_group, params.sample)
-    group = open_group(params.constraints)
-    check_radiance(group, params.constraints)
-    return sample_group, group
+    sample = open_store(params.sample, CompressedStore)
+    photos = open_store(params.constraints, RadianceStore)
+    return sample.group, photos.group
 
 
 def _guide_weight(params: EnlargeParams, m: int, g: int) -> float:

@@ -25,9 +25,9 @@ from pipeline.params import option
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores.base import RADIANCE, location, open_group, read_directions
+from pipeline.stores import RadianceStore, open_store
+from pipeline.stores.base import RADIANCE, location, writable
 from pipeline.stores.fitted import create_fitted_store
-from pipeline.stores.radiance import check_radiance
 from tasks.hls import PARAMETERS, fit_block, light_grid
 
 
@@ -51,7 +51,7 @@ def _fit_task(store: str, out: str, view: int, ys: slice, xs: slice, grid, eleva
         return None, (f"{bad} NaN or Inf values in view {view}, y {ys.start}:{ys.stop}, "
                       f"x {xs.start}:{xs.stop}")
     h, s, coef, errors = fit_block(layers, grid, elevations)
-    target = zarr.open_group(storage.store(out), mode="r+")
+    target = writable(out)
     target["hue"][view, ys, xs] = h
     target["saturation"][view, ys, xs] = s
     target["lightness"][view, :, :, ys, xs] = coef
@@ -63,10 +63,10 @@ def fit(params: FitParams, session: Session) -> Path:
     import dask
     from dask.array.core import normalize_chunks, slices_from_chunks
 
-    group = open_group(params.store)
-    check_radiance(group, params.store)
-    d = read_directions(group)
-    nv, nl, ny, nx, nc = group[RADIANCE].shape
+    store = open_store(params.store, RadianceStore)
+    group = store.group
+    d = store.directions
+    nv, nl, ny, nx, nc = store.shape
     if nc != 3:
         raise BTFError(f"{params.store}: HLS fitting needs RGB layers, the store has {nc} "
                        "channel(s)")
@@ -75,7 +75,7 @@ def fit(params: FitParams, session: Session) -> Path:
     except ValueError as err:
         raise BTFError(f"{params.store}: {err}") from None
     attrs = {"source": "fit", "source_store": params.store,
-             "source_btf_kind": group.attrs.get("btf_kind"), "rotations": rotations.tolist(),
+             "source_btf_kind": store.kind, "rotations": rotations.tolist(),
              "elevations": elevations.tolist(), "light_grid": grid.tolist(),
              "parameters": PARAMETERS, "provenance": provenance("fit", params)}
     with atomic_output(params.out, directory=True, overwrite=params.overwrite) as tmp:

@@ -43,7 +43,8 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage, same_directions
-from pipeline.stores.base import RADIANCE, open_group
+from pipeline.stores import open_store
+from pipeline.stores.base import RADIANCE, writable
 from pipeline.stores.levels import PYRAMID, levels_of, multiscales, variable_of
 from tasks.transform import Transform
 
@@ -75,9 +76,7 @@ class PyramidParams:
 
 def pyramid(params: PyramidParams, session: Session) -> list[dict]:
     """Add the levels of ``params.store``; returns them (level 0 first)."""
-    import zarr
-
-    group = open_group(params.store)
+    group = open_store(params.store).group
     name = variable_of(group, params.store)
     dims = tuple(group[name].metadata.dimension_names)
     if PYRAMID in group and not params.overwrite:
@@ -86,9 +85,9 @@ def pyramid(params: PyramidParams, session: Session) -> list[dict]:
     count = _level_count(params, group[name].shape, dims)
     root = storage.parse(params.store)
     with atomic_subtree(str(root), PYRAMID) as partial:
-        levels = zarr.open_group(storage.store(str(root)), path=partial, mode="w-", zarr_format=3)
+        levels = writable(str(root), partial, new=True)
         _write_levels(group, name, levels, count, params.method, session)
-    group = zarr.open_group(storage.store(str(root)), mode="r+", use_consolidated=False)
+    group = writable(str(root))
     method = ("block mean of level 0 in linear radiance" if name == RADIANCE
               else "block mean of level 0's radiance, projected on U"
               if params.method == "projected" else

@@ -36,7 +36,7 @@ from pipeline.errors import BTFError
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores.base import open_group
+from pipeline.stores import CompressedStore, RadianceStore, TileSetStore, open_store
 from tasks.evaluation import (
     abrdf_errors,
     abrdf_index,
@@ -93,10 +93,11 @@ def _png(image: np.ndarray) -> bytes:
 
 
 def _factors(path: str):
-    group = open_group(path)
+    store = open_store(path, CompressedStore)
+    group = store.group
     return (group, np.asarray(group["U"][...], np.float64), np.asarray(group["S"][...],
                                                                          np.float64),
-            Transform.from_attrs(group.attrs["transform"]))
+            store.transform)
 
 
 def _row_scale(group, transform: Transform) -> np.ndarray | None:
@@ -197,8 +198,8 @@ def _compression(path: str, params: ReportParams) -> Section:
              _fmt(error.get("log_relative_frobenius")))]
     pictures = []
     row_scale = _row_scale(group, transform)
-    made_from = (open_group(source) if source and storage.any_below(storage.parse(source))
-                 else None)
+    made_from = (open_store(source).group
+                 if source and storage.any_below(storage.parse(source)) else None)
     if made_from is not None and "radiance" not in made_from:
         rows.append(("ABRDF RMSE against the source", "- (made from a compressed store: "
                                                       "compare with the radiance it came from)"))
@@ -232,7 +233,7 @@ def _compression(path: str, params: ReportParams) -> Section:
 
 def _truth(truth_path: str, path: str, texels: tuple[int, int], u_shape: tuple[int, ...]):
     """``--truth``'s radiance, refused unless it has the enlarged store's texels and layers."""
-    (ny, nx), truth = texels, open_group(truth_path)["radiance"]
+    (ny, nx), truth = texels, open_store(truth_path, RadianceStore).radiance
     if tuple(truth.shape[2:4]) != (ny, nx):
         raise BTFError(f"--truth {truth_path}: {truth.shape[2]} x {truth.shape[3]} texels, "
                        f"but {path} has {ny} x {nx}")
@@ -288,12 +289,12 @@ def _enlargement(path: str, params: ReportParams) -> Section:
     v = group["V"]
     ny, nx, k = v.shape
     truth = _truth(params.truth, path, (ny, nx), u.shape)
-    _, us, ss, _ = _factors(parameters["sample"])
-    vs = np.asarray(open_group(parameters["sample"])["V"][...], np.float64)
+    sample_group, us, ss, _ = _factors(parameters["sample"])
+    vs = np.asarray(sample_group["V"][...], np.float64)
     sample = vs * ss
     sh, sw = sample.shape[:2]
     origin = tuple(info.get("placement", {}).get("origin", (0, 0)))
-    photo_group = open_group(parameters["constraints"])
+    photo_group = open_store(parameters["constraints"], RadianceStore).group
     photos = photo_group["radiance"]
     # a cosine sample's values are radiance x cos(theta_light): the photos' are made alike
     photo_scale = _row_scale(photo_group, transform)
@@ -341,7 +342,7 @@ def _enlargement(path: str, params: ReportParams) -> Section:
 
 
 def _tiles(path: str) -> Section:
-    group = open_group(path)
+    group = open_store(path, TileSetStore).group
     check = dict(group.attrs.get("border_check", {}))
     tiles = check.get("tiles", [])
     rows = tuple((t["tile"], _fmt(t["seam"], 3), _fmt(t["structure"], 3), str(t["plans"]),

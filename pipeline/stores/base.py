@@ -156,6 +156,20 @@ def open_group(path: str | Path):
     return zarr.open_group(storage.store(where), mode="r", use_consolidated=False)
 
 
+def writable(path: str | Path, subgroup: str | None = None, *, new: bool = False):
+    """A store's group (or ``subgroup`` of it) opened for writing.
+
+    For a stage's own output while it writes it, or a store it adds to (``btf pyramid``'s
+    levels); ``new`` creates the subgroup, refusing one that exists.
+    """
+    import zarr
+
+    store = storage.store(location(path))
+    if new:
+        return zarr.open_group(store, path=subgroup, mode="w-", zarr_format=3)
+    return zarr.open_group(store, path=subgroup or "", mode="r+", use_consolidated=False)
+
+
 def read_directions(group) -> Directions:
     """The direction coordinates of a store (small arrays)."""
     return Directions(*(np.asarray(group[name][:], np.float64) for name in DIRECTION_COORDS))

@@ -40,8 +40,6 @@ from pipeline.stores.base import (
     Store,
     add_array,
     create_store,
-    read_channels,
-    read_directions,
     sampling_lines,
     sampling_summary,
 )
@@ -127,22 +125,26 @@ class TileSet:
         return [to_csr(i, w, self.samples) for i, w in zip(self.index, self.weight, strict=True)]
 
 
-def write_tileset_store(path, tiles: TileSet, *, source: str, source_group):
+def write_tileset_store(path, tiles: TileSet, *, source: Store):
     """Create a tile-set store for ``tiles`` planned on ``source``; returns the zarr group.
 
-    Writes everything but the tiles' layers (or eigentextures), which the application graph
+    ``source`` is the radiance or compressed store's handle. Writes everything but the tiles'
+    layers (or eigentextures), which the application graph
     (:mod:`pipeline.graphs.prescriptions`) fills: the prescriptions, corner types, reference,
     and for a compressed source its ``U`` and ``S``.
     """
-    compressed = source_group.attrs.get("btf_kind") == "compressed"
-    attrs = {**tiles.attrs, "source_store": source, "tile_shape": list(tiles.tile_shape),
+    from pipeline.stores.compressed import CompressedStore
+
+    compressed = isinstance(source, CompressedStore)
+    source_group = source.group
+    attrs = {**tiles.attrs, "source_store": source.path, "tile_shape": list(tiles.tile_shape),
              "sample_shape": list(tiles.reference.shape[:2]),
-             "source_btf_kind": source_group.attrs.get("source_btf_kind") if compressed
-             else source_group.attrs.get("btf_kind")}
+             "source_btf_kind": source.attrs.get("source_btf_kind") if compressed
+             else source.kind}
     if compressed:
-        attrs["transform"] = source_group.attrs["transform"]
-    out = create_tileset_store(path, directions=read_directions(source_group),
-                               channels=read_channels(source_group), tiles=len(tiles.index),
+        attrs["transform"] = source.attrs["transform"]
+    out = create_tileset_store(path, directions=source.directions,
+                               channels=source.channels, tiles=len(tiles.index),
                                tile_shape=tiles.tile_shape, terms=tiles.index[0].shape[-1],
                                reference=tiles.reference, attrs=attrs,
                                rank=source_group["S"].shape[0] if compressed else None,
