@@ -53,6 +53,7 @@ from pipeline.checksums import MissingChunkError
 from pipeline.errors import BTFError
 from pipeline.locks import lock as output_lock
 from pipeline.resume import DONE, Progress
+from pipeline.stores.groups import made_by_btf
 
 COMPLETE = ".btf-complete"  # a complete replacement waiting to be swapped in
 
@@ -100,7 +101,7 @@ def written_by_btf(path: Path) -> bool:
             attrs = json.loads(meta.read_text()).get("attributes", {})
         except (OSError, ValueError):
             return False
-        return "btf_kind" in attrs or "provenance" in attrs
+        return made_by_btf(attrs)
     entries = list(path.iterdir())
     return (path / "manifest.csv").is_file() and all(
         e.is_file() and e.suffix.lower() in _EXPORTED for e in entries)
@@ -372,7 +373,7 @@ def _object_output(url: str, shown: str, *, overwrite: bool, resume: dict | None
         if attrs is not None:
             if not overwrite:
                 raise BTFError(f"{shown}: already exists; pass --overwrite to replace it")
-            if "btf_kind" not in attrs and "provenance" not in attrs:
+            if not made_by_btf(attrs):
                 raise BTFError(f"{shown}: refusing to replace a store that btf did not write")
             staged = storage.join(storage.parent(url), f".{storage.name(url)}.resume-"
                                   + (_key(resume) if resume else uuid.uuid4().hex[:16]))

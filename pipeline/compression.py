@@ -288,11 +288,13 @@ def peak_memory(params: CompressSettings, shape: tuple[int, ...], dir_chunk: int
                            extra=extra, workers=workers)
 
 
-def _output_attrs(params: CompressSettings, source: dict, shape: tuple[int, ...]) -> dict:
+def _output_attrs(params: CompressSettings, store: RadianceStore, shape: tuple[int, ...]
+                  ) -> dict:
     """The compressed store's attrs before the SVD: its source, transform and provenance."""
+    source = store.attrs
     attrs = {
         "source": "compress",
-        "source_btf_kind": source.get("btf_kind"),
+        "source_btf_kind": store.kind,
         "source_shape": list(shape),
         "transform": {"name": "log", "formula": "log(radiance + eps)", "eps": params.eps,
                       "clamp": params.clamp},
@@ -453,7 +455,7 @@ def compress(params: CompressSettings, session: Session) -> Path:
     v_chunk = (min(chunk, ny), min(chunk, nx))  # the V chunks of create_compressed_store
     tiles, tile_rows = plan_tiles(ny, nx, v_chunk), plan_tile_rows(
         shape, dir_chunk, v_chunk, sketch=params.one_pass)
-    attrs = _output_attrs(params, dict(group.attrs), shape)
+    attrs = _output_attrs(params, store, shape)
     sketch = Sketch.for_rank(params.rank, extra, m)
     _say_plan(params, session, m, n, side, sketch,
               peak_memory(params, shape, dir_chunk, v_chunk, workers=session.read_parallelism))

@@ -40,8 +40,8 @@ from pipeline.errors import BTFError
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
-from pipeline.stores.base import Directions, open_group, read_channels, read_directions
-from pipeline.stores.compressed import check_compressed, create_compressed_store
+from pipeline.stores.base import Directions
+from pipeline.stores.compressed import create_compressed_store
 from tasks.dfmf import (
     ChannelBlock,
     DfmfError,
@@ -57,7 +57,7 @@ from tasks.dfmf import (
     svd_map,
 )
 from tasks.sampling import known_sampling
-from tasks.transform import DFMF_EPS, DFMF_MODELS, Transform
+from tasks.transform import DFMF_EPS, DFMF_MODELS
 
 HALF_MAX = float(np.finfo(np.float16).max)
 # From this many images on, a band of S V is converted to float32 once and multiplied by BLAS
@@ -334,7 +334,7 @@ def _log_file(session: Session, header: DfmfHeader, out: str) -> None:
 def _ingest_attrs(params, header: DfmfHeader, directions: Directions) -> dict:
     """The store's attrs before the SVD: source, shape, transform, file metadata, provenance."""
     views, lights = len(header.theta_view), len(header.theta_light)
-    return {"btf_kind": "compressed", "source": "ingest",
+    return {"source": "ingest",
             "source_btf_kind": directions.kind,
             "source_shape": [views, lights, header.height, header.width,
                              len(header.channels)],
@@ -482,16 +482,19 @@ def export_dfmf(store: str, out: str, *, half: bool, overwrite: bool,
     """
     from dask.array.core import normalize_chunks, slices_from_chunks
 
-    group = open_group(store)
-    if group.attrs.get("btf_kind") != "compressed":
-        raise BTFError(f"{store}: a {group.attrs.get('btf_kind')!r} store; a DFMF file holds "
+    from pipeline.stores import CompressedStore, open_store
+
+    source = open_store(store, checked=False)
+    if not isinstance(source, CompressedStore):
+        raise BTFError(f"{store}: a {source.kind!r} store; a DFMF file holds "
                        "factors: compress it first (btf compress STORE OUT.zarr), then export "
                        "the compressed store")
-    check_compressed(group, store)
-    transform = Transform.from_attrs(group.attrs["transform"])
+    source.validate()
+    group = source.group
+    transform = source.transform
     model = COLOUR_MODEL[transform.name]
-    d = read_directions(group)
-    channels = read_channels(group)
+    d = source.directions
+    channels = source.channels
     u = np.asarray(group["U"][...], np.float64)  # small: rows x channels x K
     s = np.asarray(group["S"][...], np.float64)
     v = group["V"]

@@ -79,13 +79,7 @@ def provenance(stage: str, params: Any) -> dict[str, Any]:
 
 def up_to_date(path: str | Path, stage: str, params: Any) -> bool:
     """Whether the store at ``path`` was made by ``stage`` with these parameters and version."""
-    import zarr
+    from pipeline.stores.groups import stored_attrs
 
-    if not storage.exists(storage.join(storage.parse(path), storage.ROOT)):
-        return False
-    try:
-        group = zarr.open_group(storage.store(str(path)), mode="r", use_consolidated=False)
-        recorded = group.attrs.get("provenance")
-    except Exception:  # an unreadable store is not up to date; it will be rebuilt
-        return False
-    return recorded == provenance(stage, params)
+    attrs = stored_attrs(path)  # an unreadable store is not up to date; it will be rebuilt
+    return attrs is not None and attrs.get("provenance") == provenance(stage, params)

@@ -70,10 +70,9 @@ class Progress:
 
     def group(self):
         """The partial output's zarr group, opened for writing (a resumed run's store)."""
-        import zarr
+        from pipeline.stores.groups import writable
 
-        return zarr.open_group(storage.store(storage.parent(self.dir)), mode="r+",
-                               use_consolidated=False)
+        return writable(storage.parent(self.dir))
 
     def distrust_damaged(self, say: Callable[[str], Any],
                          only: Iterable[str] | None = None) -> list[str]:
@@ -93,9 +92,10 @@ class Progress:
         import zarr
 
         from pipeline import checksums
+        from pipeline.stores.groups import readable
 
         root = storage.parent(self.dir)
-        group = zarr.open_group(storage.store(root), mode="r", use_consolidated=False)
+        group = readable(root)
         with warnings.catch_warnings():  # the markers' folder is no zarr node: zarr says so
             warnings.filterwarnings("ignore", "Object at .* is not recognized")
             arrays = sorted((a for p, a in group.members(max_depth=None)

@@ -108,6 +108,48 @@ def test_every_stage_declares_itself_in_its_own_module():
         assert stage.params.__module__ == module.__name__
 
 
+def _outside_stores() -> dict[str, ast.AST]:
+    """The parsed modules of ``pipeline`` outside ``pipeline.stores``."""
+    return {m: ast.parse(p.read_text()) for m, p in _modules().items()
+            if m.startswith("pipeline") and not m.startswith("pipeline.stores")}
+
+
+def _store_access(tree: ast.AST) -> list[str]:
+    """Group openings and ``btf_kind`` strings in a module (line numbers)."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            func = node.func
+            name = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+            if name == "open_group":
+                found.append(f"line {node.lineno}: open_group")
+        if isinstance(node, ast.Constant) and node.value == "btf_kind":
+            found.append(f"line {node.lineno}: 'btf_kind'")
+    return found
+
+
+def test_stores_are_opened_and_their_kinds_told_in_stores_only():
+    # stages and graphs take handles (pipeline.stores.open_store): no group opened elsewhere,
+    # no kind told by comparing the btf_kind attribute
+    found = {m: _store_access(tree) for m, tree in _outside_stores().items()}
+    assert not {m: f for m, f in found.items() if f}, found
+    assert _store_access(ast.parse("zarr.open_group(x)\nif a.get('btf_kind') == 'btf': pass"))
+
+
+def test_no_stage_runs_another_and_config_stores_import_no_stage_or_graph():
+    edges = _import_graph()
+    stages = {m for m in edges if m.startswith("pipeline.stages.")}
+    for module, path in _modules().items():
+        if module in stages:  # the registry by name is for btf run, not for stages
+            names = {n.id for n in ast.walk(ast.parse(path.read_text()))
+                     if isinstance(n, ast.Name)}
+            assert "STAGES" not in names, module
+    assert not edges["pipeline.config"] & stages, sorted(edges["pipeline.config"] & stages)
+    stores = {m for m in edges if m.startswith("pipeline.stores")}
+    graphs = {m for m in edges if m.startswith("pipeline.graphs")}
+    assert not {m: edges[m] & graphs for m in stores if edges[m] & graphs}
+
+
 def test_the_cycle_finder_finds_a_cycle():  # the check above could not pass by accident
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 

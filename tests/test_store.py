@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.graphs.blocks import aligned_chunks, read_chunks, store_aligned
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.radiance import Layout, create_radiance_store, open_radiance
 
@@ -129,7 +129,7 @@ def shard_sized_tasks(monkeypatch):
 
 def test_open_radiance_reads_whole_write_units(tmp_path, shard_sized_tasks):
     _create(tmp_path / "s.zarr")
-    ds = open_radiance(tmp_path / "s.zarr")
+    ds = open_radiance(tmp_path / "s.zarr", read_chunks)
     assert ds[RADIANCE].data.chunksize == (1, 2, 16, 16, 3)
 
 

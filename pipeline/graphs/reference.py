@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.reductions import layer_light_sums, light_sums
 from pipeline.params import ParamError
 from pipeline.session import Session
@@ -46,7 +47,7 @@ def parse_weights(text: str) -> tuple[float, float, float]:
 def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
                       view: int | None, session: Session) -> tuple[ReferenceMaps, int]:
     """The reference maps of a store, and the view they were computed from."""
-    ds = open_layers(path)
+    ds = open_layers(path, read_chunks)
     d = Directions.of(ds)
     if view is None:
         view = int(np.argmin(d.theta_view))

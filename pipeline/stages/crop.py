@@ -16,15 +16,16 @@ from pathlib import Path
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
+from pipeline.graphs.blocks import aligned_chunks, read_chunks, store_aligned, task_side
 from pipeline.params import check_region, option, parse_region
 from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage, selected_directions
-from pipeline.stores.base import RADIANCE, Directions, layer_indices, open_group, read_channels
-from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store, open_radiance
+from pipeline.stores import CompressedStore, RadianceStore, open_store
+from pipeline.stores.base import RADIANCE, Directions, layer_indices, read_channels
+from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +53,7 @@ class CropParams:
         Layout(chunk=self.chunk or 128, dir_chunk=self.dir_chunk or 16)
 
 
-def _crop_factors(params: CropParams, group, session: Session) -> Path:
+def _crop_factors(params: CropParams, store, session: Session) -> Path:
     """A part of a compressed store as a compressed store: an exact SVD of the part.
 
     The selected rows of ``U`` and the region of ``V`` are re-factored exactly
@@ -66,11 +67,11 @@ def _crop_factors(params: CropParams, group, session: Session) -> Path:
 
     from pipeline import storage
     from pipeline.graphs.factors import gram, mapped_v
-    from pipeline.stores.base import location, read_directions
-    from pipeline.stores.compressed import check_compressed, create_compressed_store
+    from pipeline.stores.base import location
+    from pipeline.stores.compressed import create_compressed_store
     from tasks.dfmf import svd_map
 
-    check_compressed(group, params.store)
+    group = store.group
     nv, nl, nc, k = group["U"].shape
     ny, nx = group["V"].shape[:2]
     views = layer_indices(params.view, nv, "view", params.store)
@@ -81,7 +82,7 @@ def _crop_factors(params: CropParams, group, session: Session) -> Path:
         if ys.stop > ny or xs.stop > nx:
             raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
                            f"{ny} x {nx} texels of the store")
-    d = read_directions(group).select(views, lights)
+    d = store.directions.select(views, lights)
     u = np.asarray(group["U"][...], np.float64)[np.ix_(views, lights)].reshape(-1, k)
     s = np.asarray(group["S"][...], np.float64)
     chunk = params.chunk or group["V"].chunks[0]
@@ -119,12 +120,11 @@ def _crop_factors(params: CropParams, group, session: Session) -> Path:
 
 def crop(params: CropParams, session: Session) -> Path:
     """Write the requested part of a store as a new store of its kind (radiance or factors)."""
-    from pipeline.stores.compressed import NAME as COMPRESSED
-
-    group = open_group(params.store)
-    if group.attrs.get("btf_kind") == COMPRESSED:
-        return _crop_factors(params, group, session)
-    ds = open_radiance(params.store)
+    store = open_store(params.store, RadianceStore, CompressedStore)
+    if isinstance(store, CompressedStore):
+        return _crop_factors(params, store, session)
+    group = store.group
+    ds = store.dataset(read_chunks)
     rad = ds[RADIANCE]
     views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
     lights = layer_indices(params.light, rad.sizes["light"], "light", params.store)

@@ -15,20 +15,19 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.thumbnails import thumbnail
 from pipeline.images import write_exr, write_png
 from pipeline.layer_files import layer_name, write_manifest
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores import open_layers
+from pipeline.stores import CompressedStore, RadianceStore, open_layers, open_store
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, location
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, to_uint8, tonemap
-from tasks.transform import Transform
 
 # Layers one export task holds at most: a whole stored light block if it fits (each chunk is
 # decoded once), else fewer (big layers: chunks are decoded once per task that needs them).
@@ -90,13 +89,12 @@ def _layers(store: str, view: int, lights: list[int]) -> np.ndarray:
 
     A compressed store's layers need its whole ``V``: one task holds it once for its lights.
     """
-    import zarr
-
-    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
-    if RADIANCE in group:
-        return group[RADIANCE].get_orthogonal_selection((view, lights))
+    source = open_store(store, RadianceStore, CompressedStore, checked=False)
+    if isinstance(source, RadianceStore):
+        return source.radiance.get_orthogonal_selection((view, lights))
+    group = source.group
     u = group["U"].get_orthogonal_selection((view, lights))
-    transform = Transform.from_attrs(group.attrs["transform"])
+    transform = source.transform
     return reconstruct_layers(u, group["S"][:], group["V"][:], transform=transform,
                               scale=transform.layer_scale(group["theta_light"][lights]))
 
@@ -121,7 +119,7 @@ def export(params: ExportParams, session: Session) -> Path:
                            overwrite=params.overwrite, session=session)
     import dask
 
-    ds = open_layers(params.store)  # a radiance store, or a compressed one rebuilt
+    ds = open_layers(params.store, read_chunks)  # radiance, or a compressed store rebuilt
     d = Directions.of(ds)
     views = layer_indices(params.view, d.theta_view.size, "view", params.store)
     lights = layer_indices(params.light, d.theta_light.size, "light", params.store)

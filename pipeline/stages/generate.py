@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
@@ -30,7 +29,7 @@ from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores.base import RADIANCE, Directions, location
+from pipeline.stores.base import RADIANCE, Directions, location, readable
 from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
 from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
 from tasks.sampling import SAMPLING_HELP, parse_sampling
@@ -108,11 +107,9 @@ def _stored_window(block_info=None, *, store: str, halo: int, ych, xch):
 
     The photo is mirrored at its borders: the halo of a border block has no true values.
     """
-    import zarr
-
     i, j = block_info[None]["chunk-location"][:2]
     (y0, ny), (x0, nx) = _block(ych, i), _block(xch, j)
-    group = zarr.open_group(storage.store(store), mode="r", use_consolidated=False)
+    group = readable(store)
     height, width = group["height"].shape
     ya, yb = max(0, y0 - halo), min(height, y0 + ny + halo)
     xa, xb = max(0, x0 - halo), min(width, x0 + nx + halo)
@@ -188,11 +185,10 @@ def _choose_material(params: GenerateParams
     return None, material, material_info, ny, nx
 
 
-def _attrs(params: GenerateParams, directions: Directions, material_info: dict,
-           model: ShadingModel, halo: int) -> dict:
-    """The store's attrs: kind, sampling, material, shading and provenance."""
+def _attrs(params: GenerateParams, material_info: dict, model: ShadingModel, halo: int
+           ) -> dict:
+    """The store's attrs: sampling, material, shading and provenance (its kind: the store's)."""
     return {
-        "btf_kind": directions.kind,
         "source": "generate",
         "sampling": params.sampling,
         "material": material_info,
@@ -250,7 +246,7 @@ def generate(params: GenerateParams, session: Session) -> Path:
     halo = model.halo(float(sampling.theta_view.max()), float(sampling.theta_light.max()))
     directions = Directions(sampling.theta_view, sampling.phi_view, sampling.theta_light,
                             sampling.phi_light)
-    attrs = _attrs(params, directions, material_info, model, halo)
+    attrs = _attrs(params, material_info, model, halo)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
         def create():

@@ -197,7 +197,7 @@ def ingest(params: IngestParams, session: Session) -> Path:
         return found.ingest(params, session)
     source = found.open(Path(params.src), params.read_options())
     directions, info = source.directions, source.info
-    attrs = {"btf_kind": directions.kind, "source": "ingest", "ingest": source.attrs,
+    attrs = {"source": "ingest", "ingest": source.attrs,
              "provenance": provenance("ingest", params)}
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:

@@ -29,9 +29,8 @@ from pipeline.params import option
 from pipeline.session import Session
 from pipeline.sources import formats_help
 from pipeline.stage import Stage
-from pipeline.stores import KINDS, kind_of
-from pipeline.stores.base import DIRECTION_COORDS, location, open_group, read_directions
-from pipeline.stores.compressed import NAME as COMPRESSED
+from pipeline.stores import KINDS, CompressedStore, open_store
+from pipeline.stores.base import DIRECTION_COORDS, location
 from pipeline.stores.compressed import total_energy
 from pipeline.stores.levels import levels_of
 
@@ -88,23 +87,23 @@ def _variable(array) -> dict[str, Any]:
 
 def describe(path: str | Path) -> dict[str, Any]:
     """Metadata report of a store (no data is read beyond coordinate arrays)."""
-    group = open_group(path)
+    store = open_store(path, checked=False)  # what is wrong with it is reported, not raised
+    group = store.group
     variables = {name: _variable(group[name]) for name in sorted(group.array_keys())}
     nbytes = sum(v["bytes"] for v in variables.values())
     stored = sum(v["stored_bytes"] for v in variables.values())
-    attrs = dict(group.attrs)
+    attrs = store.attrs
     report = {
         "path": str(path),
-        "kind": attrs.get("btf_kind", "unknown"),
+        "kind": store.kind or "unknown",
         "source": attrs.get("source"),
         "variables": variables,
         "total": {"bytes": nbytes, "stored_bytes": stored,
                   "ratio": nbytes / stored if stored else None},
         "attrs": attrs,
     }
-    kind = kind_of(group)
-    if kind is not None:
-        report.update(kind.summary(group))
+    if store.kind is not None:
+        report.update(store.summary(group))
     levels = levels_of(group)
     if levels:
         report["levels"] = levels
@@ -113,7 +112,7 @@ def describe(path: str | Path) -> dict[str, Any]:
 
 def scan(path: str | Path, session: Session) -> dict[str, dict[str, Any]]:
     """Statistics of every numeric array, read once block by block (memory: a few blocks)."""
-    group = open_group(path)
+    group = open_store(path, checked=False).group
     names = [n for n in sorted(group.array_keys()) if group[n].dtype.kind in "fiu"
              and n not in DIRECTION_COORDS]
     session.log(f"scan: {len(names)} variable(s) of {path}")
@@ -155,9 +154,10 @@ def plot_sampling(path: str | Path, out: str | Path) -> None:
     """
     from matplotlib.figure import Figure
 
-    group = open_group(path)
-    d = read_directions(group)
-    compressed = group.attrs.get("btf_kind") == COMPRESSED
+    store = open_store(path, checked=False)
+    group = store.group
+    d = store.directions
+    compressed = isinstance(store, CompressedStore)
     panels = 3 if compressed else 2
     fig = Figure(figsize=(4.6 * panels, 4.6), layout="constrained")
     if compressed:
@@ -299,7 +299,7 @@ def inspect(params: InspectParams, session: Session) -> dict[str, Any]:
     if params.scan:
         report["scan"] = scan(params.store, session)
     if params.plot:
-        if not set(DIRECTION_COORDS) <= set(open_group(params.store).array_keys()):
+        if not all(open_store(params.store, checked=False).has(n) for n in DIRECTION_COORDS):
             raise BTFError(f"{params.store}: no direction coordinates to plot")  # not a BTF
         plot_sampling(params.store, params.plot)
     _print(params, report, format_report)

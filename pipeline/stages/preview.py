@@ -11,11 +11,12 @@ import math
 from pathlib import Path
 
 from pipeline.atomic import atomic_output
+from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.thumbnails import thumbnail
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
-from pipeline.stores import open_layers
+from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.base import Directions
 from tasks.sampling import spread_pairs
 from tasks.tonemap import exposure, tonemap
@@ -45,7 +46,8 @@ def preview(params: PreviewParams, session: Session) -> Path:
     import dask.array as da
     from matplotlib.figure import Figure
 
-    ds = open_layers(params.store)  # a compressed store's layers are rebuilt from U, S, V
+    store = open_store(params.store, RadianceStore, CompressedStore)
+    ds = store.dataset(read_chunks)  # a compressed store's layers: rebuilt from U, S, V
     d = Directions.of(ds)
     layers = spread_pairs(d.theta_view, d.phi_view, d.theta_light, d.phi_light, params.count)
     thumbs = da.stack([thumbnail(ds, v, li, params.size) for v, li in layers])
@@ -55,8 +57,8 @@ def preview(params: PreviewParams, session: Session) -> Path:
     cols = min(len(layers), 4 if len(layers) <= 8 else 6)
     rows = math.ceil(len(layers) / cols)
     fig = Figure(figsize=(2.6 * cols, 2.9 * rows + 0.6), dpi=100, layout="constrained")
-    attrs = dict(ds.attrs)
-    title = f"{Path(params.store).name}: {attrs.get('btf_kind', '?')}"
+    attrs = store.attrs
+    title = f"{Path(params.store).name}: {store.kind}"
     if "material" in attrs:
         title += f", {attrs['material'].get('name', 'photo')}"
     if "sampling" in attrs:

@@ -17,6 +17,7 @@ from pathlib import Path
 import psutil
 
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.prescriptions import write_tileset
 from pipeline.graphs.reference import WEIGHTS_HELP, check_weights, compute_reference, parse_weights
 from pipeline.params import ParamError, check_seed, option
@@ -109,7 +110,7 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
 
     # a bad scene spec stops before the planning
     needs = tileset_needs(params.for_scene, params.store, params.out, session, label="quilt")
-    layers = open_layers(params.store)[RADIANCE]
+    layers = open_layers(params.store, read_chunks)[RADIANCE]
     sample = (layers.sizes["y"], layers.sizes["x"])
     if params.block is not None and min(sample) < params.block:
         raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "

@@ -99,7 +99,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
         needs = needs_of(spec_for_output(params.for_scene, params.out), d, (ny, nx))
         session.log(f"reconstruct: only what {params.for_scene} needs: {len(needs.layers)} "
                     f"of {needs.of} layers, texels {needs.window}")
-    attrs = {"btf_kind": d.kind, "source": "reconstruct",
+    attrs = {"source": "reconstruct",
              "reconstructed_from": {"store": params.store, "rank": sel.attrs["rank_used"],
                                     "error": sel.attrs.get("error")},
              "provenance": provenance("reconstruct", params)}

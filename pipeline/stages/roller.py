@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import BTFError
+from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.prescriptions import write_tileset
 from pipeline.graphs.reference import compute_reference
 from pipeline.params import ParamError, check_seed, option
@@ -91,7 +92,7 @@ def analysis_image(path: str, image: str, session: Session) -> tuple[np.ndarray,
         maps, view = compute_reference(path, weights=(1.0, 0.5, 0.5), view=None,
                                        session=session)
         return maps.reference.astype(np.float64), f"the reference image of view {view}"
-    ds = open_layers(path)
+    ds = open_layers(path, read_chunks)
     d = Directions.of(ds)
     view = int(np.argmin(d.theta_view))
     light = int(np.argmin(d.theta_light))

@@ -81,10 +81,13 @@ def _refuse(store: Store, expected: tuple[type[Store], ...]) -> None:
                    + (f": {hint}" if hint else ""))
 
 
-def open_layers(path: str | Path):
-    """A Dataset with a (lazy) ``radiance`` of layers, from a radiance or a compressed store."""
+def open_layers(path: str | Path, chunks=None):
+    """A Dataset with a (lazy) ``radiance`` of layers, from a radiance or a compressed store.
+
+    ``chunks``: a radiance store's dask chunks (:func:`pipeline.stores.radiance.open_dataset`).
+    """
     store = open_store(path, RadianceStore, CompressedStore)
-    return store.dataset()
+    return store.dataset(chunks)
 
 
 __all__ += ["compressed", "fitted", "radiance", "scene", "surface", "tileset"]

@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline import checksums, storage
 from pipeline.errors import BTFError
+from pipeline.stores.groups import readable, stored_attrs, writable  # noqa: F401 (re-exported)
 from tasks.sampling import btf_kind
 
 RADIANCE = "radiance"
@@ -131,8 +132,6 @@ def add_array(group, name: str, *, shape: tuple[int, ...], dims: tuple[str, ...]
 
 def open_group(path: str | Path):
     """Open a zarr v3 group for reading, with a clear error if it is not one."""
-    import zarr
-
     where = location(path)
     meta = storage.read(storage.join(where, storage.ROOT))
     if meta is None and storage.is_url(where):
@@ -153,21 +152,7 @@ def open_group(path: str | Path):
     if node_type != "group":
         raise BTFError(f"{path}: a zarr array, not a group of variables")
     # the files themselves, not the consolidated copy (written for other tools, see atomic)
-    return zarr.open_group(storage.store(where), mode="r", use_consolidated=False)
-
-
-def writable(path: str | Path, subgroup: str | None = None, *, new: bool = False):
-    """A store's group (or ``subgroup`` of it) opened for writing.
-
-    For a stage's own output while it writes it, or a store it adds to (``btf pyramid``'s
-    levels); ``new`` creates the subgroup, refusing one that exists.
-    """
-    import zarr
-
-    store = storage.store(location(path))
-    if new:
-        return zarr.open_group(store, path=subgroup, mode="w-", zarr_format=3)
-    return zarr.open_group(store, path=subgroup or "", mode="r+", use_consolidated=False)
+    return readable(where)
 
 
 def read_directions(group) -> Directions:

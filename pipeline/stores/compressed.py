@@ -271,7 +271,10 @@ class CompressedStore(Store):
         """A cosine store's scale of layers lit by ``lights`` (indices), else None."""
         return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
 
-    def dataset(self, rank: int | None = None):
-        """The lazy Dataset of :func:`open_compressed` (``radiance`` rebuilt on demand)."""
+    def dataset(self, chunks=None, rank: int | None = None):
+        """The lazy Dataset of :func:`open_compressed` (``radiance`` rebuilt on demand).
+
+        ``chunks`` is for radiance stores' interface: a compressed store's blocks are its own.
+        """
         return open_compressed(self.path, rank=rank, group=self.group)
 

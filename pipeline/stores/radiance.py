@@ -156,28 +156,30 @@ def check_radiance(group, path: str | Path) -> None:
     check_coordinates(group, path, sizes, f"variable {RADIANCE!r}")
 
 
-def open_dataset(path: str | Path, group=None):
-    """Open a store as a lazy xarray Dataset whose data variables are dask arrays of task blocks.
+def open_dataset(path: str | Path, group=None, chunks=None):
+    """Open a store as a lazy xarray Dataset whose data variables are dask arrays.
 
-    Coordinates stay small lazy arrays; each data variable is chunked in whole write units, so
-    no read straddles a shard and no shard is read by two tasks.
+    ``chunks(group, name)`` gives each data variable's dask chunks (a graph's task blocks,
+    :func:`pipeline.graphs.blocks.read_chunks`: whole write units, so that no read straddles a
+    shard and no shard is read by two tasks); without it, the stored chunks. Coordinates stay
+    small lazy arrays.
     """
     import xarray as xr
 
-    from pipeline.graphs.blocks import read_chunks
-
     group = open_group(path) if group is None else group
-    ds = xr.open_zarr(storage.store(location(path)), consolidated=False, chunks=None)
-    for name in ds.data_vars:
-        ds[name] = ds[name].chunk(read_chunks(group, name))
+    ds = xr.open_zarr(storage.store(location(path)), consolidated=False,
+                      chunks=None if chunks else {})
+    if chunks:
+        for name in ds.data_vars:
+            ds[name] = ds[name].chunk(chunks(group, name))
     return ds
 
 
-def open_radiance(path: str | Path):
-    """Open and validate a radiance store as a lazy xarray Dataset (dask chunks: task blocks)."""
+def open_radiance(path: str | Path, chunks=None):
+    """Open and validate a radiance store as a lazy xarray Dataset (see :func:`open_dataset`)."""
     group = open_group(path)
     check_radiance(group, path)
-    return open_dataset(path, group)
+    return open_dataset(path, group, chunks)
 
 
 def _summary(group) -> dict[str, Any]:
@@ -219,7 +221,7 @@ class RadianceStore(Store):
         """Whether it holds a generated material's ground-truth fields."""
         return all(self.has(name) for name in TRUTH_DIMS)
 
-    def dataset(self):
-        """The store as a lazy xarray Dataset, dask chunks in task blocks."""
-        return open_dataset(self.path, self.group)
+    def dataset(self, chunks=None):
+        """The store as a lazy xarray Dataset (``chunks``: see :func:`open_dataset`)."""
+        return open_dataset(self.path, self.group, chunks)
 
