@@ -27,7 +27,7 @@ from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, same_directions
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE
-from pipeline.stores.tileset import TileSet
+from pipeline.stores.tileset import Placement, TileSet
 from tasks.canvas import TERMS
 from tasks.corner_tiles import plan_first
 from tasks.quilt_layout import (
@@ -135,8 +135,6 @@ def _tileset(params: QuiltStageParams, plan, qp: QuiltParams, reference,
         "quilt": {**dataclasses.asdict(qp), "seed": params.seed,
                   "weights": list(parse_weights(params.weights)), "reference_view": view},
         "border_check": {"bound": qp.max_seam, "tiles": [c.to_dict() for c in plan.checks]},
-        "corner_types": qp.corners,
-        "seed": params.seed,
         "placements": [{"canvas": p.canvas, "window": list(p.window),
                         "source": list(p.source), "flags": list(p.flags)}
                        for p in plan.placements],
@@ -147,7 +145,7 @@ def _tileset(params: QuiltStageParams, plan, qp: QuiltParams, reference,
     return TileSet(index=[t.index.reshape(-1, TERMS) for t in plan.tiles],
                    weight=[t.weight.reshape(-1, TERMS) for t in plan.tiles],
                    tile_shape=qp.tile, corners=plan.corners, reference=reference,
-                   attrs=attrs)
+                   attrs=attrs, placement=Placement("corners", qp.corners, params.seed))
 
 
 def _plan(params: QuiltStageParams, reference, sample: tuple[int, int], channels: int,

@@ -29,7 +29,7 @@ from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, same_directions
 from pipeline.stores import open_layers
 from pipeline.stores.base import RADIANCE, Directions
-from pipeline.stores.tileset import TileSet
+from pipeline.stores.tileset import Placement, TileSet
 from tasks.periodicity import Lattice, detect_lattice
 from tasks.reference import luminance
 from tasks.roller import RollerParams, plan_roller
@@ -151,17 +151,10 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
                 f"{plan.check[1]:.2f} of the sample's own variation")
     attrs = {
         "source": "roller",
-        "placement": "lattice",
-        "corner_types": 1,
-        "lattice": {**lattice.as_dict(), "U": list(plan.U), "V": list(plan.V),
-                    "periods": list(plan.periods), "hnf": list(plan.hnf),
-                    "origin": list(plan.origin), "offsets": [list(o) for o in plan.offsets],
-                    "image": what},
         "roller": {**dataclasses.asdict(params.roller_params()), "seed": params.seed,
                    "cut_u": plan.cut_u.tolist(), "cut_v": plan.cut_v.tolist()},
         "border_check": {"bound": params.max_seam, "seam": round(plan.check[0], 4),
                          "structure": round(plan.check[1], 4)},
-        "seed": params.seed,
         "provenance": provenance("roller", params),
     }
     if needs is not None:
@@ -169,6 +162,11 @@ def roller(params: RollerStageParams, session: Session) -> Path | None:
     tiles = TileSet(index=list(plan.index), weight=list(plan.weight),
                     tile_shape=plan.tile_shape, reference=image.astype(np.float32),
                     corners=np.zeros((params.tiles, 4), np.int64), attrs=attrs,
+                    placement=Placement("lattice", 1, params.seed, {
+                        **lattice.as_dict(), "U": list(plan.U), "V": list(plan.V),
+                        "periods": list(plan.periods), "hnf": list(plan.hnf),
+                        "origin": list(plan.origin),
+                        "offsets": [list(o) for o in plan.offsets], "image": what}),
                     representative=plan.representative.astype(np.int64))
     return write_tileset(tiles, params.out, source=params.store, session=session,
                          label="roller", overwrite=params.overwrite, needs=needs)

@@ -97,12 +97,49 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
 
 
 @dataclass(frozen=True)
+class Placement:
+    """How a tile set's tiles cover a surface: its attributes, read and written here only.
+
+    ``kind``: ``"corners"`` (quilting's corner tiles, ``corner_types`` types of corner, laid by
+    a hash of the lattice vertices) or ``"lattice"`` (the roller's tiles on a sheared lattice,
+    described by ``lattice``: its vectors, the tile vectors ``U``, ``V``, the Hermite normal
+    form ``hnf`` of the stored layout, ...). ``seed`` is the placement seed.
+    """
+
+    kind: str = "corners"
+    corner_types: int = 1
+    seed: int = 0
+    lattice: dict[str, Any] | None = None
+
+    def __post_init__(self):
+        if self.kind not in ("corners", "lattice"):
+            raise ValueError(f"placement must be corners or lattice, got {self.kind!r}")
+        if self.kind == "lattice" and not self.lattice:
+            raise ValueError("a lattice placement needs its lattice")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The store's attributes of the placement."""
+        out: dict[str, Any] = {"corner_types": self.corner_types, "seed": self.seed}
+        if self.kind == "lattice":
+            out.update(placement="lattice", lattice=self.lattice)
+        return out
+
+    @staticmethod
+    def from_dict(attrs: dict[str, Any]) -> Placement:
+        """The placement a store's attributes describe (older quilt sets: the plan's seed)."""
+        seed = attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0))
+        kind = "lattice" if attrs.get("placement") == "lattice" else "corners"
+        return Placement(kind, int(attrs.get("corner_types") or 1), int(seed),
+                         attrs.get("lattice") if kind == "lattice" else None)
+
+
+@dataclass(frozen=True)
 class TileSet:
     """What a planner made: every tile's prescription and corner types, and its reference.
 
     ``index`` and ``weight`` hold one ``(pixel, term)`` array per tile (:mod:`tasks.prescription`);
-    ``attrs`` the planner's record for the store; ``representative`` the roller's cut-tile
-    position of every stored texel.
+    ``placement`` how they cover a surface; ``attrs`` the planner's record for the store;
+    ``representative`` the roller's cut-tile position of every stored texel.
     """
 
     index: list[np.ndarray]
@@ -111,6 +148,7 @@ class TileSet:
     corners: np.ndarray
     reference: np.ndarray
     attrs: dict[str, Any]
+    placement: Placement = Placement()
     representative: np.ndarray | None = None
 
     @property
@@ -137,7 +175,8 @@ def write_tileset_store(path, tiles: TileSet, *, source: Store):
 
     compressed = isinstance(source, CompressedStore)
     source_group = source.group
-    attrs = {**tiles.attrs, "source_store": source.path, "tile_shape": list(tiles.tile_shape),
+    attrs = {**tiles.attrs, **tiles.placement.to_dict(), "source_store": source.path,
+             "tile_shape": list(tiles.tile_shape),
              "sample_shape": list(tiles.reference.shape[:2]),
              "source_btf_kind": source.attrs.get("source_btf_kind") if compressed
              else source.kind}
@@ -181,16 +220,14 @@ def read_plan(path) -> TileSet:
     Everything :func:`write_tileset_store` wrote: prescriptions, corner types, reference, the
     roller's representatives and the store's attrs (its own keys included).
     """
-    import zarr
+    from pipeline.stores.groups import readable
 
-    from pipeline import storage
-
-    group = zarr.open_group(storage.store(str(path)), mode="r", use_consolidated=False)
+    group = readable(path)
     index, weight = group["prescription_index"][...], group["prescription_weight"][...]
     return TileSet(index=list(index), weight=list(weight),
                    tile_shape=tuple(group.attrs["tile_shape"]),
                    corners=group["corners"][...], reference=group["reference"][...],
-                   attrs=dict(group.attrs),
+                   attrs=dict(group.attrs), placement=Placement.from_dict(dict(group.attrs)),
                    representative=group["representative"][...]
                    if "representative" in group else None)
 
@@ -294,26 +331,30 @@ class TileSetStore(Store):
         """Texels of the sample the tiles were planned on ``(y, x)``."""
         return tuple(int(n) for n in self.group.attrs["sample_shape"])
 
+    @cached_property
+    def layout(self) -> Placement:
+        """How the tiles cover a surface (:class:`Placement`)."""
+        return Placement.from_dict(dict(self.group.attrs))
+
     @property
     def placement(self) -> str:
         """``"lattice"`` (the roller's tiles) or ``"corners"`` (quilting's)."""
-        return "lattice" if self.group.attrs.get("placement") == "lattice" else "corners"
+        return self.layout.kind
 
     @property
     def corner_types(self) -> int:
         """Corner types of a corner set (1 for a periodic tile)."""
-        return int(self.group.attrs.get("corner_types") or 1)
+        return self.layout.corner_types
 
     @property
     def seed(self) -> int:
         """The placement seed recorded with the set (older quilt sets: the planning seed)."""
-        attrs = self.group.attrs
-        return int(attrs.get("seed", (attrs.get("quilt") or {}).get("seed", 0)))
+        return self.layout.seed
 
     @property
     def lattice(self) -> dict[str, Any] | None:
         """A roller set's lattice (``u``, ``v``, ``U``, ``V``, ``hnf``, ...), else None."""
-        return self.group.attrs.get("lattice")
+        return self.layout.lattice
 
     @property
     def hnf(self) -> tuple[int, int, int]:
