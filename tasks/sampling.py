@@ -47,10 +47,9 @@ def btf_kind(theta_view: np.ndarray) -> str:
 
 
 @dataclass(frozen=True)
-class Sampling:
-    """Light and view directions of a BTF (float64 degree arrays) and its name."""
+class Directions:
+    """View and light directions of a BTF, in degrees (float64 arrays)."""
 
-    name: str
     theta_view: np.ndarray
     phi_view: np.ndarray
     theta_light: np.ndarray
@@ -60,6 +59,35 @@ class Sampling:
     def kind(self) -> str:
         """``"abtf"`` or ``"btf"`` (see :func:`btf_kind`)."""
         return btf_kind(self.theta_view)
+
+    @property
+    def views(self) -> int:
+        """Number of view directions."""
+        return int(np.size(self.theta_view))
+
+    @property
+    def lights(self) -> int:
+        """Number of light directions."""
+        return int(np.size(self.theta_light))
+
+    @staticmethod
+    def of(ds) -> Directions:
+        """The directions of an opened Dataset (or any mapping of the four coordinates)."""
+        return Directions(*(np.asarray(ds[name].values, np.float64) for name in
+                            ("theta_view", "phi_view", "theta_light", "phi_light")))
+
+    def select(self, views, lights) -> Directions:
+        """The directions of some views and lights (index lists)."""
+        v, li = list(views), list(lights)
+        return Directions(self.theta_view[v], self.phi_view[v], self.theta_light[li],
+                          self.phi_light[li])
+
+
+@dataclass(frozen=True)
+class Sampling(Directions):
+    """A named direction sampling (:func:`parse_sampling`)."""
+
+    name: str = ""
 
 
 def _rings(thetas, counts, *, stagger: bool = False, offsets=None
@@ -136,17 +164,17 @@ def parse_sampling(spec: str) -> Sampling:
     name, _, args = spec.partition(":")
     if name in _FULL and not args:
         theta, phi = _FULL[name]()
-        return Sampling(spec, theta, phi, theta, phi)
+        return Sampling(theta, phi, theta, phi, name=spec)
     if name == "hemi":
         (n,) = _ints(spec, args, 1)
         theta, phi = _hemi(n)
-        return Sampling(spec, theta, phi, theta, phi)
+        return Sampling(theta, phi, theta, phi, name=spec)
     if name == "abtf":
         rotations, elevations = _ints(spec, args, 2)
         elevation = 90.0 * (np.arange(elevations) + 0.5) / elevations
         theta_l = np.tile(90.0 - elevation, rotations)
         phi_l = np.repeat(360.0 * np.arange(rotations) / rotations, elevations)
-        return Sampling(spec, np.zeros(1), np.zeros(1), theta_l, phi_l)
+        return Sampling(np.zeros(1), np.zeros(1), theta_l, phi_l, name=spec)
     raise ValueError(f"unknown sampling {spec!r}; use {SAMPLING_HELP}")
 
 

@@ -545,8 +545,10 @@ def test_the_address_drives_the_page_whenever_it_changes(browser, page):
     when it changes, and the address the page writes back keeps them."""
     tab, _ = _open(browser, page)
     tab.evaluate("location.hash = '#light=40,90&view=10,0&exposure=1.5&mode=1&repeat=2'")
-    tab.wait_for_function("window.btfView.state.mode === 'sphere'", timeout=5000)
-    tab.wait_for_timeout(100)  # the frame it asked for
+    # the frame it asked for: the sphere drawn and the address written back (the sphere's
+    # program compiles on its first frame: seconds on a busy machine)
+    tab.wait_for_function(f"window.btfView.canvas.width === {SPHERE} && "
+                          "location.hash.includes('mode=1')", timeout=20000)
     state = tab.evaluate("window.btfView.state")
     assert state["light"] == [40, 90] and state["view"] == [10, 0]
     assert state["exposure"] == 1.5 and state["repeat"] == 2

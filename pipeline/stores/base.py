@@ -15,7 +15,6 @@ variable in the project's codec. Each kind's module builds on these two.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -25,48 +24,12 @@ import numpy as np
 from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from pipeline.stores.groups import readable, stored_attrs, writable  # noqa: F401 (re-exported)
-from tasks.sampling import btf_kind
+from tasks.sampling import Directions
 
 RADIANCE = "radiance"
 RADIANCE_DIMS = ("view", "light", "y", "x", "channel")
 DIRECTION_COORDS = {"theta_view": "view", "phi_view": "view",
                     "theta_light": "light", "phi_light": "light"}
-
-
-@dataclass(frozen=True)
-class Directions:
-    """View and light directions of a store, in degrees (float64 arrays)."""
-
-    theta_view: np.ndarray
-    phi_view: np.ndarray
-    theta_light: np.ndarray
-    phi_light: np.ndarray
-
-    @property
-    def kind(self) -> str:
-        """``"abtf"`` or ``"btf"`` (:func:`tasks.sampling.btf_kind`)."""
-        return btf_kind(self.theta_view)
-
-    @property
-    def views(self) -> int:
-        """Number of view directions."""
-        return int(self.theta_view.size)
-
-    @property
-    def lights(self) -> int:
-        """Number of light directions."""
-        return int(self.theta_light.size)
-
-    @staticmethod
-    def of(ds) -> Directions:
-        """The directions of an opened Dataset."""
-        return Directions(*(np.asarray(ds[name].values, np.float64) for name in DIRECTION_COORDS))
-
-    def select(self, views, lights) -> Directions:
-        """The directions of some views and lights (index lists)."""
-        v, li = list(views), list(lights)
-        return Directions(self.theta_view[v], self.phi_view[v], self.theta_light[li],
-                          self.phi_light[li])
 
 
 def location(path: str | Path) -> str:
@@ -163,6 +126,18 @@ def read_directions(group) -> Directions:
 def read_channels(group) -> tuple[str, ...]:
     """The channel labels of a store."""
     return tuple(str(c) for c in group["channel"][:])
+
+
+def check_kind(group, path: str | Path, name: str, what: str, made_by: str,
+               dims: dict[str, tuple[str, ...]]) -> None:
+    """Raise :class:`BTFError` unless ``group`` is of kind ``name`` with these variables.
+
+    The message names the kind found and the command that makes ``what``.
+    """
+    if group.attrs.get("btf_kind") != name:
+        raise BTFError(f"{path}: not {what} (btf_kind is {group.attrs.get('btf_kind')!r}; "
+                       f"make one with {made_by})")
+    check_variables(group, path, dims)
 
 
 def check_variables(group, path: str | Path, dims: dict[str, tuple[str, ...]]) -> None:

@@ -33,7 +33,7 @@ from pipeline.stores.base import (
     Store,
     add_array,
     check_coordinates,
-    check_variables,
+    check_kind,
     create_store,
     location,
     open_group,
@@ -69,10 +69,7 @@ def create_compressed_store(path: str | Path, *, directions: Directions,
 
 def check_compressed(group, path: str | Path) -> None:
     """Raise :class:`BTFError` naming what is wrong if ``group`` is not a compressed store."""
-    if group.attrs.get("btf_kind") != NAME:
-        raise BTFError(f"{path}: not a compressed store (btf_kind is "
-                       f"{group.attrs.get('btf_kind')!r}; make one with btf compress)")
-    check_variables(group, path, FACTOR_DIMS)
+    check_kind(group, path, NAME, "a compressed store", "btf compress", FACTOR_DIMS)
     if "transform" not in group.attrs or "eps" not in group.attrs["transform"]:
         raise BTFError(f"{path}: attrs lack the range reduction ('transform' with 'eps')")
     u, s, v = (group[n].shape for n in ("U", "S", "V"))
@@ -236,14 +233,8 @@ def dfmf_lines(meta: dict[str, Any], *, what: str = "file") -> list[str]:
     return lines
 
 
-class CompressedStore(Store):
-    """A compressed store: ``U``, ``S``, ``V`` of the range-reduced BTF matrix, its transform."""
-
-    names = (NAME,)
-    what = "compressed store"
-    check = staticmethod(check_compressed)
-    summary = staticmethod(_summary)
-    lines = staticmethod(_lines)
+class Factors(Store):
+    """What every store of factors has: ``U`` and ``S``, and the transform of its values."""
 
     @cached_property
     def transform(self) -> Transform:
@@ -254,6 +245,20 @@ class CompressedStore(Store):
     def rank(self) -> int:
         """Components stored."""
         return int(self.group["S"].shape[0])
+
+    def layer_scale(self, lights) -> np.ndarray | None:
+        """A cosine store's scale of layers lit by ``lights`` (indices), else None."""
+        return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
+
+
+class CompressedStore(Factors):
+    """A compressed store: ``U``, ``S``, ``V`` of the range-reduced BTF matrix, its transform."""
+
+    names = (NAME,)
+    what = "compressed store"
+    check = staticmethod(check_compressed)
+    summary = staticmethod(_summary)
+    lines = staticmethod(_lines)
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -266,10 +271,6 @@ class CompressedStore(Store):
     def error(self) -> dict[str, Any]:
         """The recorded errors (``error`` attribute; empty if none)."""
         return dict(self.group.attrs.get("error") or {})
-
-    def layer_scale(self, lights) -> np.ndarray | None:
-        """A cosine store's scale of layers lit by ``lights`` (indices), else None."""
-        return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
 
     def dataset(self, chunks=None, rank: int | None = None):
         """The lazy Dataset of :func:`open_compressed` (``radiance`` rebuilt on demand).

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from pipeline import storage
-from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
     RADIANCE,
@@ -23,7 +22,7 @@ from pipeline.stores.base import (
     Directions,
     Store,
     add_array,
-    check_variables,
+    check_kind,
     create_store,
     location,
     open_group,
@@ -55,10 +54,7 @@ def create_fitted_store(path, *, directions: Directions, ny: int, nx: int, rotat
 
 def check_fitted(group, path: str | Path) -> None:
     """Raise :class:`BTFError` naming what is wrong if ``group`` is not an HLS-fit store."""
-    if group.attrs.get("btf_kind") != NAME:
-        raise BTFError(f"{path}: not an HLS-fit store (btf_kind is "
-                       f"{group.attrs.get('btf_kind')!r}; make one with btf fit)")
-    check_variables(group, path, DIMS)
+    check_kind(group, path, NAME, "an HLS-fit store", "btf fit", DIMS)
 
 
 def _rebuild_block(h, s, coef, *, grid, elevations):

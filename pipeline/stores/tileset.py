@@ -43,8 +43,8 @@ from pipeline.stores.base import (
     sampling_lines,
     sampling_summary,
 )
+from pipeline.stores.compressed import Factors
 from tasks.placement import corner_code
-from tasks.transform import Transform
 
 NAMES = ("tileset", "compressed-tileset")
 CORNERS = ("top_left", "top_right", "bottom_left", "bottom_right")
@@ -386,7 +386,7 @@ class TileSetStore(Store):
                       self.group["prescription_weight"][tile], sy * sx)
 
 
-class CompressedTileSetStore(TileSetStore):
+class CompressedTileSetStore(TileSetStore, Factors):
     """A tile set of a compressed store: ``U``, ``S`` and eigentextures ``V``, its transform.
 
     Written now with the sample's ``V`` and the prescriptions (``prescribed``): a tile's
@@ -402,24 +402,10 @@ class CompressedTileSetStore(TileSetStore):
         """Always true: eigentextures with ``U`` and ``S``."""
         return True
 
-    @cached_property
-    def transform(self) -> Transform:
-        """How its values become radiance (the source's)."""
-        return Transform.from_attrs(self.group.attrs["transform"])
-
-    @property
-    def rank(self) -> int:
-        """Components stored."""
-        return int(self.group["S"].shape[0])
-
     @property
     def prescribed(self) -> bool:
         """Whether it holds the sample's ``V`` (its tiles' computed on reading)."""
         return self.group["V"].ndim == 3
-
-    def layer_scale(self, lights) -> np.ndarray | None:
-        """A cosine set's scale of layers lit by ``lights`` (indices), else None."""
-        return self.transform.layer_scale(self.directions.theta_light[np.asarray(lights)])
 
     def sample_values(self, coef: np.ndarray) -> np.ndarray:
         """``V coef`` ``(sample_y, sample_x, n)`` of the sample, reading ``V`` by bands."""
