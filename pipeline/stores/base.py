@@ -1,4 +1,4 @@
-"""What every store shares (DESIGN.md, the store contract), and the one way to create one.
+"""What every store shares (the store contract, docs/README.md), and the one way to create one.
 
 Every store the project writes is a zarr v3 group that ``xarray.open_zarr`` opens, with
 
