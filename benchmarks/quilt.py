@@ -174,14 +174,14 @@ def render_throughput(tileset: Path, args) -> dict:
     import dask.array as da
 
     from pipeline.graphs.surface import lazy_layer
-    from pipeline.stores.tileset import open_tileset
+    from pipeline.stores import TileSetStore, open_store
 
     size = args.render
     layer = lazy_layer(tileset, view=0, light=0, size=(size, size), seed=0)
     nbytes = size * size * layer.shape[-1] * 4
     with dask.config.set(scheduler="threads", num_workers=2):
         t_render, _ = fastest(args.repeat, lambda: da.store(layer, _Sink(), lock=False))
-    tile = open_tileset(tileset)["radiance"][0, 0, 0]
+    tile = open_store(tileset, TileSetStore)["radiance"][0, 0, 0]
     block = layer.chunksize[0]
     reps = (-(-block // tile.shape[0]), -(-block // tile.shape[1]), 1)
     blocks = range(len(layer.chunks[0]) * len(layer.chunks[1]))
