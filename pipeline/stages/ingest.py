@@ -54,7 +54,8 @@ class IngestParams:
 
     src: str = option(help="the measured BTF: one of the formats listed above",
                       positional=True, path="in")
-    out: str = option(help="output radiance store (a .zarr directory)", positional=True,
+    out: str = option(help="output store (a .zarr directory): radiance, or factors from a DFMF "
+                           "file", positional=True,
                       path="out")
     manifest: str | None = option(
         None, path="in", metavar="CSV",
