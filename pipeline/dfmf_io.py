@@ -354,12 +354,11 @@ def _file_gram(src: str, header: DfmfHeader, regions, ones: bool,
     """
     import dask
 
+    from pipeline.graphs.factors import pairwise_sum
+
     grams = [dask.delayed(_gram, pure=True)(src, header, ys, xs, ones)
              for ys, xs in regions]
-    while len(grams) > 1:
-        grams = [dask.delayed(np.add, pure=True)(*grams[i : i + 2])
-                 if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
-    (g,) = session.compute(grams[0])
+    (g,) = session.compute(pairwise_sum(grams))
     return g
 
 

@@ -20,6 +20,16 @@ def _gram(block: np.ndarray, s: np.ndarray) -> np.ndarray:
     return c.T @ c
 
 
+def pairwise_sum(parts: list):
+    """Delayed sum of delayed arrays in a fixed binary tree (the same bits on any scheduler)."""
+    import dask
+
+    while len(parts) > 1:
+        parts = [dask.delayed(np.add, pure=True)(*parts[i : i + 2]) if i + 1 < len(parts)
+                 else parts[i] for i in range(0, len(parts), 2)]
+    return parts[0]
+
+
 def gram(v, s: np.ndarray, session) -> np.ndarray:
     """``(V diag(s))^T (V diag(s))`` (float64) of a dask ``V`` ``(y, x, K)``: one read.
 
@@ -29,10 +39,7 @@ def gram(v, s: np.ndarray, session) -> np.ndarray:
 
     blocks = v.to_delayed().ravel()
     parts = [dask.delayed(_gram, pure=True)(b, np.asarray(s, np.float64)) for b in blocks]
-    while len(parts) > 1:
-        parts = [dask.delayed(np.add, pure=True)(*parts[i : i + 2]) if i + 1 < len(parts)
-                 else parts[i] for i in range(0, len(parts), 2)]
-    (g,) = session.compute(parts[0])
+    (g,) = session.compute(pairwise_sum(parts))
     return g
 
 

@@ -17,12 +17,11 @@ picks the one format that can open a path, refusing a path none or several can o
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import pkgutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pipeline.declarations import collect
 from pipeline.errors import BTFError
 
 if TYPE_CHECKING:
@@ -81,20 +80,8 @@ class SourceFormat:
             raise TypeError(f"format {self.name!r}: give exactly one of open and ingest")
 
 
-def _declaration(module: str) -> SourceFormat | None:
-    found = getattr(importlib.import_module(f"{__name__}.{module}"), "FORMAT", None)
-    return found if isinstance(found, SourceFormat) else None
-
-
 def _declarations() -> dict[str, SourceFormat]:
-    found = {}
-    for module in pkgutil.iter_modules(__path__):
-        declared = _declaration(module.name)
-        if declared is not None:
-            found[declared.name] = declared
-    rank = {name: k for k, name in enumerate(ORDER)}
-    return dict(sorted(found.items(), key=lambda item: (rank.get(item[0], len(ORDER)),
-                                                        item[0])))
+    return collect(__name__, __path__, "FORMAT", SourceFormat, ORDER)
 
 
 def __getattr__(name: str):

@@ -15,9 +15,9 @@ for the imports of quilting or enlargement.
 
 from __future__ import annotations
 
-import importlib
 import pkgutil
 
+from pipeline.declarations import collect, declared
 from pipeline.stage import Stage
 
 ORDER = ("generate", "ingest", "export", "preview", "crop", "compress", "reconstruct", "enlarge",
@@ -26,19 +26,11 @@ ORDER = ("generate", "ingest", "export", "preview", "crop", "compress", "reconst
 
 
 def _declaration(module: str) -> Stage | None:
-    found = getattr(importlib.import_module(f"{__name__}.{module}"), "STAGE", None)
-    return found if isinstance(found, Stage) else None
+    return declared(__name__, module, "STAGE", Stage)
 
 
 def _declarations() -> dict[str, Stage]:
-    found = {}
-    for module in pkgutil.iter_modules(__path__):
-        declared = _declaration(module.name)
-        if declared is not None:
-            found[declared.name] = declared
-    rank = {name: k for k, name in enumerate(ORDER)}
-    return dict(sorted(found.items(), key=lambda item: (rank.get(item[0], len(ORDER)),
-                                                        item[0])))
+    return collect(__name__, __path__, "STAGE", Stage, ORDER)
 
 
 def stage(name: str) -> Stage | None:
