@@ -224,8 +224,10 @@ def scene_lines(plan: RunConfig) -> list[str]:
         src = shapes.get(getattr(step.params, "store", None))
         if (shape is None and step.name == "reconstruct" and src is not None and src.radiance
                 and not (step.params.light or step.params.view or step.params.region)):
-            shape = dataclasses.replace(src, kind="btf", chunk=step.params.chunk,
-                                        dir_chunk=step.params.dir_chunk)
+            layout = step.params.layout()
+            shape = dataclasses.replace(src, kind="btf", chunk=layout.chunk,
+                                        dir_chunk=layout.dir_chunk, unit=layout.chunk,
+                                        itemsize=layout.itemsize)
         total = planning.chunks_of(shape) if shape is not None else None
         whole = f"all {total} chunks" if total else "all of its output"
         if getattr(step.params, "for_scene", None):
@@ -260,7 +262,8 @@ def _restricted_count(step, plan: RunConfig, shapes: dict) -> str | None:
 
         ny, nx = src.radiance[2:4]
         needs = needs_of(plan.scene, d, (ny, nx))
-        chunk, dl = step.params.chunk, step.params.dir_chunk
+        layout = step.params.layout()
+        chunk, dl = layout.chunk, layout.dir_chunk
         side = task_side(chunk)  # written in task blocks of whole chunks
         kept = total = 0
         for view in range(d.views):

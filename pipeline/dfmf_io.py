@@ -390,7 +390,8 @@ def ingest_dfmf(params, session: Session) -> Path:
     # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
     channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
     _log_file(session, header, params.out)
-    chunk = min(params.chunk, header.height, header.width)
+    layout = params.layout()  # V in --dtype: float32 unless asked
+    chunk = min(layout.chunk, header.height, header.width)
     tiles = normalize_chunks((chunk, chunk), (header.height, header.width))
     attrs = _ingest_attrs(params, header, directions)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
@@ -404,8 +405,8 @@ def ingest_dfmf(params, session: Session) -> Path:
         def create():
             group = create_compressed_store(
                 tmp, directions=directions, channels=channels, ny=header.height,
-                nx=header.width, rank=rank, chunk=chunk, dir_chunk=params.dir_chunk,
-                attrs=attrs)
+                nx=header.width, rank=rank, chunk=chunk, dir_chunk=layout.dir_chunk,
+                attrs=attrs, v_dtype=layout.dtype)
             group["U"][...] = new_u.reshape(views, lights, nc, rank).astype(np.float32)
             group["S"][...] = s.astype(np.float32)
             return group

@@ -7,7 +7,7 @@ is a :class:`~pipeline.errors.BTFError` naming the file.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +22,61 @@ _PNG_CHANNELS = {0: ("Y",), 2: ("R", "G", "B"), 3: ("R", "G", "B"), 4: ("Y",), 6
 
 @dataclass(frozen=True)
 class ImageInfo:
-    """Size and channel names of an image file, read from its header only."""
+    """Size, channel names and sample type of an image file, read from its header only.
+
+    ``sample``: ``uint8``, ``uint16``, ``half``, ``float``, ``double`` or ``rgbe`` (Radiance's
+    shared-exponent bytes), the type the file stores its values in.
+    """
 
     height: int
     width: int
     channels: tuple[str, ...]
+    sample: str = "float"
+
+    @property
+    def precision(self) -> str:
+        """The store type that holds every value of this type exactly, as decoded to linear.
+
+        ``float16`` for 8-bit codes (each of the 256 decodes to a float16 that encodes back
+        to it, for every decoding) and half floats; ``float32`` for anything finer.
+        """
+        return "float16" if self.sample in ("uint8", "half") else "float32"
+
+    def same_size(self, other: ImageInfo) -> bool:
+        """Whether ``other`` has this image's size and channels (whatever its sample type)."""
+        return (self.height, self.width, self.channels) == (other.height, other.width,
+                                                            other.channels)
+
+    def widest(self, other: ImageInfo) -> ImageInfo:
+        """The info of both images: ``other``'s sample type where that one needs float32."""
+        return self if other.precision == "float16" else replace(self, sample=other.sample)
+
+
+_EXR_SAMPLES = {0: "uint32", 1: "half", 2: "float"}
+
+
+def _exr_sample(path: Path) -> str:
+    """The widest pixel type of an EXR file's channels, from the ``channels`` header attribute.
+
+    The bindings give the types only once the pixels are read; the header's ``chlist`` is
+    (name, int32 type, uint8 pLinear, 3 reserved bytes, int32 xSampling, int32 ySampling)
+    per channel, then a NUL.
+    """
+    with path.open("rb") as f:
+        head = f.read(1 << 16)
+    at = head.find(b"channels\0chlist\0")
+    if at < 0:
+        return "float"
+    at += len(b"channels\0chlist\0")
+    (size,) = struct.unpack_from("<i", head, at)
+    body, types = head[at + 4 : at + 4 + size], []
+    i = 0
+    while i < len(body) and body[i] != 0:
+        i = body.index(b"\0", i) + 1
+        types.append(struct.unpack_from("<i", body, i)[0])
+        i += 16
+    found = {_EXR_SAMPLES.get(t, "float") for t in types}
+    return "half" if found == {"half"} else "float"
 
 
 def _exr_channels(names: list[str], path: Path) -> tuple[str, ...]:
@@ -56,7 +106,8 @@ def image_info(path: str | Path) -> ImageInfo:
                 names = [str(c.name) for c in header["channels"]]
         except Exception as exc:  # the bindings raise RuntimeError with a short text
             raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
-        return ImageInfo(int(y1 - y0 + 1), int(x1 - x0 + 1), _exr_channels(names, path))
+        return ImageInfo(int(y1 - y0 + 1), int(x1 - x0 + 1), _exr_channels(names, path),
+                         _exr_sample(path))
     if suffix == ".png":
         try:
             with path.open("rb") as f:
@@ -69,7 +120,7 @@ def image_info(path: str | Path) -> ImageInfo:
         if colour not in _PNG_CHANNELS or depth not in (8, 16):
             raise BTFError(f"{path}: PNG with bit depth {depth} and colour type {colour} "
                            "is not supported (use 8 or 16-bit grey, RGB or RGBA)")
-        return ImageInfo(height, width, _PNG_CHANNELS[colour])
+        return ImageInfo(height, width, _PNG_CHANNELS[colour], f"uint{depth}")
     raise BTFError(f"{path}: not an image the pipeline reads (use .exr or .png)")
 
 

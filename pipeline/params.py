@@ -67,6 +67,7 @@ def option(
     numbers_as_text: bool = False,
     key: str | None = None,
     repeatable: bool = False,
+    group: str | None = None,
 ) -> Any:
     """A dataclass field of stage parameters.
 
@@ -96,10 +97,13 @@ def option(
     repeatable
         A list option that may be given more than once on the command line; the lists join
         in order (``--light 2 --light 3,4`` is ``--light 2,3,4``).
+    group
+        A heading under which ``--help`` lists the option, after the stage's own options
+        (options a mixin such as :class:`pipeline.stores.radiance.LayoutOptions` adds).
     """
     meta = {"help": help, "positional": positional, "choices": choices, "metavar": metavar,
             "path": path, "record": record, "numbers_as_text": numbers_as_text, "key": key,
-            "repeatable": repeatable}
+            "repeatable": repeatable, "group": group}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -248,8 +252,16 @@ def names_path(params: Any, direction: str, path: str) -> bool:
 def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
     """Add one argparse argument per field of ``cls``."""
     hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
+    fields = dataclasses.fields(cls)
+    groups: dict[str, Any] = {}
+    for f in (*[f for f in fields if not f.metadata.get("group")],
+              *[f for f in fields if f.metadata.get("group")]):
         meta = f.metadata
+        where = parser
+        if meta.get("group"):
+            if meta["group"] not in groups:
+                groups[meta["group"]] = parser.add_argument_group(meta["group"])
+            where = groups[meta["group"]]
         base, _ = _base_type(hints[f.name])
         help_text = meta["help"]
         if f.default not in (MISSING, None, False) and not meta["positional"]:
@@ -279,13 +291,13 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         if meta["positional"]:
             if f.default is not MISSING:  # an optional positional argument
                 kwargs.update(nargs="?", default=f.default)
-            parser.add_argument(f.name, **kwargs)
+            where.add_argument(f.name, **kwargs)
         else:
             if f.default is MISSING:
                 kwargs["required"] = True
             else:
                 kwargs["default"] = f.default
-            parser.add_argument("--" + key_of(f).replace("_", "-"), dest=f.name, **kwargs)
+            where.add_argument("--" + key_of(f).replace("_", "-"), dest=f.name, **kwargs)
 
 
 class _JoinLists(argparse.Action):

@@ -87,6 +87,7 @@ class Shape:
     rank: int | None = None
     unit: int = 0  # texels per side of a write unit (the shard, else the chunk)
     truth: bool = False  # ground-truth fields (generated stores, and crops of them)
+    itemsize: int = 4  # bytes per stored value of radiance (float16: 2), or of V
 
     @property
     def side(self) -> int:
@@ -129,10 +130,11 @@ def shape_of(path: str) -> Shape | None:
     if isinstance(store, RadianceStore) and store.has("radiance"):
         layout = store.layout
         return Shape(store.directions.kind, store.shape, layout.chunk, layout.dir_chunk,
-                     unit=layout.shard or layout.chunk, truth=store.has("height"))
+                     unit=layout.shard or layout.chunk, truth=store.has("height"),
+                     itemsize=layout.itemsize)
     if isinstance(store, CompressedStore):
         return Shape("compressed", store.shape, store["V"].chunks[0], store["U"].chunks[1],
-                     rank=store.rank)
+                     rank=store.rank, itemsize=store["V"].dtype.itemsize)
     return Shape(str(store.kind), (), 0, 0)
 
 

@@ -38,6 +38,7 @@ from pipeline.stores import (
 )
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.levels import levels_of
+from pipeline.stores.radiance import lazy_float32
 from tasks.transform import Transform
 
 # what a scene reads, by the source's class (a compressed tile set is a tile set)
@@ -159,7 +160,7 @@ def _radiance(spec: SceneSpec, group, kind: str, path: str, layers, request,
     req = request(level_window(spec, ny, nx, spec.level, session), stored is not None)
     _restricted_region(group, spec, req)
     source = zarr.open_array(storage.store(path), path=stored or RADIANCE, mode="r")
-    data = da.from_zarr(source)
+    data = lazy_float32(da.from_zarr(source))
     if kind == "surface":
         data = data[None, None]
     out = graphs.radiance_graph(data, req)
@@ -183,7 +184,7 @@ def _compressed(spec: SceneSpec, group, path: str, layers, request, session: Ses
     s = np.asarray(group["S"][:rank])
     v = zarr.open_array(storage.store(path), path=stored or "V", mode="r")
     transform = Transform.from_attrs(group.attrs["transform"])
-    out = graphs.compressed_graph(da.from_zarr(v), u_rows, s, transform, req,
+    out = graphs.compressed_graph(lazy_float32(da.from_zarr(v)), u_rows, s, transform, req,
                                   scale=_layer_scale(transform, group, layers))
     ys, xs = req.read_window()
     return out, {

@@ -21,6 +21,18 @@ from pipeline.cli import main
 SLOW_PROCESSES = pytest.param("processes", marks=pytest.mark.slow)
 
 
+# float16's rounding of a value, relative: a store of 8-bit or half-float measurements holds
+# float16 (each value within this of the float32 decode, and encoding back to its code)
+HALF_ROUNDING = 2.0**-11
+
+
+def stored_dtype(path: Path) -> str:
+    """The type a radiance store keeps its layers in."""
+    import zarr
+
+    return str(zarr.open_group(path, mode="r")["radiance"].dtype)
+
+
 def facing(height, phi: float):
     """How far each texel's surface faces azimuth ``phi`` (degrees): its slope down towards it.
 

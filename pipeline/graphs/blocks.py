@@ -89,6 +89,8 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                     f"dask chunks {chunks} of axis {dim} split write units of {unit} in "
                     f"{target.path!r}: concurrent writes would lose data"
                 )
+    sources = [_in_type_of(source, target) for source, target in zip(sources, targets,
+                                                                      strict=True)]
     if progress is None and keep is None:
         return da.store(sources, targets, lock=False, compute=False)
     units, regions = [], {}
@@ -117,6 +119,16 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
         todo = progress.pending(units, redo=[n for n, ok in zip(kept, whole, strict=True)
                                              if not ok])[0]
     return dask.delayed(_count, pure=False)(todo)
+
+
+def _in_type_of(source, target):
+    """``source`` cast to ``target``'s type (a float16 store: refusing what overflows it)."""
+    if source.dtype == target.dtype:
+        return source
+    from pipeline.stores.radiance import stored
+
+    return source.map_blocks(stored, np.dtype(target.dtype), f"{target.store}/{target.path}",
+                             dtype=target.dtype)
 
 
 def _optimized_together(arrays: list):

@@ -29,6 +29,7 @@ import numpy as np
 from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import as_float32
 from tasks.svd import BlockCheck, check_block
 from tasks.texture_optimization import (
     coarse_rows,
@@ -77,7 +78,7 @@ class Guide:
         for a in range(y0, y1, step):
             rows = slice(a * factor, min(min(a + step, y1) * factor, h))
             values = np.concatenate([self.transform.encode(
-                array[v, li, rows, cols] * np.float32(1.0 if self.scales is None
+                as_float32(array[v, li, rows, cols]) * np.float32(1.0 if self.scales is None
                                                       else self.scales[k]))
                 for k, (v, li) in enumerate(self.layers)], axis=-1)
             values -= np.asarray(self.offsets, np.float32)

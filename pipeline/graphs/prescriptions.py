@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
+from pipeline.stores.radiance import as_float32, stored
 
 APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
 
@@ -38,10 +39,11 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
     for l0 in range(light0, light1, step):
         l1 = min(l0 + step, light1)
-        layers = source[view, l0:l1]
+        layers = as_float32(source[view, l0:l1])
         result = np.empty((l1 - l0, *tile_shape, nc), np.float32)  # reused by every tile
         for t, matrix in enumerate(matrices):
-            target[t, view, l0:l1] = apply(matrix, layers, output=tile_shape, out=result)
+            target[t, view, l0:l1] = stored(apply(matrix, layers, output=tile_shape,
+                                                  out=result), target.dtype, out)
 
 
 def _copy_band(store: str, out: str, y0: int, y1: int) -> None:

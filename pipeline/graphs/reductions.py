@@ -20,6 +20,7 @@ from pipeline import checksums, storage
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks
 from pipeline.stores.base import RADIANCE, location
+from pipeline.stores.radiance import as_float32
 from tasks.reference import SUMS, combine_light_sums
 from tasks.reference import light_sums as block_light_sums
 
@@ -35,7 +36,7 @@ def _read(store: str, variable: str, region: tuple[slice, ...]) -> np.ndarray:
 
     array = zarr.open_array(storage.store(store), path=variable, mode="r")
     try:
-        return array[region]
+        return as_float32(array[region])
     except Exception as exc:  # re-raised with the block's key, whatever the codec raised
         if (error := checksums.named(store, variable, array, region, exc)) is not None:
             raise error from None
@@ -51,8 +52,9 @@ def read_array(path: str | Path, name: str):
 
     store = location(path)
     array = zarr.open_array(storage.store(store), path=name, mode="r")
-    return da.map_blocks(_read_region, chunks=aligned_chunks(array), dtype=array.dtype,
-                         meta=np.empty((0,) * array.ndim, array.dtype), store=store, variable=name)
+    dtype = np.float32 if array.dtype == np.float16 else array.dtype  # read as float32
+    return da.map_blocks(_read_region, chunks=aligned_chunks(array), dtype=dtype,
+                         meta=np.empty((0,) * array.ndim, dtype), store=store, variable=name)
 
 
 def _bad_chunks(store: str, variable: str, region: tuple[slice, ...]) -> list:

@@ -26,6 +26,7 @@ import numpy as np
 
 from pipeline import storage
 from pipeline.stores.base import RADIANCE, location
+from pipeline.stores.radiance import as_float32
 from pipeline.stores.scene import directions_per_chunk
 from tasks.scene import compressed_block, surface_block
 from tasks.transform import Transform
@@ -212,8 +213,8 @@ def _tile_data(store: str, tile: int, layers, rank, path: str):
 
     array = zarr.open_array(storage.store(store), path=path, mode="r")
     if layers is None:
-        return np.asarray(array[tile, :, :, :rank])
-    return np.stack([array[tile, v, li] for v, li in layers], axis=2)
+        return as_float32(array[tile, :, :, :rank])
+    return as_float32(np.stack([array[tile, v, li] for v, li in layers], axis=2))
 
 
 def _open(store: str):

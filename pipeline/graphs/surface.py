@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.errors import BTFError
 from pipeline.stores import TileSetStore, open_store
 from pipeline.stores.base import RADIANCE
+from pipeline.stores.radiance import as_float32
 from tasks.placement import gather, lattice_gather
 
 
@@ -23,7 +24,7 @@ def _layer_tiles(store: str, view: int, light: int, order: np.ndarray | None = N
     """The tiles of one layer, ``(tiles, ty, tx, channel)`` float32, in ``order``."""
     tileset = open_store(store, TileSetStore, checked=False)
     if not tileset.compressed:
-        tiles = tileset[RADIANCE][:, view, light]
+        tiles = as_float32(tileset[RADIANCE][:, view, light])
     else:  # the layer's values formed on the sample, then each tile's prescription applied
         u = tileset["U"][view, light]  # (channel, component)
         tiles = tileset.tile_layers(range(tileset.tiles), u[None],

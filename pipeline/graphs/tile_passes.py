@@ -34,6 +34,7 @@ from pipeline.graphs.row_passes import (
     running_sum,
     transformed_rows,
 )
+from pipeline.stores.radiance import as_float32
 from tasks.svd import (
     SPARSITY,
     BlockCheck,
@@ -232,7 +233,7 @@ def _verify_task(store: str, tile: TexelTile, blocks: list[RowBlock], u: np.ndar
     """
     import zarr
 
-    v = zarr.open_array(storage.store(out), path="V", mode="r")[tile.region]
+    v = as_float32(zarr.open_array(storage.store(out), path="V", mode="r")[tile.region])
     v = v.reshape(tile.texels, v.shape[-1])
     sse = np.zeros(tile.texels)
     residual, rows = 0.0, 0

@@ -160,8 +160,8 @@ def big_source(path: str | Path, *, xyz: str = "srgb") -> LayerSource:
         note = f"BIG values {AS_NAMED} ({colour})"
     else:
         note = f"BIG values {colour.replace('as stored', 'stored as they are')}"
-    return LayerSource(directions, grid, ImageInfo(layout.height, layout.width, channels),
-                       reader, attrs, note)
+    info = ImageInfo(layout.height, layout.width, channels, layout.type_name)
+    return LayerSource(directions, grid, info, reader, attrs, note)
 
 
 # --- the entry ------------------------------------------------------------------------------

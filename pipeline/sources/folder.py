@@ -89,7 +89,9 @@ def check_headers(grid: list[list[Entry]]) -> ImageInfo:
         info = image_info(entry.key)
         if first is None:
             first, first_path = info, entry.key
-        elif info != first:
+        elif info.same_size(first):
+            first = first.widest(info)
+        else:
             raise BTFError(f"{entry.key}: {info.height}x{info.width} with channels "
                            f"{','.join(info.channels)}, but {first_path.name} is "
                            f"{first.height}x{first.width} with {','.join(first.channels)}")
@@ -207,7 +209,8 @@ def folder_source(src: str | Path, manifest: str | Path | None = None, *, decode
               if xyz != "none" and Path(first).suffix.lower() == ".exr" else None)
     keep = xyz == "keep"
     if planes is not None:
-        info = ImageInfo(info.height, info.width, ("X", "Y", "Z") if keep else ("R", "G", "B"))
+        info = ImageInfo(info.height, info.width, ("X", "Y", "Z") if keep else ("R", "G", "B"),
+                         info.sample)
     attrs = {"format": "UTIA image folder" if utia else "image folder",
              "decoding": decode,
              "colour": (XYZ if keep else f"{LINEAR_SRGB} (converted from {XYZ})")

@@ -151,8 +151,9 @@ def zip_source(path: str | Path, *, decode: str = "srgb", hdr_rows: str = "botto
     directions, grid = layer_grid(entries, str(path), ordered=False)
     reader = ZipReader(str(path.resolve()), decode, hdr_rows)
     pixels = reader(grid[0][0].key)
-    info = ImageInfo(pixels.shape[0], pixels.shape[1], plane_channels(pixels.shape[2]))
     hdr = grid[0][0].key.lower().endswith(".hdr")
+    info = ImageInfo(pixels.shape[0], pixels.shape[1], plane_channels(pixels.shape[2]),
+                     "rgbe" if hdr else "uint8")
     attrs = {"format": "ATRIUM HDR zip" if hdr else "UBO2003/ATRIUM JPEG zip",
              "decoding": "linear (Radiance RGBE)" if hdr else decode,
              "colour": "as stored (the camera's RGB)"}

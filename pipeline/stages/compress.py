@@ -33,25 +33,27 @@ def _estimate(params: CompressParams, shapes: dict, *,
     """``btf run --plan``'s estimate, with the other mode (one pass or several) beside it."""
     src = shapes[params.store]
     nv, nl, ny, nx, nc = src.radiance
+    v_size = 2 if params.v_dtype == "float16" else 4  # bytes of a stored V value
     if src.kind == "compressed":  # its factors: V read twice, U held, V written
         k, rank = src.rank or params.rank, min(params.rank, src.rank or params.rank)
-        v_bytes, u_bytes = ny * nx * k * 4, nv * nl * nc * k * 8
+        v_bytes, u_bytes = ny * nx * k * src.itemsize, nv * nl * nc * k * 8
         per_core, source = rate("compress_bytes_per_core_second")
         plan = StageEstimate("compress", "", bytes_read=2 * v_bytes + u_bytes // 2,
-                             bytes_written=(nv * nl * nc + ny * nx + 1) * rank * 4,
+                             bytes_written=(nv * nl * nc + 1) * rank * 4 + ny * nx * rank * v_size,
                              tasks=2 * max(1, math.ceil(ny / src.chunk) * math.ceil(
                                  nx / src.chunk)), passes=2, input_reads=2,
                              task_bytes=2 * src.chunk**2 * k * 8, client_bytes=3 * u_bytes,
-                             core_seconds=2 * v_bytes / per_core, rate_source=source,
+                             core_seconds=2 * ny * nx * k * 4 / per_core, rate_source=source,
                              option="--rank",
                              note="a compressed store: its factors truncated or re-factored")
         return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=rank,
-                           unit=src.chunk)
+                           unit=src.chunk, itemsize=v_size)
     m, n = nv * nl * nc, ny * nx
     extra = min(params.extra, min(m, n) - params.rank)
     side = params.side(m, n)
     iterations = params.iterations(side)
-    matrix = m * n * 4
+    matrix = m * n * src.itemsize  # the store's bytes (float16: 2 a value)
+    work = m * n * 4  # what a pass computes on: float32, whatever the store holds
     tile = (min(src.chunk, ny), min(src.chunk, nx))
     texels = tile[0] * tile[1]
     tiles = math.ceil(ny / tile[0]) * math.ceil(nx / tile[1])
@@ -83,12 +85,13 @@ def _estimate(params: CompressParams, shapes: dict, *,
         tasks = len(plan_row_blocks(src.radiance, src.dir_chunk))
         option = "--sketch rows (client memory then grows with the rows only)"
     per_core, source = rate("compress_bytes_per_core_second")
-    seconds = reads * matrix / per_core
+    seconds = reads * work / per_core
     if params.one_pass:  # its own rate (sparse sketches: about the same work per value at any
         one, source = rate("compress_one_pass_bytes_per_core_second")  # k, s), or one read
-        seconds = max(matrix / per_core, matrix / one) + params.verify * matrix / per_core
+        seconds = max(work / per_core, work / one) + params.verify * work / per_core
     plan = StageEstimate("compress", "", bytes_read=reads * matrix,
-                         bytes_written=(m + n + 1) * params.rank * 4, tasks=tasks * passes,
+                         bytes_written=(m + 1) * params.rank * 4 + n * params.rank * v_size,
+                         tasks=tasks * passes,
                          passes=passes, input_reads=reads, task_bytes=task,
                          client_bytes=client, core_seconds=seconds, rate_source=source,
                          option=option, note=note)
@@ -100,7 +103,7 @@ def _estimate(params: CompressParams, shapes: dict, *,
         plan.alternatives[0].name = ("compress (default passes)" if params.one_pass else
                                      "compress --passes 1")
     return plan, Shape("compressed", src.radiance, src.chunk, src.dir_chunk, rank=params.rank,
-                       unit=src.chunk)
+                       unit=src.chunk, itemsize=v_size)
 
 
 STAGE = Stage("compress", CompressParams, compress,

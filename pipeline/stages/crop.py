@@ -14,6 +14,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, read_chunks, store_aligned, task_side
@@ -25,11 +27,11 @@ from pipeline.session import Session
 from pipeline.stage import Stage, selected_directions
 from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, read_channels
-from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
+from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store
 
 
 @dataclasses.dataclass(frozen=True)
-class CropParams:
+class CropParams(LayoutOptions):
     """Parameters of ``btf crop``."""
 
     store: str = option(help="radiance or compressed store to cut from", positional=True,
@@ -42,15 +44,11 @@ class CropParams:
                                            help="light indices to keep (default: all)")
     view: tuple[int, ...] | None = option(None, metavar="J,..", repeatable=True,
                                           help="view indices to keep (default: all)")
-    chunk: int | None = option(None, help="texels per side of a stored chunk (default: the "
-                                          "input's)")
-    dir_chunk: int | None = option(None, help="light directions per stored chunk (default: "
-                                              "the input's)")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
         check_region(self.region)
-        Layout(chunk=self.chunk or 128, dir_chunk=self.dir_chunk or 16)
+        self.layout()  # raises ParamError naming the bad option
 
 
 def _crop_factors(params: CropParams, store, session: Session) -> Path:
@@ -111,7 +109,8 @@ def _crop_factors(params: CropParams, store, session: Session) -> Path:
                        resume=attrs["provenance"]) as tmp:
         out = create_compressed_store(
             tmp, directions=d, channels=read_channels(group), ny=h, nx=w, rank=rank,
-            chunk=chunk, dir_chunk=params.dir_chunk or group["U"].chunks[1], attrs=attrs)
+            chunk=chunk, dir_chunk=params.dir_chunk or group["U"].chunks[1], attrs=attrs,
+            v_dtype=params.dtype or str(group["V"].dtype))
         out["U"][...] = new_u.reshape(d.views, d.lights, nc, rank).astype(np.float32)
         out["S"][...] = new_s.astype(np.float32)
         session.compute(store_aligned([mapped_v(v, s[:, None] * vmap)], [out["V"]]))
@@ -136,9 +135,7 @@ def crop(params: CropParams, session: Session) -> Path:
                            f"{rad.sizes['y']} x {rad.sizes['x']} texels of the store")
     selected = ds.isel(view=views, light=lights, y=ys, x=xs)
     d = Directions.of(selected)
-    stored = group[RADIANCE]
-    layout = Layout(chunk=params.chunk or stored.chunks[2], dir_chunk=params.dir_chunk or
-                    stored.chunks[1])
+    layout = params.layout(like=store.layout)
     attrs = {"source": "crop", "provenance": provenance("crop", params),
              "cropped_from": {"store": params.store, "y": [ys.start, ys.stop],
                               "x": [xs.start, xs.stop], "views": views, "lights": lights}}
@@ -176,9 +173,10 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
         ny, nx = ys.stop - ys.start, xs.stop - xs.start
     nv = len(set(params.view)) if params.view else nv
     nl = len(set(params.light)) if params.light else nl
+    itemsize = np.dtype(params.dtype).itemsize if params.dtype else src.itemsize
     if src.kind == "compressed":  # the factors: V's region read twice, the new V written
         k, chunk = src.rank or 1, params.chunk or src.chunk
-        v_bytes = ny * nx * k * 4
+        v_bytes = ny * nx * k * itemsize
         per_core, source = rate("compress_bytes_per_core_second")
         plan = StageEstimate("crop", "", bytes_read=2 * v_bytes, bytes_written=v_bytes,
                              tasks=2 * max(1, (ny // chunk) * (nx // chunk)), passes=2,
@@ -187,20 +185,21 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
                              core_seconds=2 * v_bytes / per_core, rate_source=source,
                              option="--chunk", note="a compressed store: its factors")
         return plan, Shape("compressed", (nv, nl, ny, nx, nc), chunk, src.dir_chunk, rank=k,
-                           unit=chunk)
-    size = nv * nl * ny * nx * nc * 4
+                           unit=chunk, itemsize=itemsize)
+    values = nv * nl * ny * nx * nc
     truth = ny * nx * 6 * 4 if src.truth else 0  # height, albedo (3), roughness, specular
     chunk = params.chunk or src.chunk
     dir_chunk = params.dir_chunk or src.dir_chunk
     side = task_side(chunk)
     per_core, source = rate("compress_bytes_per_core_second")  # a read-and-write pass
-    plan = StageEstimate("crop", "", bytes_read=size + truth, bytes_written=size + truth,
-                         tasks=max(1, size // (side * side * dir_chunk * nc * 4)), passes=1,
+    plan = StageEstimate("crop", "", bytes_read=values * src.itemsize + truth,
+                         bytes_written=values * itemsize + truth,
+                         tasks=max(1, values // (side * side * dir_chunk * nc)), passes=1,
                          input_reads=1,
                          task_bytes=2 * max(side, src.side) ** 2 * dir_chunk * nc * 4,
-                         core_seconds=size / per_core, rate_source=source, option="--chunk")
+                         core_seconds=values * 4 / per_core, rate_source=source, option="--chunk")
     return plan, Shape(src.kind, (nv, nl, ny, nx, nc), chunk, dir_chunk, unit=chunk,
-                       truth=src.truth)
+                       truth=src.truth, itemsize=itemsize)
 
 
 STAGE = Stage("crop", CropParams, crop,

@@ -26,6 +26,7 @@ from pipeline.session import Session
 from pipeline.stage import Stage
 from pipeline.stores import CompressedStore, RadianceStore, open_layers, open_store
 from pipeline.stores.base import RADIANCE, Directions, layer_indices, location
+from pipeline.stores.radiance import as_float32
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, to_uint8, tonemap
 
@@ -91,11 +92,11 @@ def _layers(store: str, view: int, lights: list[int]) -> np.ndarray:
     """
     source = open_store(store, RadianceStore, CompressedStore, checked=False)
     if isinstance(source, RadianceStore):
-        return source.radiance.get_orthogonal_selection((view, lights))
+        return as_float32(source.radiance.get_orthogonal_selection((view, lights)))
     group = source.group
     u = group["U"].get_orthogonal_selection((view, lights))
     transform = source.transform
-    return reconstruct_layers(u, group["S"][:], group["V"][:], transform=transform,
+    return reconstruct_layers(u, group["S"][:], as_float32(group["V"][:]), transform=transform,
                               scale=transform.layer_scale(group["theta_light"][lights]))
 
 

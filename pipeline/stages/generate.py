@@ -30,7 +30,7 @@ from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, Directions, location, readable
-from pipeline.stores.radiance import TRUTH_DIMS, Layout, create_radiance_store
+from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store
 from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
 from tasks.sampling import SAMPLING_HELP, parse_sampling
 from tasks.shading import ShadingModel, render_block
@@ -39,7 +39,7 @@ CHANNELS = ("R", "G", "B")
 
 
 @dataclasses.dataclass(frozen=True)
-class GenerateParams:
+class GenerateParams(LayoutOptions):
     """Parameters of ``btf generate``."""
 
     out: str = option(help="output radiance store (a .zarr directory)", positional=True,
@@ -60,10 +60,6 @@ class GenerateParams:
         None, path="in", metavar="IMAGE",
         help="EXR or PNG photo to use as albedo and height source instead of a procedural "
              "material (PNG is decoded from sRGB)")
-    chunk: int = option(128, help="texels per side of a stored chunk")
-    dir_chunk: int = option(16, help="light directions per stored chunk")
-    shard: int = option(0, help="texels per side of a shard file grouping several chunks (a "
-                                "multiple of --chunk); 0: one file per chunk")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
@@ -85,10 +81,6 @@ class GenerateParams:
         if self.scale is not None and not self.scale >= 2:
             raise ParamError("scale", f"must be at least 2 texels, got {self.scale}")
         self.layout()  # raises ParamError naming the bad option
-
-    def layout(self) -> Layout:
-        """The store layout these parameters ask for."""
-        return Layout(chunk=self.chunk, dir_chunk=self.dir_chunk, shard=self.shard)
 
 
 def _block(chunks: tuple[int, ...], i: int) -> tuple[int, int]:
@@ -275,18 +267,21 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
     s = parse_sampling(params.sampling)
     nv, nl, n = s.theta_view.size, s.theta_light.size, params.size**2
     nc = 3
-    side = min(task_side(params.shard or params.chunk), params.size)
+    layout = params.layout()
+    side = min(task_side(layout.shard or layout.chunk), params.size)
     spatial = math.ceil(params.size / side) ** 2
-    light_blocks = math.ceil(nl / params.dir_chunk)
-    block = side * side * min(params.dir_chunk, nl) * nc * 4
+    light_blocks = math.ceil(nl / layout.dir_chunk)
+    block = side * side * min(layout.dir_chunk, nl) * nc * 4
     per_core, source = rate("generate_texel_directions_per_core_second")
-    plan = StageEstimate("generate", "", bytes_written=nv * nl * n * nc * 4 + n * 6 * 4,
+    plan = StageEstimate("generate", "", bytes_written=nv * nl * n * nc * layout.itemsize
+                         + n * 6 * 4,
                          tasks=nv * light_blocks * spatial + spatial, passes=1, input_reads=0,
                          task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
                          client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
                          option="--chunk / --dir-chunk (smaller task blocks)")
-    return plan, Shape("btf", (nv, nl, params.size, params.size, nc), params.chunk,
-                       params.dir_chunk, unit=params.shard or params.chunk, truth=True)
+    return plan, Shape("btf", (nv, nl, params.size, params.size, nc), layout.chunk,
+                       layout.dir_chunk, unit=layout.shard or layout.chunk, truth=True,
+                       itemsize=layout.itemsize)
 
 
 

@@ -41,7 +41,7 @@ from pipeline.session import Session
 from pipeline.sources import FORMATS, formats_help, source_format
 from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, location
-from pipeline.stores.radiance import Layout, create_radiance_store
+from pipeline.stores.radiance import LayoutOptions, create_radiance_store, stored
 from tasks.colour import DECODINGS
 from tasks.container_formats import ATRIUM_ROWS
 
@@ -49,7 +49,7 @@ STAGING = "_staging"  # scratch array inside the partial store, removed before i
 
 
 @dataclasses.dataclass(frozen=True)
-class IngestParams:
+class IngestParams(LayoutOptions):
     """Parameters of ``btf ingest``."""
 
     src: str = option(help="the measured BTF: one of the formats listed above",
@@ -78,20 +78,12 @@ class IngestParams:
         help="row order of ATRIUM .hdr images, whose header says '+X 256 -Y 256': bottom-up "
              "(their first row is the picture's bottom, as btf-extractor reads them) or "
              "top-down")
-    chunk: int = option(128, help="texels per side of a stored chunk")
-    dir_chunk: int = option(16, help="light directions per stored chunk")
-    shard: int = option(0, help="texels per side of a shard file grouping several chunks (a "
-                                "multiple of --chunk); 0: one file per chunk")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
         self.layout()  # raises ParamError naming the bad option
         if self.srgb and self.decode not in ("auto", "srgb"):
             raise ParamError("srgb", f"--srgb contradicts --decode {self.decode}; give one")
-
-    def layout(self) -> Layout:
-        """The store layout these parameters ask for."""
-        return Layout(chunk=self.chunk, dir_chunk=self.dir_chunk, shard=self.shard)
 
     def decoding(self) -> str:
         """The ``--decode`` asked for, ``--srgb`` being ``srgb``; ``auto`` left to the format."""
@@ -129,15 +121,20 @@ def _stage_image(store: str, view: int, light: int, reader, key, *, info: ImageI
                  first: str) -> None:
     import zarr
 
+    target = zarr.open_array(storage.store(store), path=STAGING, mode="r+")
     pixels = _checked(reader, key, info, first)
-    zarr.open_array(storage.store(store), path=STAGING, mode="r+")[view, light] = pixels
+    target[view, light] = stored(pixels, target.dtype, reader.where(key))
 
 
-def _read_block(reader, keys: list, *, info: ImageInfo, first: str) -> np.ndarray:
-    """The images of one view and a block of lights, ``(1, lights, height, width, channels)``."""
-    block = np.empty((1, len(keys), info.height, info.width, len(info.channels)), np.float32)
+def _read_block(reader, keys: list, *, info: ImageInfo, first: str,
+                dtype: str = "float32") -> np.ndarray:
+    """The images of one view and a block of lights, ``(1, lights, height, width, channels)``.
+
+    In the store's ``dtype`` (:func:`~pipeline.stores.radiance.stored`).
+    """
+    block = np.empty((1, len(keys), info.height, info.width, len(info.channels)), dtype)
     for i, key in enumerate(keys):
-        block[0, i] = _checked(reader, key, info, first)
+        block[0, i] = stored(_checked(reader, key, info, first), block.dtype, reader.where(key))
     return block
 
 
@@ -160,8 +157,8 @@ def _image_blocks(source: LayerSource, radiance):
             keys = [_task_key(e.key) for e in row[start:start + n]]
             # traverse=False: the key list holds no dask collections (saves 1.4 s per 6561)
             block = dask.delayed(_read_block, pure=True, traverse=False)(
-                source.reader, keys, info=info, first=first)
-            blocks.append(da.from_delayed(block, (1, n, *shape), dtype=np.float32))
+                source.reader, keys, info=info, first=first, dtype=str(radiance.dtype))
+            blocks.append(da.from_delayed(block, (1, n, *shape), dtype=radiance.dtype))
             start += n
         rows.append(da.concatenate(blocks, axis=1))
     return da.concatenate(rows, axis=0)
@@ -200,16 +197,17 @@ def ingest(params: IngestParams, session: Session) -> Path:
     directions, info = source.directions, source.info
     attrs = {"source": "ingest", "ingest": source.attrs,
              "provenance": provenance("ingest", params)}
+    layout = params.layout(dtype=info.precision)  # 8-bit and half: float16 holds them
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"]) as tmp:
         def create():
             made = create_radiance_store(tmp, directions=directions, ny=info.height,
                                          nx=info.width, channels=info.channels,
-                                         layout=params.layout(), attrs=attrs)
+                                         layout=layout, attrs=attrs)
             target = made[RADIANCE]
             if not _whole_images(target):
                 made.create_array(
-                    STAGING, shape=target.shape, dtype="float32", fill_value=np.nan,
+                    STAGING, shape=target.shape, dtype=target.dtype, fill_value=np.nan,
                     chunks=(1, 1, *target.chunks[2:]), compressors=target.compressors)
             return made
 
@@ -220,6 +218,8 @@ def ingest(params: IngestParams, session: Session) -> Path:
                     f"{info.height} x {info.width} texels ({','.join(info.channels)}) -> "
                     f"{params.out}")
         session.log(f"ingest: colour: {source.colour_note}")
+        session.log(f"ingest: stored as {layout.dtype} ({info.sample} samples"
+                    + ("" if params.dtype else "; --dtype changes it") + ")")
         if progress.count():
             session.log(f"ingest: resuming: {progress.count()} images and blocks already "
                         "written")

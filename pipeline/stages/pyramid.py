@@ -152,7 +152,7 @@ def _write_levels(group, name: str, levels, count: int, method: str,
         target = add_array(levels.require_group(str(n)), name, shape=shape, dims=dims,
                            chunks=tuple(min(c, s) for c, s in zip(base.chunks, shape,
                                                                   strict=True)),
-                           attrs=dict(base.attrs))
+                           dtype=str(base.dtype), attrs=dict(base.attrs))
         coarse = coarse.rechunk(aligned_chunks(target, grouped=True))
         session.log(f"pyramid: level {n} ({shape[ay]} x {shape[ax]} texels) of {name}")
         session.compute(store_aligned([coarse], [target]))

@@ -24,11 +24,11 @@ from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, selected_directions
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
 from pipeline.stores.compressed import open_compressed
-from pipeline.stores.radiance import Layout, create_radiance_store
+from pipeline.stores.radiance import LayoutOptions, create_radiance_store
 
 
 @dataclasses.dataclass(frozen=True)
-class ReconstructParams:
+class ReconstructParams(LayoutOptions):
     """Parameters of ``btf reconstruct``."""
 
     store: str = option(help="compressed store (made by btf compress)", positional=True,
@@ -45,15 +45,13 @@ class ReconstructParams:
     format: str = option("zarr", choices=("zarr", "exr"),
                          help="zarr: a radiance store; exr: one float32 EXR per layer")
     for_scene: str | None = for_scene_option()
-    chunk: int = option(128, help="texels per side of a stored chunk (zarr output)")
-    dir_chunk: int = option(16, help="light directions per stored chunk (zarr output)")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
         check_region(self.region)
         if self.rank is not None and self.rank < 1:
             raise ParamError("rank", f"must be at least 1, got {self.rank}")
-        Layout(chunk=self.chunk, dir_chunk=self.dir_chunk)
+        self.layout()  # raises ParamError naming the bad option
         if self.for_scene is not None:
             for name in ("light", "view", "region"):
                 if getattr(self, name) is not None:
@@ -124,7 +122,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             progress = Progress(tmp)
             group = progress.skeleton(lambda: create_radiance_store(
                 tmp, directions=d, ny=ny, nx=nx, channels=channels,
-                layout=Layout(chunk=params.chunk, dir_chunk=params.dir_chunk), attrs=attrs))
+                layout=params.layout(), attrs=attrs))
             if progress.count():
                 session.log(f"reconstruct: resuming: {progress.count()} blocks already written")
             data = sel.data.rechunk(aligned_chunks(group[RADIANCE]))

@@ -42,6 +42,7 @@ from pipeline.stores.base import (
     sampling_lines,
     sampling_summary,
 )
+from pipeline.stores.radiance import lazy_float32
 from tasks.svd import reconstruct_layers
 from tasks.transform import DFMF_MODELS, Transform
 
@@ -52,8 +53,13 @@ FACTOR_DIMS = {"U": ("view", "light", "channel", "component"), "S": ("component"
 
 def create_compressed_store(path: str | Path, *, directions: Directions,
                             channels: tuple[str, ...], ny: int, nx: int, rank: int,
-                            chunk: int, dir_chunk: int, attrs: dict[str, Any]):
-    """Create an empty compressed store with its coordinates; returns the zarr group."""
+                            chunk: int, dir_chunk: int, attrs: dict[str, Any],
+                            v_dtype: str = "float32"):
+    """Create an empty compressed store with its coordinates; returns the zarr group.
+
+    ``v_dtype``: the eigentextures' type, float32 or float16 (``U`` and ``S`` are small and
+    stay float32).
+    """
     group = create_store(path, kind=NAME, attrs=attrs, directions=directions, channels=channels)
     nv, nl, nc = directions.views, directions.lights, len(channels)
     add_array(group, "U", shape=(nv, nl, nc, rank), dims=FACTOR_DIMS["U"],
@@ -62,7 +68,7 @@ def create_compressed_store(path: str | Path, *, directions: Directions,
     add_array(group, "S", shape=(rank,), dims=FACTOR_DIMS["S"], chunks=(rank,),
               attrs={"long_name": "singular values"})
     add_array(group, "V", shape=(ny, nx, rank), dims=FACTOR_DIMS["V"],
-              chunks=(min(chunk, ny), min(chunk, nx), rank),
+              chunks=(min(chunk, ny), min(chunk, nx), rank), dtype=v_dtype,
               attrs={"long_name": "eigentextures"})
     return group
 
@@ -125,7 +131,8 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
         raise BTFError(f"{path}: --rank {rank} is not between 1 and the stored rank {full}")
     # zarr arrays, not a path: dask would open a path through fsspec instead of zarr's store
     store = storage.store(location(path))
-    factors = {name: da.from_zarr(zarr.open_array(store, path=name, mode="r"))[..., :rank]
+    factors = {name: lazy_float32(da.from_zarr(zarr.open_array(store, path=name,
+                                                              mode="r"))[..., :rank])
                for name in FACTOR_DIMS}
     transform = Transform.from_attrs(group.attrs["transform"])
     d = read_directions(group)

@@ -1,7 +1,10 @@
 """Radiance stores (``btf_kind`` ``btf`` or ``abtf``): the layers themselves.
 
-- ``radiance``: float32, dims ``(view, light, y, x, channel)``, chunked in spatial tiles times a
-  block of light directions (optionally grouped into shards of several tiles);
+- ``radiance``: float32 or float16 (the precision the data has: 8-bit and half-float
+  measurements lose nothing in float16), dims ``(view, light, y, x, channel)``, chunked in
+  spatial tiles times a block of light directions (optionally grouped into shards of several
+  tiles). Every stage reads either and computes in float32 (:func:`open_dataset`,
+  :func:`as_float32`);
 - the direction coordinates and ``channel`` labels (:mod:`pipeline.stores.base`);
 - attrs ``btf_kind`` (``"btf"``, or ``"abtf"`` for one top view), ``source`` and
   ``provenance``;
@@ -25,6 +28,7 @@ import numpy as np
 
 from pipeline import storage
 from pipeline.errors import BTFError
+from pipeline.params import option
 from pipeline.stores.base import (
     DIRECTION_COORDS,
     RADIANCE,
@@ -46,9 +50,14 @@ TRUTH_DIMS = {"height": ("y", "x"), "albedo": ("y", "x", "channel"),
               "roughness": ("y", "x"), "specular": ("y", "x")}
 
 
+DTYPES = ("float32", "float16")
+# The largest finite float16; a value above it cannot be stored in a float16 store.
+FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
 @dataclass(frozen=True)
 class Layout:
-    """Chunking of a radiance store.
+    """Chunking and precision of a radiance store.
 
     Attributes
     ----------
@@ -59,11 +68,14 @@ class Layout:
     shard
         Texels per side of a shard (a file holding several chunks; a multiple of ``chunk``),
         or 0 to store every chunk in its own file.
+    dtype
+        The stored values' type, ``float32`` or ``float16``.
     """
 
     chunk: int = 128
     dir_chunk: int = 16
     shard: int = 0
+    dtype: str = "float32"
 
     def __post_init__(self):
         if self.chunk < 8:
@@ -73,6 +85,14 @@ class Layout:
         if self.shard < 0 or (self.shard and self.shard % self.chunk):
             raise InvalidParameter("shard", f"must be 0 or a multiple of --chunk ({self.chunk}), "
                                       f"got {self.shard}")
+        if self.dtype not in DTYPES:
+            raise InvalidParameter("dtype", f"must be one of {', '.join(DTYPES)}, got "
+                                            f"{self.dtype!r}")
+
+    @property
+    def itemsize(self) -> int:
+        """Bytes per stored value."""
+        return np.dtype(self.dtype).itemsize
 
     def spatial(self, n: int) -> tuple[int, int | None]:
         """Chunk and shard sizes along a spatial axis of length ``n``."""
@@ -103,6 +123,68 @@ class Layout:
         return tuple(chunks), (tuple(shards) if sharded else None)
 
 
+LAYOUT = "layout of the output store"
+
+
+@dataclass(frozen=True, kw_only=True)
+class LayoutOptions:
+    """The options of a stage that writes a radiance store: its :class:`Layout`.
+
+    Stage parameters inherit these four fields; each left unset (None) takes the input
+    store's value where the stage reads a radiance store, else the stage's default
+    (:meth:`layout`).
+    """
+
+    chunk: int | None = option(
+        None, group=LAYOUT, help="texels per side of a stored chunk (default: the input "
+                                 "store's, else 128)")
+    dir_chunk: int | None = option(
+        None, group=LAYOUT, help="light directions per stored chunk (default: the input "
+                                 "store's, else 16)")
+    shard: int | None = option(
+        None, group=LAYOUT, help="texels per side of a shard file grouping several chunks (a "
+                                 "multiple of --chunk); 0: one file per chunk (default: the "
+                                 "input store's, else 0)")
+    dtype: str | None = option(
+        None, choices=DTYPES, group=LAYOUT,
+        help="stored values' type: float16 halves the bytes and holds 8-bit and half-float "
+             "data exactly (default: the input's precision, else float32)")
+
+    def layout(self, like: Layout | None = None, dtype: str | None = None) -> Layout:
+        """The layout asked for; unset options from ``like``, else :class:`Layout`'s defaults.
+
+        ``dtype`` is the stage's own default type, before ``like``'s (ingest: the source's).
+        Raises :class:`~tasks.errors.InvalidParameter` naming a bad option.
+        """
+        base = like or Layout()
+        chunk = base.chunk if self.chunk is None else self.chunk
+        if self.shard is not None:
+            shard = self.shard
+        else:  # the input's shards only around its own chunks
+            shard = base.shard if chunk == base.chunk else 0
+        return Layout(chunk=chunk, dir_chunk=base.dir_chunk if self.dir_chunk is None
+                      else self.dir_chunk, shard=shard, dtype=self.dtype or dtype or base.dtype)
+
+
+def stored(values: np.ndarray, dtype, where: str) -> np.ndarray:
+    """``values`` in a store's type, refusing values a float16 store cannot hold.
+
+    A finite value beyond float16's range would become infinite: :class:`BTFError` naming
+    ``where`` and the value, rather than a store of infinities.
+    """
+    if values.dtype == dtype:
+        return values
+    with np.errstate(over="ignore"):  # found below, and named
+        out = np.asarray(values, dtype)
+    if out.dtype == np.float16 and not np.isfinite(out).all():
+        lost = np.isfinite(values) & ~np.isfinite(out)
+        if lost.any():
+            raise BTFError(f"{where}: a value of {float(np.abs(values[lost]).max()):.6g} "
+                           f"exceeds float16's range (up to {FLOAT16_MAX:g}); write it as "
+                           "float32 (--dtype float32)")
+    return out
+
+
 def create_radiance_store(path: str | Path, *, directions: Directions, ny: int, nx: int,
                           channels: tuple[str, ...], layout: Layout, attrs: dict[str, Any],
                           truth: bool = False):
@@ -116,6 +198,7 @@ def create_radiance_store(path: str | Path, *, directions: Directions, ny: int, 
     shape = (directions.views, directions.lights, ny, nx, len(channels))
     chunks, shards = layout.grid(shape, RADIANCE_DIMS)
     add_array(group, RADIANCE, shape=shape, dims=RADIANCE_DIMS, chunks=chunks, shards=shards,
+              dtype=layout.dtype,
               attrs={"coordinates": " ".join(DIRECTION_COORDS), "units": "relative radiance",
                      "long_name": "radiance per (view, light, texel, channel)"})
     if truth:
@@ -150,19 +233,35 @@ def check_radiance(group, path: str | Path) -> None:
     dims = tuple(rad.metadata.dimension_names or ())
     if dims != RADIANCE_DIMS:
         raise BTFError(f"{path}: variable {RADIANCE!r} has dims {dims}, expected {RADIANCE_DIMS}")
-    if rad.dtype != np.float32:
-        raise BTFError(f"{path}: variable {RADIANCE!r} is {rad.dtype}, expected float32")
+    if str(rad.dtype) not in DTYPES:
+        raise BTFError(f"{path}: variable {RADIANCE!r} is {rad.dtype}, expected "
+                       f"{' or '.join(DTYPES)}")
     sizes = {"view": rad.shape[0], "light": rad.shape[1], "channel": rad.shape[4]}
     check_coordinates(group, path, sizes, f"variable {RADIANCE!r}")
+
+
+def as_float32(values) -> np.ndarray:
+    """Values read from a store, float16 widened to float32 (the type stages compute in).
+
+    Anything else is returned as it is (no copy).
+    """
+    values = np.asarray(values)
+    return values.astype(np.float32) if values.dtype == np.float16 else values
+
+
+def lazy_float32(array):
+    """A dask array of stored values, float16 widened to float32 as each block is read."""
+    return array.astype(np.float32) if array.dtype == np.float16 else array
 
 
 def open_dataset(path: str | Path, group=None, chunks=None):
     """Open a store as a lazy xarray Dataset whose data variables are dask arrays.
 
-    ``chunks(group, name)`` gives each data variable's dask chunks (a graph's task blocks,
-    :func:`pipeline.graphs.blocks.read_chunks`: whole write units, so that no read straddles a
-    shard and no shard is read by two tasks); without it, the stored chunks. Coordinates stay
-    small lazy arrays.
+    Float16 variables (``radiance``, ``V``) are read as float32: stages compute in float32
+    whatever the store holds. ``chunks(group, name)`` gives each data variable's dask chunks
+    (a graph's task blocks, :func:`pipeline.graphs.blocks.read_chunks`: whole write units, so
+    that no read straddles a shard and no shard is read by two tasks); without it, the stored
+    chunks. Coordinates stay small lazy arrays.
     """
     import xarray as xr
 
@@ -172,6 +271,11 @@ def open_dataset(path: str | Path, group=None, chunks=None):
     if chunks:
         for name in ds.data_vars:
             ds[name] = ds[name].chunk(chunks(group, name))
+    for name in ds.data_vars:
+        if ds[name].dtype == np.float16:
+            encoding = ds[name].encoding  # the stored chunks and type, which astype drops
+            ds[name] = ds[name].astype(np.float32)
+            ds[name].encoding = encoding
     return ds
 
 
@@ -214,7 +318,17 @@ class RadianceStore(Store):
         """The chunking it was written with."""
         a = self.radiance
         return Layout(chunk=a.chunks[2], dir_chunk=a.chunks[1],
-                      shard=a.shards[2] if a.shards else 0)
+                      shard=a.shards[2] if a.shards else 0, dtype=str(a.dtype))
+
+    @property
+    def dtype(self) -> str:
+        """The stored values' type (``float32`` or ``float16``)."""
+        return str(self.radiance.dtype)
+
+    @property
+    def itemsize(self) -> int:
+        """Bytes per stored value."""
+        return self.radiance.dtype.itemsize
 
     @property
     def truth(self) -> bool:

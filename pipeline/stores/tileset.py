@@ -56,11 +56,11 @@ PRESCRIBED = "prescriptions"  # attrs["tiles_stored"] of a compressed set holdin
 def create_tileset_store(path, *, directions: Directions, channels: tuple[str, ...],
                          tiles: int, tile_shape: tuple[int, int], terms: int,
                          reference: np.ndarray, attrs: dict[str, Any], rank: int | None = None,
-                         v_chunk: int = 128):
+                         v_chunk: int = 128, dtype: str = "float32"):
     """Create an empty tile-set store (``rank``: a compressed one); returns the zarr group.
 
     A compressed one gets the sample's ``V`` (chunks of ``v_chunk`` texels a side), not the
-    tiles'.
+    tiles'. ``dtype``: the type of the tiles' radiance, or of ``V`` (the source's).
     """
     if rank is not None:
         attrs = {**attrs, "tiles_stored": PRESCRIBED}
@@ -71,7 +71,7 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
     if rank is None:
         add_array(group, RADIANCE, shape=(tiles, nv, nl, ty, tx, nc),
                   dims=("tile", "view", "light", "y", "x", "channel"),
-                  chunks=(1, 1, 1, ty, tx, nc),
+                  chunks=(1, 1, 1, ty, tx, nc), dtype=dtype,
                   attrs={"coordinates": " ".join(DIRECTION_COORDS)})
     else:
         add_array(group, "U", shape=(nv, nl, nc, rank), chunks=(nv, nl, nc, rank),
@@ -79,7 +79,7 @@ def create_tileset_store(path, *, directions: Directions, channels: tuple[str, .
         add_array(group, "S", shape=(rank,), dims=("component",), chunks=(rank,))
         sy, sx = reference.shape[:2]
         add_array(group, "V", shape=(sy, sx, rank),
-                  chunks=(min(v_chunk, sy), min(v_chunk, sx), rank),
+                  chunks=(min(v_chunk, sy), min(v_chunk, sx), rank), dtype=dtype,
                   dims=("sample_y", "sample_x", "component"),
                   attrs={"long_name": "the sample's eigentextures: tile t's are P_t V"})
     pixels = ty * tx
@@ -187,7 +187,8 @@ def write_tileset_store(path, tiles: TileSet, *, source: Store):
                                tile_shape=tiles.tile_shape, terms=tiles.index[0].shape[-1],
                                reference=tiles.reference, attrs=attrs,
                                rank=source_group["S"].shape[0] if compressed else None,
-                               v_chunk=source_group["V"].chunks[0] if compressed else 128)
+                               v_chunk=source_group["V"].chunks[0] if compressed else 128,
+                               dtype=str(source_group["V" if compressed else RADIANCE].dtype))
     out["corners"][...] = tiles.corners
     for t in range(len(tiles.index)):
         out["prescription_index"][t] = tiles.index[t].astype(np.int32)
