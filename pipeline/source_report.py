@@ -20,8 +20,6 @@ from pipeline.layer_sources import LayerSource
 from pipeline.stores.base import Directions
 from tasks.sampling import known_sampling
 
-FLOAT32 = 4  # bytes of a stored value: every store ingest makes holds float32
-
 
 def sampling_report(d: Directions) -> dict[str, Any]:
     """Counts, ranges and the recognised sampling of ``d`` (the keys of a store's summary)."""
@@ -36,6 +34,9 @@ def sampling_report(d: Directions) -> dict[str, Any]:
                       # the sampling this axis alone is (an ABTF's lights, say)
                       "sampling": name or known_sampling(theta, phi, theta, phi)}
     return out
+
+
+FLOAT32 = 4  # bytes of a float32 value (a DFMF file's factors become float32 factors)
 
 
 def layers_report(source: LayerSource, *, kind: str, file_bytes: int,
@@ -55,8 +56,8 @@ def layers_report(source: LayerSource, *, kind: str, file_bytes: int,
         "height": info.height, "width": info.width, "channels": list(info.channels),
         "sampling": sampling_report(d),
         "colour": source.colour_note,
-        "ingest": {"store": "radiance", "shape": shape, "dtype": "float32",
-                   "bytes": int(np.prod(shape)) * FLOAT32},
+        "ingest": {"store": "radiance", "shape": shape, "dtype": info.precision,
+                   "bytes": int(np.prod(shape)) * np.dtype(info.precision).itemsize},
         "attrs": source.attrs,
     }
 

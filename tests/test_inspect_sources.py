@@ -226,7 +226,7 @@ def test_inspect_describes_a_ubo2003_zip_reading_only_its_first_image(tmp_path, 
     assert (s["name"], s["views"], s["lights"]) == (None, 2, 3)
     assert (s["view"]["theta_max"], s["light"]["phi_max"]) == (30, 300)
     assert report["ingest"] == {"store": "radiance", "shape": [2, 3, H, W, 3],
-                                "dtype": "float32", "bytes": 2 * 3 * H * W * 3 * 4}
+                                "dtype": "float16", "bytes": 2 * 3 * H * W * 3 * 2}  # 8-bit
     assert report["colour"] == SRGB_LINE.removeprefix("colour: ")
     assert SRGB_LINE in text and "6 images (JPEG)" in text
     assert f"radiance store of 2 views x 3 lights x {H} x {W} texels x 3 channels" in text

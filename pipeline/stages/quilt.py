@@ -244,7 +244,9 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
     values = src.rank if compressed else nv * nl * nc
     # a compressed source's tile set copies the sample's V and keeps the prescriptions
     prescriptions = tiles * th * tw * TERMS * 8
-    out = (ny * nx * values * 4 if compressed else tiles * th * tw * values * 4) + prescriptions
+    # tiles (or the sample's V) in the source's type: float16 stores make float16 tile sets
+    out = (ny * nx * values if compressed else tiles * th * tw * values) * src.itemsize \
+        + prescriptions
     # planning compares every tile position with every sample position: measured time grows
     # with their product (16 tiles of 1008^2 on a 1024^2 sample: 14.5 min, estimated 16.9)
     plan_seconds, source = rate("quilt_plan_seconds_per_texel_pair")
