@@ -116,10 +116,11 @@ class CompressSettings:
              "store once instead of twice; each worker thread may then hold that much more "
              "(btf run --plan checks it against the workers' memory)")
     eps: float = option(1e-3, help="range reduction log(radiance + eps)")
-    v_dtype: str = option("float32", choices=("float32", "float16"),
-                          help="the eigentextures' stored type: float16 halves V's bytes (the "
-                               "bulk of a compressed store) and adds a rounding of at most "
-                               "2^-11 of each value (BENCHMARKS.md, 'Precision')")
+    v_dtype: str | None = option(
+        None, choices=("float32", "float16"),
+        help="the eigentextures' stored type: float16 halves V's bytes (the bulk of a "
+             "compressed store) and rounds each value by at most 2^-11 of it (BENCHMARKS.md, "
+             "'Precision'); default: float32, or a compressed input's own")
     seed: int = option(0, metavar="S", help="seed of the random test matrices")
     clamp: bool = option(False, help="clamp negative radiance to 0 instead of refusing it")
     verify: bool = option(False, help="one more pass: average ABRDF RMSE (paper 000, eq. 11) "
@@ -430,7 +431,7 @@ def compress_factors(params: CompressSettings, store: CompressedStore, session: 
         out = create_compressed_store(tmp, directions=store.directions,
                                       channels=store.channels, ny=ny, nx=nx, rank=rank,
                                       chunk=chunk, dir_chunk=dir_chunk, attrs=attrs,
-                                      v_dtype=params.v_dtype)
+                                      v_dtype=params.v_dtype or str(group["V"].dtype))
         out["U"][...] = new_u[:, :rank].reshape(nv, nl, nc, rank).astype(np.float32)
         out["S"][...] = s_all[:rank].astype(np.float32)
         session.compute(store_aligned([new_v[..., :rank].astype(np.float32)], [out["V"]]))
@@ -473,7 +474,7 @@ def compress(params: CompressSettings, session: Session) -> Path:
         out = progress.skeleton(lambda: create_compressed_store(  # passes: see _Passes
             tmp, directions=store.directions, channels=store.channels,
             ny=ny, nx=nx, rank=params.rank, chunk=chunk, dir_chunk=dir_chunk, attrs=attrs,
-            v_dtype=params.v_dtype))
+            v_dtype=params.v_dtype or "float32"))
         passes = _Passes(location(params.store), blocks, tiles, tile_rows, location(tmp),
                          planned, params, session)
         if side == "rows":

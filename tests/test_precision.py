@@ -98,6 +98,9 @@ def test_float16_eigentextures_add_at_most_their_rounding(pair, btf):
     assert g16["V"].dtype == np.float16 and g32["V"].dtype == np.float32
     v32 = g32["V"][...].astype(np.float64)
     assert np.array_equal(g16["V"][...], v32.astype(np.float16))  # the same SVD, V rounded
+    # a compressed store brought to a lower rank keeps its V's type unless told
+    assert btf("compress", tmp / "v16.zarr", tmp / "v16r3.zarr", "--rank", "3", "-q").code == 0
+    assert zarr.open_group(tmp / "v16r3.zarr", mode="r")["V"].dtype == np.float16
     rebuilt = {n: open_layers(tmp / f"{n}.zarr")["radiance"].values for n in ("v32", "v16")}
     assert rebuilt["v16"].dtype == np.float32
     # each log value moves by at most 2^-11 sum_k |u_k s_k v_k|: bounded by the
