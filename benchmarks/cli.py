@@ -14,7 +14,7 @@ from pathlib import Path
 from benchmarks.harness import to_json
 
 SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene",
-          "objectstore", "formats", "view", "checksums", "faults", "scaling")
+          "objectstore", "formats", "view", "checksums", "faults", "scaling", "precision")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
