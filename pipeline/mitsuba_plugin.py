@@ -100,14 +100,24 @@ def variant(requested: str = "auto", log=print) -> str:
     return chosen
 
 
-def tables(path: str | Path, rank: int | None = None):
-    """The :class:`tasks.btf_bsdf.Tables` of a compressed store (its factors in memory)."""
-    from pipeline.stores import CompressedStore, open_store
+def tables(path: str | Path, rank: int | None = None, *, size: tuple[int, int] | None = None,
+           origin: tuple[int, int] = (0, 0), seed: int | None = None):
+    """The :class:`tasks.btf_bsdf.Tables` of a compressed store or compressed tile set.
+
+    A store's factors are held in memory. A tile set's surface is laid over the texels
+    ``origin`` to ``origin + size`` (default: one sample's size from 0) exactly as ``btf
+    render`` lays it (:mod:`tasks.placement`, the tile set's seed unless ``seed``), and that
+    region's eigentextures are what the BSDF's texture holds (``size x rank`` values).
+    """
+    from pipeline.stores import CompressedStore, CompressedTileSetStore, TileSetStore, open_store
     from pipeline.stores.radiance import as_float32
     from tasks.btf_bsdf import Tables
     from tasks.viewer import mesh
 
-    store = open_store(path, CompressedStore)
+    store = open_store(path, CompressedStore, TileSetStore)
+    if isinstance(store, TileSetStore) and not isinstance(store, CompressedTileSetStore):
+        raise BTFError(f"{path}: a tile set of radiance tiles: the BSDF renders factors; quilt "
+                       "a compressed store (btf compress, then btf quilt or btf roller on it)")
     group = store.group
     full = group["S"].shape[0]
     k = full if rank is None else int(rank)
@@ -115,7 +125,13 @@ def tables(path: str | Path, rank: int | None = None):
         raise BTFError(f"{path}: rank {k} is not between 1 and the stored rank {full}")
     u = np.asarray(group["U"][..., :k], np.float32)
     s = np.asarray(group["S"][:k], np.float32)
-    v = as_float32(group["V"][..., :k]).astype(np.float32)
+    if isinstance(store, CompressedTileSetStore):
+        v = surface_eigentextures(store, k, size=size, origin=origin, seed=seed)
+    elif size is not None or tuple(origin) != (0, 0) or seed is not None:
+        raise BTFError(f"{path}: a compressed store, not a tile set: a surface size, origin "
+                       "or seed applies to tile sets")
+    else:
+        v = as_float32(group["V"][..., :k]).astype(np.float32)
     d = store.directions
     try:
         views = mesh(d.theta_view, d.phi_view, "view")
@@ -127,21 +143,51 @@ def tables(path: str | Path, rank: int | None = None):
                   scale=transform.layer_scale(d.theta_light))
 
 
-def bsdf(path: str | Path, rank: int | None = None, uv_scale: float = 1.0):
-    """A ``btf`` BSDF object of the active variant for the compressed store at ``path``."""
+def surface_eigentextures(tileset, rank: int, *, size: tuple[int, int] | None = None,
+                          origin: tuple[int, int] = (0, 0), seed: int | None = None
+                          ) -> np.ndarray:
+    """``(y, x, rank)`` eigentextures of the surface a compressed tile set lays over a region.
+
+    The same placement as ``btf render`` (:func:`pipeline.graphs.surface.lazy_layer`): corner
+    tiles by the hash of their lattice vertices, the roller's tiles on their lattice.
+    """
+    from tasks.placement import gather, lattice_gather
+
+    if size is None:
+        size = tuple(tileset.sample_shape)
+    seed = tileset.seed if seed is None else seed
+    lattice = tileset.placement == "lattice"
+    order = None if lattice else tileset.order()
+    tiles = tileset.tile_eigentextures(range(tileset.tiles), rank)
+    if order is not None:
+        tiles = tiles[order]
+    (y0, x0), (ny, nx) = origin, size
+    if lattice:
+        return lattice_gather(tiles, y0, x0, ny, nx, hnf=tileset.hnf, basis=tileset.basis,
+                              representative=tileset.representative, seed=seed)
+    return gather(tiles, y0, x0, ny, nx, seed=seed, corners=tileset.corner_types)
+
+
+def bsdf(path: str | Path, rank: int | None = None, uv_scale: float = 1.0, **surface):
+    """A ``btf`` BSDF object of the active variant for a compressed store or tile set.
+
+    ``surface``: a tile set's ``size``, ``origin`` and ``seed`` (:func:`tables`).
+    """
     mi, dr = import_mitsuba()
     from tasks.btf_bsdf import bsdf_class
 
     props = mi.Properties("btf")
     props["uv_scale"] = float(uv_scale)
-    return bsdf_class(mi, dr)(props, tables(path, rank))
+    return bsdf_class(mi, dr)(props, tables(path, rank, **surface))
 
 
 def register() -> None:
     """Register the ``btf`` BSDF with the active variant: scene files may then name it.
 
-    Its parameters: ``store`` (string, a compressed store), ``rank`` (integer, default all)
-    and ``uv_scale`` (float, default 1: texture repeats per unit of uv).
+    Its parameters: ``store`` (string, a compressed store or compressed tile set), ``rank``
+    (integer, default all), ``uv_scale`` (float, default 1: texture repeats per unit of uv),
+    and for a tile set ``size`` ("H,W" texels of its surface, default the sample's),
+    ``origin`` ("Y,X", default 0,0) and ``seed`` (default the tile set's).
     """
     mi, dr = import_mitsuba()
     from tasks.btf_bsdf import bsdf_class
@@ -150,6 +196,13 @@ def register() -> None:
 
     def make(props):
         rank = int(props.get("rank", 0)) or None  # 0: every stored component
-        return cls(props, tables(props["store"], rank))
+        surface = {}
+        for name in ("size", "origin"):  # "H,W" and "Y,X" texels of a tile set's surface
+            text = str(props.get(name, ""))
+            if text:
+                surface[name] = tuple(int(v) for v in text.split(","))
+        if int(props.get("seed", -1)) >= 0:
+            surface["seed"] = int(props.get("seed", -1))
+        return cls(props, tables(props["store"], rank, **surface))
 
     mi.register_bsdf("btf", make)

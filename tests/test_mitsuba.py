@@ -39,6 +39,7 @@ def _mitsuba():
             raise RuntimeError("Mitsuba's llvm variant does not run: LLVM 16 or later needed")
         pytest.skip("Mitsuba's llvm variant needs LLVM 16 or later (apt-get install libllvm19)")
     mi, dr = mitsuba, drjit
+    mitsuba_plugin.variant("llvm_ad_rgb")
 
 
 SIZE = 24
@@ -221,3 +222,36 @@ def test_btf_mitsuba_renders_the_plane_and_the_scalar_variant_agrees(stores, tmp
                                atol=1e-7)
     finally:
         mitsuba_plugin.variant("llvm_ad_rgb")
+
+
+@pytest.mark.parametrize("maker", ["quilt", "roller"])
+def test_a_tile_set_on_a_plane_is_btf_renders_surface(tmp_path, maker):
+    from pipeline.images import read_image
+
+    if maker == "quilt":
+        src = generate_store(tmp_path / "s.zarr", "--material", "leather", "--size", "48",
+                             "--sampling", "abtf:6,2", "--seed", "2")
+        args = ["quilt", "--corners", "2"]
+    else:  # the roller on an exactly periodic material
+        src = generate_store(tmp_path / "s.zarr", "--material", "tiles", "--size", "96",
+                             "--scale", "16", "--sampling", "abtf:6,2", "--seed", "3")
+        args = ["roller", "--tiles", "2"]
+    assert main(["compress", str(src), str(tmp_path / "c.zarr"), "--rank", "5", "-q"]) == 0
+    tiles = tmp_path / "t.zarr"
+    assert main([args[0], str(tmp_path / "c.zarr"), str(tiles), *args[1:], "-q"]) == 0
+    h, w, light = 70, 90, 7
+    assert main(["render", str(tiles), str(tmp_path / "r.exr"), "--light", str(light),
+                 "--size", f"{h},{w}", "--origin", "5,-11", "-q"]) == 0
+    want, _ = read_image(tmp_path / "r.exr")
+    bsdf = mitsuba_plugin.bsdf(tiles, size=(h, w), origin=(5, -11))
+    d = open_store(tiles).directions
+    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    n = ys.size
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(0, 0, 1)
+    si.uv = mi.Point2f(((xs.ravel() + 0.5) / w).astype(np.float32),
+                       (1 - (ys.ravel() + 0.5) / h).astype(np.float32))
+    to_light = _unit(d.theta_light[light], d.phi_light[light]).astype(np.float32)
+    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in to_light]))
+    got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(h, w, 3)
+    assert np.allclose(got, want, rtol=1e-3, atol=1e-6 * want.max())

@@ -42,7 +42,8 @@ def _angles(text: str, name: str) -> tuple[float, float]:
 class MitsubaParams:
     """Parameters of ``btf mitsuba``."""
 
-    store: str = option(help="compressed store (btf compress, btf ingest FILE.btf)",
+    store: str = option(help="compressed store (btf compress, btf ingest FILE.btf) or "
+                             "compressed tile set (btf quilt, btf roller on one)",
                         positional=True, path="in", metavar="STORE")
     out: str = option(help="output image: .exr (linear) or .png (tone-mapped)",
                       positional=True, path="out")
@@ -62,6 +63,11 @@ class MitsubaParams:
                                    "the plane, at most 1024; 256 for the sphere)")
     rank: int | None = option(None, metavar="R", help="components used (default: all)")
     repeat: float = option(4.0, metavar="X", help="sphere: texture repeats round it")
+    surface: tuple[int, ...] | None = option(
+        None, metavar="H,W", help="a tile set: texels of its surface on the shape, laid as btf "
+                                  "render lays them (default: the sample's size)")
+    origin: tuple[int, ...] = option((0, 0), metavar="Y,X",
+                                     help="a tile set: first texel of that surface region")
     variant: str = option("auto", choices=VARIANTS,
                           help="Mitsuba variant: auto takes llvm_ad_rgb where LLVM 16+ is "
                                "found, else scalar_rgb (slow)")
@@ -79,6 +85,10 @@ class MitsubaParams:
             raise ParamError("size", f"must be between 8 and 8192, got {self.size}")
         if self.rank is not None and self.rank < 1:
             raise ParamError("rank", f"must be at least 1, got {self.rank}")
+        if self.surface is not None and (len(self.surface) != 2 or min(self.surface) < 1):
+            raise ParamError("surface", f"expected H,W (positive), got {self.surface}")
+        if len(self.origin) != 2:
+            raise ParamError("origin", f"expected Y,X, got {self.origin}")
 
 
 def _unit(theta: float, phi: float) -> list[float]:
@@ -126,8 +136,10 @@ def mitsuba(params: MitsubaParams, session: Session) -> Path:
         scene = mi.load_file(params.scene_file)
         what = params.scene_file
     else:
+        surface = {"size": params.surface, "origin": params.origin}
         bsdf = mitsuba_plugin.bsdf(params.store, params.rank,
-                                   uv_scale=params.repeat if params.scene == "sphere" else 1.0)
+                                   uv_scale=params.repeat if params.scene == "sphere" else 1.0,
+                                   **surface)
         texels = int(bsdf.tables.v.shape[0])
         scene = mi.load_dict(scene_dict(params, mi, bsdf, texels))
         what = f"{params.scene} of {params.store} ({bsdf.to_string()})"
