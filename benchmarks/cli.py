@@ -14,7 +14,8 @@ from pathlib import Path
 from benchmarks.harness import to_json
 
 SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene",
-          "objectstore", "formats", "view", "checksums", "faults", "scaling", "precision")
+          "objectstore", "formats", "view", "checksums", "faults", "scaling", "precision",
+          "mitsuba")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):

@@ -64,6 +64,7 @@ def _config(folder: Path, out: str) -> Path:
     return path
 
 
+@pytest.mark.slow  # 25 s: the slow set (.ci/run) keeps it; the default run stays in 4 minutes
 def test_every_stage_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s3):
     """generate, ingest, crop, compress, reconstruct, quilt, roller, enlarge, scene, inspect:
     reading and writing S3 only, the same stores as on a local disk."""

@@ -355,6 +355,7 @@ def _terminator_region(geometry) -> np.ndarray:
     return geometry.lit & (theta >= 65) & (rim < 0.95**2)
 
 
+@pytest.mark.slow  # 13 s: in the slow set (.ci/run), out of the default run's 4 minutes
 def test_the_sphere_is_its_replica_smooth_at_the_terminator_with_every_texel_in_place(
         browser, tmp_path):
     """Issue 53: no polygon patches at the terminator, no pinching at the poles.
