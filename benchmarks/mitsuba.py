@@ -61,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=int, default=256, help="image side, pixels")
     parser.add_argument("--spp", type=int, default=16, help="samples per pixel")
     parser.add_argument("--frames", type=int, default=3, help="frames timed after the first")
-    parser.add_argument("--sweep", type=int, default=10, help="degrees of the light sweep")
+    parser.add_argument("--sweep", type=int, default=30,
+                        help="degrees of the light sweep (default: ring to ring, 30 to 60)")
     parser.add_argument("--sweep-theta", type=float, default=45.0,
                         help="theta the sweep is centred on (a measured ring: 45 of UBO2003's)")
     parser.add_argument("--workdir", default=tempfile.gettempdir(), help="for the stores")
@@ -228,8 +229,8 @@ def report(result: dict) -> str:
              f"{s['sweep_theta']:g} (phi 0), plane {min(s['size'], 256)}^2, direct light.",
              "",
              "| renderer | load s | first frame s | frame s (median of next) | peak RSS | "
-             "largest step | median step |",
-             "|---|---|---|---|---|---|---|"]
+             "largest step | median step | largest / median |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, label in (("btf", "btf BSDF (Dr.Jit)"), ("peer", "elerac/btf-rendering")):
         r = result.get(name)
         if r is None:
@@ -237,7 +238,8 @@ def report(result: dict) -> str:
         lines.append(f"| {label} | {r['load_s']:.2f} | {r['first_frame_s']:.2f} | "
                      f"{r['frame_s']:.3f} | {r['peak_rss'] / 2**20:.0f} MiB | "
                      f"{r['largest_step']:.3f} (at {r['largest_step_at']:.0f} deg) | "
-                     f"{r['median_step']:.3f} |")
+                     f"{r['median_step']:.3f} | "
+                     f"{r['largest_step'] / max(r['median_step'], 1e-12):.1f} |")
     if "peer" in result:
         b, p = result["btf"], result["peer"]
         lines += ["", f"Per frame btf is {p['frame_s'] / b['frame_s']:.1f}x faster; peak memory "

@@ -35,9 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from tasks.transform import YUV_TO_RGB, Transform
-from tasks.viewer import GRID, SNAP, Mesh
+from tasks.viewer import SNAP, Mesh, cell_triangles
 
 _LOG_MAX = 88.0  # as tasks.transform: exp of more overflows float32
+CELLS = 256  # cells per side of the grid that lists the triangles a point may lie in
 
 
 @dataclass(frozen=True)
@@ -67,19 +68,6 @@ class Tables:
         return self.us.shape[3]
 
 
-def cell_table(m: Mesh) -> np.ndarray:
-    """The triangles of every grid cell, ``(GRID * GRID, L)`` int32, -1 where a cell has fewer.
-
-    The same table :func:`tasks.viewer.locate` builds from :attr:`Mesh.cells`.
-    """
-    spans, items = m.cells
-    table = np.full((GRID * GRID, max(1, int(spans[..., 1].max()))), -1, np.int32)
-    for j in range(table.shape[1]):
-        has = spans[..., 1].ravel() > j
-        table[has, j] = items[spans[..., 0].ravel()[has] + j]
-    return table
-
-
 def _buffers(mi, dr):
     """The array types that hold a table: the variant's own, or dynamic ones on ``scalar``."""
     if mi.variant().startswith("scalar"):
@@ -96,20 +84,53 @@ def _gather(mi, dr):
 
 
 class _DeviceMesh:
-    """A blending mesh as Dr.Jit arrays, and :func:`tasks.viewer.locate` on them."""
+    """A blending mesh as Dr.Jit arrays, and :func:`tasks.viewer.locate` on them.
+
+    Each grid cell's triangles are a span of a list (:func:`tasks.viewer.cell_triangles`, on a
+    grid of :data:`CELLS` per side: the pick does not depend on the grid, only the work does),
+    walked by a loop of as many steps as the cell has triangles: a symbolic loop on the JIT
+    variants, so a lane stops at its own cell's count rather than at the fullest cell's.
+    """
 
     def __init__(self, mi, dr, m: Mesh):
         self.dr, self.mi = dr, mi
         self.gather = _gather(mi, dr)
         floats, ints = _buffers(mi, dr)
-        table = cell_table(m)
-        self.width = table.shape[1]
-        self.table = ints(table.ravel())
+        self.single = len(m.triangles) == 0
+        if self.single:
+            return
+        spans, items = cell_triangles(m, CELLS)
+        self.start = ints(spans[..., 0].ravel())
+        self.count = ints(spans[..., 1].ravel())
+        self.items = ints(items if len(items) else np.zeros(1, np.int32))
         self.px = floats(m.points[:, 0].astype(np.float32))
         self.py = floats(m.points[:, 1].astype(np.float32))
-        self.triangles = ints(m.triangles.ravel() if len(m.triangles) else np.zeros(3, np.int32))
+        self.triangles = ints(m.triangles.ravel())
         self.labels = ints(m.labels)
-        self.single = len(m.triangles) == 0
+
+    def _step(self, x, y, t, live, best, corners, weights):
+        """Keep triangle ``t`` where its smallest barycentric weight beats ``best``."""
+        dr, mi, gather = self.dr, self.mi, self.gather
+        ia, ib, ic = (gather(mi.Int32, self.triangles, 3 * t + i, live) for i in range(3))
+        (ax, ay), (bx, by), (qx, qy) = (
+            (gather(mi.Float, self.px, c, live), gather(mi.Float, self.py, c, live))
+            for c in (ia, ib, ic))
+        m00, m01, m10, m11 = bx - ax, qx - ax, by - ay, qy - ay
+        det = m00 * m11 - m01 * m10
+        proper = live & (dr.abs(det) >= 1e-15)  # a degenerate triangle is never taken
+        det = dr.select(proper, det, 1.0)
+        px, py = x - ax, y - ay
+        wb = (px * m11 - m01 * py) / det
+        wc = (m00 * py - px * m10) / det
+        wa = 1.0 - wb - wc
+        smallest = dr.select(proper, dr.minimum(wa, dr.minimum(wb, wc)), -dr.inf)
+        better = smallest > best  # the first of equals, as numpy's argmax
+        best = dr.select(better, smallest, best)
+        corners = tuple(dr.select(better, c, old) for c, old in zip((ia, ib, ic), corners,
+                                                                     strict=True))
+        weights = tuple(dr.select(better, w, old) for w, old in zip((wa, wb, wc), weights,
+                                                                     strict=True))
+        return best, corners, weights
 
     def locate(self, x, y, active):
         """``(labels, weights)``: three measured directions and their weights at ``(x, y)``."""
@@ -117,34 +138,25 @@ class _DeviceMesh:
         if self.single:
             zero = mi.Int32(0)
             return (zero, zero, zero), (mi.Float(1.0), mi.Float(0.0), mi.Float(0.0))
-        cx = dr.clip(mi.Int32(dr.floor((x * 0.5 + 0.5) * GRID)), 0, GRID - 1)
-        cy = dr.clip(mi.Int32(dr.floor((y * 0.5 + 0.5) * GRID)), 0, GRID - 1)
-        cell = cy * GRID + cx
-        best = mi.Float(-dr.inf)
-        corners = [mi.Int32(0)] * 3
-        weights = [mi.Float(0.0)] * 3
-        for j in range(self.width):
-            t = gather(mi.Int32, self.table, cell * self.width + j, active)
-            valid = active & (t >= 0)
-            t = dr.maximum(t, 0)
-            ia, ib, ic = (gather(mi.Int32, self.triangles, 3 * t + i, valid) for i in range(3))
-            (ax, ay), (bx, by), (qx, qy) = (
-                (gather(mi.Float, self.px, c, valid), gather(mi.Float, self.py, c, valid))
-                for c in (ia, ib, ic))
-            m00, m01, m10, m11 = bx - ax, qx - ax, by - ay, qy - ay
-            det = m00 * m11 - m01 * m10
-            proper = valid & (dr.abs(det) >= 1e-15)  # a degenerate triangle is never taken
-            det = dr.select(proper, det, 1.0)
-            px, py = x - ax, y - ay
-            wb = (px * m11 - m01 * py) / det
-            wc = (m00 * py - px * m10) / det
-            wa = 1.0 - wb - wc
-            smallest = dr.select(proper, dr.minimum(wa, dr.minimum(wb, wc)), -dr.inf)
-            better = smallest > best  # the first of equals, as numpy's argmax
-            best = dr.select(better, smallest, best)
-            for i, (c, w) in enumerate(((ia, wa), (ib, wb), (ic, wc))):
-                corners[i] = dr.select(better, c, corners[i])
-                weights[i] = dr.select(better, w, weights[i])
+        cx = dr.clip(mi.Int32(dr.floor((x * 0.5 + 0.5) * CELLS)), 0, CELLS - 1)
+        cy = dr.clip(mi.Int32(dr.floor((y * 0.5 + 0.5) * CELLS)), 0, CELLS - 1)
+        cell = cy * CELLS + cx
+        start = gather(mi.Int32, self.start, cell, active)
+        count = gather(mi.Int32, self.count, cell, active)
+
+        def cond(j, best, c0, c1, c2, w0, w1, w2):
+            return j < count
+
+        def body(j, best, c0, c1, c2, w0, w1, w2):
+            t = gather(mi.Int32, self.items, start + j, j < count)
+            best, corners, weights = self._step(x, y, t, j < count, best, (c0, c1, c2),
+                                                (w0, w1, w2))
+            return (j + 1, best, *corners, *weights)
+
+        zero, none = mi.Int32(0), mi.Float(0.0)
+        state = (mi.Int32(0), mi.Float(-dr.inf), zero, zero, zero, none, none, none)
+        _, _, *found = dr.while_loop(state, cond, body)
+        corners, weights = found[:3], found[3:]
         weights = [dr.select(w > SNAP, w, 0.0) for w in weights]
         total = weights[0] + weights[1] + weights[2]
         total = dr.select(total > 0, total, 1.0)
