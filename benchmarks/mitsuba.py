@@ -155,8 +155,16 @@ def worker() -> None:
         frames.append(np.asarray(mi.render(scene, spp=4, seed=0)))
     frames = np.stack(frames)
     np.save(s["out"] + "_sweep.npy", frames)
-    steps = np.abs(np.diff(frames, axis=0)) / frames.mean(axis=(1, 2, 3))[1:, None, None, None]
+    # pixels that are not finite (NaN, inf) are counted apart and left out of the steps
+    bad = ~np.isfinite(frames)
+    clean = np.where(bad, np.nan, frames)
+    means = np.nanmean(clean, axis=(1, 2, 3))
+    steps = np.abs(np.diff(clean, axis=0)) / means[1:, None, None, None]
+    steps = np.where(np.isfinite(steps), steps, 0.0)
     print(json.dumps({
+        "nonfinite_frames": [float(s["sweep_theta"] - s["sweep"] / 2 + i)
+                             for i in range(len(frames)) if bad[i].any()],
+        "nonfinite_pixels": int(bad.any(axis=-1).sum()),
         "load_s": load, "first_frame_s": times[0], "frame_s": float(np.median(times[1:])),
         "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "largest_step": float(steps.max()),
@@ -231,15 +239,21 @@ def report(result: dict) -> str:
              "| renderer | load s | first frame s | frame s (median of next) | peak RSS | "
              "largest step | median step | largest / median |",
              "|---|---|---|---|---|---|---|---|"]
+    notes: list[str] = []
     for name, label in (("btf", "btf BSDF (Dr.Jit)"), ("peer", "elerac/btf-rendering")):
         r = result.get(name)
         if r is None:
             continue
+        if r.get("nonfinite_frames"):
+            where = ", ".join(f"{t:g}" for t in r["nonfinite_frames"])
+            notes.append(f"{label}: {r['nonfinite_pixels']} pixels not finite (NaN or inf) "
+                         f"in the frames at theta {where} (left out of its steps)")
         lines.append(f"| {label} | {r['load_s']:.2f} | {r['first_frame_s']:.2f} | "
                      f"{r['frame_s']:.3f} | {r['peak_rss'] / 2**20:.0f} MiB | "
                      f"{r['largest_step']:.3f} (at {r['largest_step_at']:.0f} deg) | "
                      f"{r['median_step']:.3f} | "
                      f"{r['largest_step'] / max(r['median_step'], 1e-12):.1f} |")
+    lines += ["", *notes] if notes else []
     if "peer" in result:
         b, p = result["btf"], result["peer"]
         lines += ["", f"Per frame btf is {p['frame_s'] / b['frame_s']:.1f}x faster; peak memory "
