@@ -255,3 +255,41 @@ def test_a_tile_set_on_a_plane_is_btf_renders_surface(tmp_path, maker):
     value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in to_light]))
     got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(h, w, 3)
     assert np.allclose(got, want, rtol=1e-3, atol=1e-6 * want.max())
+
+
+@pytest.mark.parametrize(("model", "cosine"), [(11, False), (10, False), (9, True), (12, False)])
+def test_a_dfmf_store_shows_its_layers_through_its_colour_model(tmp_path, model, cosine):
+    from dfmf_files import write_dfmf
+
+    views = [(0.0, 0.0), (0.3, 1.2), (0.6, -2.0)]  # radians, as Bonn's files
+    lights = [(0.0, 0.0), (0.5, 0.4), (0.9, 3.0), (1.1, -1.5)]
+    rng = np.random.default_rng(model)
+    ks, width, height = (3, 2, 2), 20, 12
+    rows = len(views) * len(lights)
+    u = [rng.normal(size=(rows, k)) * 0.1 for k in ks]
+    sxv = [rng.normal(size=(width * height, k)) * 0.3 for k in ks]
+    for c in range(3):
+        log_like = c == 0 or model == 12
+        u[c][:, 0], sxv[c][:, 0] = (-1.0 if log_like else 0.02), 1.0
+    write_dfmf(tmp_path / "s.btf", views=views, lights=lights, u=u, sxv=sxv,
+               color_model=model, scalar_size=2, width=width, height=height, cosine=cosine)
+    assert main(["ingest", str(tmp_path / "s.btf"), str(tmp_path / "s.zarr"), "-q"]) == 0
+    store = open_store(tmp_path / "s.zarr")
+    d = store.directions
+    layers = open_layers(tmp_path / "s.zarr")["radiance"].values  # btf reconstruct's
+    bsdf = mitsuba_plugin.bsdf(tmp_path / "s.zarr")
+    ys, xs = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    n = ys.size
+    for v in range(d.views):
+        for li in range(d.lights):
+            si = dr.zeros(mi.SurfaceInteraction3f, n)
+            wi = _unit(d.theta_view[v], d.phi_view[v]).astype(np.float32)
+            si.wi = mi.Vector3f(*[np.full(n, c) for c in wi])
+            si.uv = mi.Point2f(((xs.ravel() + 0.5) / width).astype(np.float32),
+                               (1 - (ys.ravel() + 0.5) / height).astype(np.float32))
+            wo = _unit(d.theta_light[li], d.phi_light[li]).astype(np.float32)
+            value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in wo]))
+            got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(height, width,
+                                                                                 3)
+            want = layers[v, li]
+            assert np.allclose(got, want, rtol=1e-3, atol=1e-5 * want.max()), (v, li)
