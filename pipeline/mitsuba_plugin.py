@@ -101,18 +101,20 @@ def variant(requested: str = "auto", log=print) -> str:
 
 
 def tables(path: str | Path, rank: int | None = None, *, size: tuple[int, int] | None = None,
-           origin: tuple[int, int] = (0, 0), seed: int | None = None):
+           origin: tuple[int, int] = (0, 0), seed: int | None = None, level: int = 0):
     """The :class:`tasks.btf_bsdf.Tables` of a compressed store or compressed tile set.
 
     A store's factors are held in memory. A tile set's surface is laid over the texels
     ``origin`` to ``origin + size`` (default: one sample's size from 0) exactly as ``btf
     render`` lays it (:mod:`tasks.placement`, the tile set's seed unless ``seed``), and that
     region's eigentextures are what the BSDF's texture holds (``size x rank`` values).
+    ``level`` N: the eigentextures' means over blocks of 2^N texels a side, as ``btf view
+    --level`` shows them (:func:`tasks.viewer.block_means`).
     """
     from pipeline.stores import CompressedStore, CompressedTileSetStore, TileSetStore, open_store
     from pipeline.stores.radiance import as_float32
     from tasks.btf_bsdf import Tables
-    from tasks.viewer import mesh
+    from tasks.viewer import block_means, mesh
 
     store = open_store(path, CompressedStore, TileSetStore)
     if isinstance(store, TileSetStore) and not isinstance(store, CompressedTileSetStore):
@@ -132,6 +134,10 @@ def tables(path: str | Path, rank: int | None = None, *, size: tuple[int, int] |
                        "or seed applies to tile sets")
     else:
         v = as_float32(group["V"][..., :k]).astype(np.float32)
+    if level < 0 or 2**level > min(v.shape[:2]):
+        raise BTFError(f"{path}: level {level} is out of range (the texture is "
+                       f"{v.shape[0]} x {v.shape[1]} texels)")
+    v = block_means(v, 2**level)
     d = store.directions
     try:
         views = mesh(d.theta_view, d.phi_view, "view")
@@ -171,7 +177,7 @@ def surface_eigentextures(tileset, rank: int, *, size: tuple[int, int] | None = 
 def bsdf(path: str | Path, rank: int | None = None, uv_scale: float = 1.0, **surface):
     """A ``btf`` BSDF object of the active variant for a compressed store or tile set.
 
-    ``surface``: a tile set's ``size``, ``origin`` and ``seed`` (:func:`tables`).
+    ``surface``: ``level``, and a tile set's ``size``, ``origin`` and ``seed`` (:func:`tables`).
     """
     mi, dr = import_mitsuba()
     from tasks.btf_bsdf import bsdf_class
@@ -186,6 +192,7 @@ def register() -> None:
 
     Its parameters: ``store`` (string, a compressed store or compressed tile set), ``rank``
     (integer, default all), ``uv_scale`` (float, default 1: texture repeats per unit of uv),
+    ``level`` (integer, default 0: blocks of 2^level texels, as ``btf view --level``),
     and for a tile set ``size`` ("H,W" texels of its surface, default the sample's),
     ``origin`` ("Y,X", default 0,0) and ``seed`` (default the tile set's).
     """
@@ -203,6 +210,7 @@ def register() -> None:
                 surface[name] = tuple(int(v) for v in text.split(","))
         if int(props.get("seed", -1)) >= 0:
             surface["seed"] = int(props.get("seed", -1))
+        surface["level"] = int(props.get("level", 0))
         return cls(props, tables(props["store"], rank, **surface))
 
     mi.register_bsdf("btf", make)

@@ -293,3 +293,26 @@ def test_a_dfmf_store_shows_its_layers_through_its_colour_model(tmp_path, model,
                                                                                  3)
             want = layers[v, li]
             assert np.allclose(got, want, rtol=1e-3, atol=1e-5 * want.max()), (v, li)
+
+
+def test_a_level_of_detail_is_the_pages_block_means(stores):
+    from tasks.viewer import block_means
+
+    path = stores["abtf"]
+    store = open_store(path)
+    g, d = store.group, store.directions
+    bsdf = mitsuba_plugin.bsdf(path, level=1)
+    side = SIZE // 2
+    ys, xs = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
+    n = ys.size
+    light = 11
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(0, 0, 1)
+    si.uv = mi.Point2f(((xs.ravel() + 0.5) / side).astype(np.float32),
+                       (1 - (ys.ravel() + 0.5) / side).astype(np.float32))
+    wo = _unit(d.theta_light[light], d.phi_light[light]).astype(np.float32)
+    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in wo]))
+    got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(side, side, 3)
+    us = g["U"][0, light] * g["S"][...]  # (channel, k)
+    want = store.transform.decode(block_means(g["V"][...], 2) @ us.T)
+    assert np.allclose(got, want, rtol=1e-3, atol=1e-6)

@@ -62,6 +62,8 @@ class MitsubaParams:
                               help="image side in pixels (default: the store's texels for "
                                    "the plane, at most 1024; 256 for the sphere)")
     rank: int | None = option(None, metavar="R", help="components used (default: all)")
+    level: int = option(0, metavar="N", help="level of detail: eigentextures averaged over "
+                                             "blocks of 2^N texels, as btf view --level")
     repeat: float = option(4.0, metavar="X", help="sphere: texture repeats round it")
     surface: tuple[int, ...] | None = option(
         None, metavar="H,W", help="a tile set: texels of its surface on the shape, laid as btf "
@@ -85,6 +87,8 @@ class MitsubaParams:
             raise ParamError("size", f"must be between 8 and 8192, got {self.size}")
         if self.rank is not None and self.rank < 1:
             raise ParamError("rank", f"must be at least 1, got {self.rank}")
+        if self.level < 0:
+            raise ParamError("level", f"must be at least 0, got {self.level}")
         if self.surface is not None and (len(self.surface) != 2 or min(self.surface) < 1):
             raise ParamError("surface", f"expected H,W (positive), got {self.surface}")
         if len(self.origin) != 2:
@@ -136,7 +140,7 @@ def mitsuba(params: MitsubaParams, session: Session) -> Path:
         scene = mi.load_file(params.scene_file)
         what = params.scene_file
     else:
-        surface = {"size": params.surface, "origin": params.origin}
+        surface = {"size": params.surface, "origin": params.origin, "level": params.level}
         bsdf = mitsuba_plugin.bsdf(params.store, params.rank,
                                    uv_scale=params.repeat if params.scene == "sphere" else 1.0,
                                    **surface)
