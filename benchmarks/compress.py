@@ -33,7 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import best_of, btf_executable, generate_store, machine, measure
+from benchmarks.harness import (
+    best_of,
+    btf_executable,
+    drop_page_cache,
+    generate_store,
+    machine,
+    measure,
+    store_bytes,
+)
 
 SUITE = "compress"
 EPS = 1e-3
@@ -169,21 +177,6 @@ def memory_bytes() -> int:
     import os
 
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def store_bytes(store: Path) -> int:
-    """Bytes the store's files take on disk."""
-    return sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
-
-
-def drop_page_cache() -> bool:
-    """Write dirty pages and drop the page cache (Linux, as root); whether it was dropped."""
-    subprocess.run(["sync"], check=False)
-    try:
-        Path("/proc/sys/vm/drop_caches").write_text("3\n")
-    except OSError:
-        return False
-    return True
 
 
 def _modes(args) -> list[tuple[str, list[str]]]:

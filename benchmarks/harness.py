@@ -165,3 +165,18 @@ def stop_processes(*groups: list[subprocess.Popen], timeout: float = 20) -> None
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+
+
+def store_bytes(store: Path) -> int:
+    """Bytes a store's files take on disk."""
+    return sum(f.stat().st_size for f in Path(store).rglob("*") if f.is_file())
+
+
+def drop_page_cache() -> bool:
+    """Write dirty pages and drop the page cache (Linux, as root); whether it was dropped."""
+    subprocess.run(["sync"], check=False)
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+    except OSError:
+        return False
+    return True

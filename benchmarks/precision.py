@@ -45,7 +45,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import btf_executable, git_revision, machine, measure
+from benchmarks.harness import (
+    btf_executable,
+    chosen_stages,
+    drop_page_cache,
+    git_revision,
+    machine,
+    measure,
+    store_bytes,
+)
 
 SUITE = "precision"
 PARTS = ("ingest", "compress", "view")
@@ -132,21 +140,8 @@ def _settings(args) -> dict:
     return out
 
 
-def _parts(text: str) -> list[str]:
-    parts = [p for p in text.split(",") if p]
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown:
-        raise SystemExit(f"btf bench precision: unknown part(s) {', '.join(unknown)}; choose "
-                         f"from {', '.join(PARTS)}")
-    return parts
-
-
 def _btf(*args) -> None:
     subprocess.run([btf_executable(), *map(str, args), "--quiet"], check=True)
-
-
-def _store_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
 
 
 def _radiance(path: Path):
@@ -208,7 +203,7 @@ def ingest(tmp: Path, s: dict) -> dict:
               "archive_bytes": archive.stat().st_size, "decode_1_per_s": decoder,
               "decoded_members": min(2000, images), "runs": runs,
               "stored_dtype": {d: str(_radiance(p).dtype) for d, p in stores.items()},
-              "store_bytes": {d: _store_bytes(p) for d, p in stores.items()},
+              "store_bytes": {d: store_bytes(p) for d, p in stores.items()},
               "rounded": rounded_equal(stores["float32"], stores["float16"])}
     for path in stores.values():
         shutil.rmtree(path, ignore_errors=True)
@@ -272,16 +267,6 @@ class MemoryCgroup:
         self.close()
 
 
-def drop_page_cache() -> bool:
-    """``sync; echo 3 > /proc/sys/vm/drop_caches`` (root); whether it was dropped."""
-    subprocess.run(["sync"], check=False)
-    try:
-        Path("/proc/sys/vm/drop_caches").write_text("3\n")
-    except OSError:
-        return False
-    return True
-
-
 def run_in_cgroup(cgroup: MemoryCgroup, argv: list[str]) -> dict:
     """``btf ARGV`` in a child process in ``cgroup`` (none: unlimited): its figures."""
     if cgroup.path is not None:
@@ -338,7 +323,7 @@ def compress(tmp: Path, s: dict, args) -> dict:
               "rows": shape[0] * shape[1] * shape[4], "cols": shape[2] * shape[3],
               "rank": args.rank, "requested_limit": limit, "machine_memory": _memory_bytes(),
               "values_bytes": {"float32": values * 4, "float16": values * 2},
-              "on_disk": {d: _store_bytes(p) for d, p in stores.items()},
+              "on_disk": {d: store_bytes(p) for d, p in stores.items()},
               "generate_s": generated, "crop_s": cropped,
               "rounded": rounded_equal(f32, f16), "runs": []}
     modes = [("default", []), ("one pass", ["--passes", "1"])]
@@ -434,7 +419,7 @@ def view(tmp: Path, s: dict, args) -> dict:
 
 def run(args: argparse.Namespace) -> dict:
     """All measurements of the suite, in one run."""
-    parts = _parts(args.parts)
+    parts = chosen_stages(args.parts, PARTS, "precision")
     s = _settings(args)
     result = {"suite": SUITE, "quick": bool(args.quick), "settings": s, "parts": parts,
               "machine": machine(), "revision": git_revision()}

@@ -65,6 +65,20 @@ def _unit(theta, phi):
     return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
 
 
+def _texel_centres(bsdf, h: int, w: int, wi, wo) -> np.ndarray:
+    """``(h, w, 3)``: the BSDF at every texel centre of an ``h x w`` texture (row 0 at the
+    top), seen from ``wi`` and lit from ``wo`` (local unit vectors)."""
+    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    n = ys.size
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(*[np.full(n, c, np.float32) for c in wi])
+    si.uv = mi.Point2f(((xs.ravel() + 0.5) / w).astype(np.float32),
+                       (1 - (ys.ravel() + 0.5) / h).astype(np.float32))
+    value = bsdf.eval(mi.BSDFContext(), si,
+                      mi.Vector3f(*[np.full(n, c, np.float32) for c in wo]))
+    return np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(h, w, 3)
+
+
 def _plane_pixels(bsdf, light: np.ndarray, at: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
     """``(y, x, 3)``: a unit-irradiance directional light on the plane, seen from straight
     above by an orthographic camera, one ray through each texel at ``at`` (its centre by
@@ -245,15 +259,7 @@ def test_a_tile_set_on_a_plane_is_btf_renders_surface(tmp_path, maker):
     want, _ = read_image(tmp_path / "r.exr")
     bsdf = mitsuba_plugin.bsdf(tiles, size=(h, w), origin=(5, -11))
     d = open_store(tiles).directions
-    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    n = ys.size
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(0, 0, 1)
-    si.uv = mi.Point2f(((xs.ravel() + 0.5) / w).astype(np.float32),
-                       (1 - (ys.ravel() + 0.5) / h).astype(np.float32))
-    to_light = _unit(d.theta_light[light], d.phi_light[light]).astype(np.float32)
-    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in to_light]))
-    got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(h, w, 3)
+    got = _texel_centres(bsdf, h, w, (0, 0, 1), _unit(d.theta_light[light], d.phi_light[light]))
     assert np.allclose(got, want, rtol=1e-3, atol=1e-6 * want.max())
 
 
@@ -278,19 +284,10 @@ def test_a_dfmf_store_shows_its_layers_through_its_colour_model(tmp_path, model,
     d = store.directions
     layers = open_layers(tmp_path / "s.zarr")["radiance"].values  # btf reconstruct's
     bsdf = mitsuba_plugin.bsdf(tmp_path / "s.zarr")
-    ys, xs = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
-    n = ys.size
     for v in range(d.views):
         for li in range(d.lights):
-            si = dr.zeros(mi.SurfaceInteraction3f, n)
-            wi = _unit(d.theta_view[v], d.phi_view[v]).astype(np.float32)
-            si.wi = mi.Vector3f(*[np.full(n, c) for c in wi])
-            si.uv = mi.Point2f(((xs.ravel() + 0.5) / width).astype(np.float32),
-                               (1 - (ys.ravel() + 0.5) / height).astype(np.float32))
-            wo = _unit(d.theta_light[li], d.phi_light[li]).astype(np.float32)
-            value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in wo]))
-            got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(height, width,
-                                                                                 3)
+            got = _texel_centres(bsdf, height, width, _unit(d.theta_view[v], d.phi_view[v]),
+                                 _unit(d.theta_light[li], d.phi_light[li]))
             want = layers[v, li]
             assert np.allclose(got, want, rtol=1e-3, atol=1e-5 * want.max()), (v, li)
 
@@ -302,17 +299,9 @@ def test_a_level_of_detail_is_the_pages_block_means(stores):
     store = open_store(path)
     g, d = store.group, store.directions
     bsdf = mitsuba_plugin.bsdf(path, level=1)
-    side = SIZE // 2
-    ys, xs = np.meshgrid(np.arange(side), np.arange(side), indexing="ij")
-    n = ys.size
-    light = 11
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(0, 0, 1)
-    si.uv = mi.Point2f(((xs.ravel() + 0.5) / side).astype(np.float32),
-                       (1 - (ys.ravel() + 0.5) / side).astype(np.float32))
-    wo = _unit(d.theta_light[light], d.phi_light[light]).astype(np.float32)
-    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[np.full(n, c) for c in wo]))
-    got = np.stack([np.asarray(value[c]) for c in range(3)], -1).reshape(side, side, 3)
+    side, light = SIZE // 2, 11
+    got = _texel_centres(bsdf, side, side, (0, 0, 1),
+                         _unit(d.theta_light[light], d.phi_light[light]))
     us = g["U"][0, light] * g["S"][...]  # (channel, k)
     want = store.transform.decode(block_means(g["V"][...], 2) @ us.T)
     assert np.allclose(got, want, rtol=1e-3, atol=1e-6)
