@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import git_revision, machine
+from tasks.sampling import direction_vectors
 
 SUITE = "mitsuba"
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,7 +95,6 @@ def _sphere_scene(mi, bsdf) -> dict:
 
 
 def _plane_scene(mi, bsdf, theta: float, resolution: int) -> dict:
-    t = np.radians(theta)
     return {"type": "scene", "integrator": {"type": "direct"},
             "sensor": {"type": "orthographic",
                        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 2],
@@ -104,7 +104,7 @@ def _plane_scene(mi, bsdf, theta: float, resolution: int) -> dict:
                        "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
                                 "rfilter": {"type": "box"}}},
             "light": {"type": "directional",
-                      "direction": [-float(np.sin(t)), 0.0, -float(np.cos(t))],
+                      "direction": (-direction_vectors(theta, 0.0)).tolist(),
                       "irradiance": {"type": "rgb", "value": 1.0}},
             "shape": {"type": "rectangle", "bsdf": bsdf}}
 

@@ -64,6 +64,7 @@ from pipeline.session import Session
 from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.compressed import create_compressed_store
+from pipeline.stores.radiance import DTYPES
 from tasks.rsvd import SIDES, randomized_svd, randomized_svd_rows
 from tasks.svd import PassPart, Sketch
 
@@ -117,7 +118,7 @@ class CompressSettings:
              "(btf run --plan checks it against the workers' memory)")
     eps: float = option(1e-3, help="range reduction log(radiance + eps)")
     v_dtype: str | None = option(
-        None, choices=("float32", "float16"),
+        None, choices=DTYPES,
         help="the eigentextures' stored type: float16 halves V's bytes (the bulk of a "
              "compressed store) and rounds each value by at most 2^-11 of it (BENCHMARKS.md, "
              "'Precision'); default: float32, or a compressed input's own")

@@ -34,10 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.transform import YUV_TO_RGB, Transform
+from tasks.transform import LOG_MAX, YUV_TO_RGB, Transform
 from tasks.viewer import SNAP, Mesh, cell_triangles
 
-_LOG_MAX = 88.0  # as tasks.transform: exp of more overflows float32
 CELLS = 256  # cells per side of the grid that lists the triangles a point may lie in
 
 
@@ -170,14 +169,14 @@ def _decode(dr, mi, transform: Transform, values: list):
     if transform.name == "linear":
         return [dr.maximum(a, 0.0) for a in values]
     if transform.name == "log":
-        return [dr.maximum(dr.exp(dr.minimum(a, _LOG_MAX)) - eps, 0.0) for a in values]
+        return [dr.maximum(dr.exp(dr.minimum(a, LOG_MAX)) - eps, 0.0) for a in values]
     a0, a1, a2 = values
-    y = dr.exp(dr.minimum(a0, _LOG_MAX))  # Y + eps
+    y = dr.exp(dr.minimum(a0, LOG_MAX))  # Y + eps
     if transform.name == "ylog-uv-over-y":
         u, v = a1 * y, a2 * y
     elif transform.name == "ylog-ulog-vlog":
         log_eps = float(np.log(np.float32(eps)))
-        u, v = (dr.sign(c) * dr.exp(dr.minimum(dr.abs(c), _LOG_MAX) + log_eps) for c in (a1, a2))
+        u, v = (dr.sign(c) * dr.exp(dr.minimum(dr.abs(c), LOG_MAX) + log_eps) for c in (a1, a2))
     else:
         u, v = a1, a2
     y = y - eps

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.transform import Transform
+from tasks.transform import LOG_MAX, Transform
 
 TILE = 16384  # columns per float32 product; longer sums are accumulated in float64
 IDENTITY_RESOLUTION = 1e-3  # relative errors the identity resolves (measured floor ~2e-4)
@@ -500,7 +500,6 @@ def estimated_error(z_phi: np.ndarray, vt_phi: np.ndarray, t: int, u, s,
     return float(np.sqrt(np.sum(residual**2) / t / frobenius2))
 
 
-_LOG_MAX = 88.0  # exp of more overflows float32
 
 
 def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform,
@@ -570,7 +569,7 @@ def verification(raw: np.ndarray, log_rows_: np.ndarray, u: np.ndarray, s: np.nd
         approx_log = us @ v[t : t + tile].T
         d = np.subtract(log_rows_[:, t : t + tile], approx_log, dtype=np.float32)
         log_residual += float(np.einsum("ij,ij->", d, d, dtype=np.float64))
-        np.minimum(approx_log, np.float32(_LOG_MAX), out=approx_log)
+        np.minimum(approx_log, np.float32(LOG_MAX), out=approx_log)
         approx = np.exp(approx_log, out=approx_log)
         approx -= np.float32(eps)
         np.maximum(approx, 0.0, out=approx)

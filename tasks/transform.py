@@ -41,7 +41,7 @@ import numpy as np
 YUV_TO_RGB = np.array([[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]])
 YCOCG_TO_RGB = np.array([[1.0, 1.0, -1.0], [1.0, 0.0, 1.0], [1.0, -1.0, -1.0]])
 DFMF_EPS = 1e-5  # Bonn's readers' fixed eps of the log colour models; files do not store it
-_LOG_MAX = 88.0  # exp of more overflows float32
+LOG_MAX = 88.0  # exp of more overflows float32
 
 # DFMF colour model number -> (transform name, formula); models 0, 1, 3, 4 fold into U.
 DFMF_MODELS: dict[int, tuple[str, str]] = {
@@ -104,18 +104,18 @@ class Transform:
         if self.name == "linear":
             return np.maximum(a, 0.0, out=a)
         if self.name == "log":
-            np.minimum(a, np.float32(_LOG_MAX), out=a)
+            np.minimum(a, np.float32(LOG_MAX), out=a)
             np.exp(a, out=a)
             a -= eps
             return np.maximum(a, 0.0, out=a)
         a = np.moveaxis(a, axis, 0)
         if a.shape[0] != 3:
             raise ValueError(f"transform {self.name!r} decodes 3 channels, got {a.shape[0]}")
-        y = np.exp(np.minimum(a[0], np.float32(_LOG_MAX)))  # Y + eps
+        y = np.exp(np.minimum(a[0], np.float32(LOG_MAX)))  # Y + eps
         if self.name == "ylog-uv-over-y":
             u, v = a[1] * y, a[2] * y
         elif self.name == "ylog-ulog-vlog":
-            u, v = (np.sign(c) * np.exp(np.minimum(np.abs(c), _LOG_MAX) + np.log(eps))
+            u, v = (np.sign(c) * np.exp(np.minimum(np.abs(c), LOG_MAX) + np.log(eps))
                     for c in a[1:])
         else:
             u, v = a[1], a[2]

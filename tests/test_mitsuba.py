@@ -16,6 +16,7 @@ from helpers import generate_store
 from pipeline import mitsuba_plugin
 from pipeline.cli import main
 from pipeline.stores import open_layers, open_store
+from tasks.sampling import direction_vectors
 from tasks.viewer import coefficients, locate, mesh
 
 pytestmark = pytest.mark.slow
@@ -60,9 +61,7 @@ def stores(tmp_path_factory):
     return out
 
 
-def _unit(theta, phi):
-    t, p = np.radians(theta), np.radians(phi)
-    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+_unit = direction_vectors  # (theta, phi) in degrees -> unit vectors
 
 
 def _texel_centres(bsdf, h: int, w: int, wi, wo) -> np.ndarray:

@@ -33,7 +33,8 @@ def _estimate(params: CompressParams, shapes: dict, *,
     """``btf run --plan``'s estimate, with the other mode (one pass or several) beside it."""
     src = shapes[params.store]
     nv, nl, ny, nx, nc = src.radiance
-    v_size = (2 if params.v_dtype == "float16" else 4 if params.v_dtype  # of a stored V value
+    # bytes of a stored V value: as asked, else a compressed input's own, else float32's
+    v_size = ({"float16": 2, "float32": 4}[params.v_dtype] if params.v_dtype
               else src.itemsize if src.kind == "compressed" else 4)
     if src.kind == "compressed":  # its factors: V read twice, U held, V written
         k, rank = src.rank or params.rank, min(params.rank, src.rank or params.rank)

@@ -22,6 +22,7 @@ from pipeline.images import write_exr, write_png
 from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
+from tasks.sampling import direction_vectors
 from tasks.tonemap import exposure, to_uint8, tonemap
 
 SCENES = ("plane", "sphere")
@@ -95,22 +96,17 @@ class MitsubaParams:
             raise ParamError("origin", f"expected Y,X, got {self.origin}")
 
 
-def _unit(theta: float, phi: float) -> list[float]:
-    t, p = np.radians(theta), np.radians(phi)
-    return [float(np.sin(t) * np.cos(p)), float(np.sin(t) * np.sin(p)), float(np.cos(t))]
-
-
 def scene_dict(params: MitsubaParams, mi, bsdf, texels: int) -> dict:
     """The built-in scene of ``params`` around ``bsdf`` (a ``mi.load_dict`` dictionary)."""
-    light = _unit(*_angles(params.light, "light"))
+    light = direction_vectors(*_angles(params.light, "light")).tolist()
     emitter = {"type": "directional", "direction": [-c for c in light],
                "irradiance": {"type": "rgb", "value": 1.0}}
     if params.scene == "plane":
         size = params.size or min(texels, 1024)
-        eye = [2 * c for c in _unit(*_angles(params.view, "view"))]
-        up = [0, 1, 0] if abs(eye[2]) > 1e-6 * 2 else [0, 0, 1]
-        sensor = {"type": "orthographic",
-                  "to_world": mi.ScalarTransform4f().look_at(origin=eye, target=[0, 0, 0], up=up),
+        eye = (2 * direction_vectors(*_angles(params.view, "view"))).tolist()
+        sensor = {"type": "orthographic",  # theta < 90: the eye is never along +y
+                  "to_world": mi.ScalarTransform4f().look_at(origin=eye, target=[0, 0, 0],
+                                                             up=[0, 1, 0]),
                   "sampler": {"type": "independent", "sample_count": params.spp,
                               "seed": params.seed},
                   "film": {"type": "hdrfilm", "width": size, "height": size,
