@@ -236,7 +236,8 @@ def _constraint_rows(info: dict, us: np.ndarray, coef_s: np.ndarray) -> tuple[np
     return np.concatenate(rows).astype(np.float64), np.concatenate(offsets)
 
 
-def _material(name: str, args, tmp: Path) -> dict:
+def _material(name: str, args, tmp: Path, generate: tuple = ()) -> dict:
+    """One material's row; ``generate``: more ``btf generate`` options (a renderer)."""
     size, half = args.size, args.size // 2
     origin = ((size - half) // 2, (size - half) // 2)
     m = tmp / "M.zarr"
@@ -244,7 +245,7 @@ def _material(name: str, args, tmp: Path) -> dict:
         _btf("generate", m, "--albedo", _photo(tmp), "--size", size, "--sampling", SAMPLING)
     else:
         _btf("generate", m, "--material", name, "--size", size, "--sampling", SAMPLING,
-             "--seed", args.seed)
+             "--seed", args.seed, *generate)
     _btf("crop", m, tmp / "S.zarr", "--region",
          f"{origin[0]}:{origin[0] + half},{origin[1]}:{origin[1] + half}")
     _btf("compress", tmp / "S.zarr", tmp / "S_svd.zarr", "--rank", args.rank)
