@@ -20,11 +20,12 @@ test: $(STAMP)
 	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 # (Re)install when the package metadata changes; the stamp makes repeated runs instant.
-$(STAMP): pyproject.toml
+# The [mitsuba] extra: make run's report shows the demo's tile set rendered by Mitsuba 3.
+$(STAMP): pyproject.toml Makefile
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python 3.11+ is needed (found " + sys.version.split()[0] + "); set PYTHON=python3.11")'
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,mitsuba]'
 	touch $(STAMP)
 
 clean:

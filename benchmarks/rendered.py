@@ -43,7 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="procedural materials (default: leather,stone,tiles)")
     parser.add_argument("--bsdf", default="principled",
                         help="the path tracer's BSDF for the benches (default principled)")
-    parser.add_argument("--spp", type=int, default=64, help="spp of the benches' renders")
+    parser.add_argument("--spp", type=int, default=256,
+                        help="spp of the benches' renders (default 256: noise under 1%%)")
+    parser.add_argument("--throughput-spp", type=int, default=64,
+                        help="spp of the throughput run (default 64, generate's default)")
     parser.add_argument("--sampling", default="abtf:12,4")
     parser.add_argument("--throughput-size", type=int, default=256)
     parser.add_argument("--noise-spp", default="4,16,64,256")
@@ -74,10 +77,11 @@ def _throughput(args, tmp: Path) -> list[dict]:
     material = args.materials.split(",")[0]
     for renderer in RENDERERS:
         m = measure(_generate(tmp / "t.zarr", material, args.throughput_size, args.sampling,
-                              renderer, spp=args.spp, bsdf=args.bsdf))
+                              renderer, spp=args.throughput_spp, bsdf=args.bsdf))
         rows.append({"renderer": renderer, "seconds": m.seconds, "peak_rss": m.peak_rss,
                      "layers_per_s": layers / m.seconds,
-                     "samples_per_s": (layers * args.throughput_size**2 * args.spp / m.seconds
+                     "samples_per_s": (layers * args.throughput_size**2 * args.throughput_spp
+                                       / m.seconds
                                        if renderer == "mitsuba" else None)})
         shutil.rmtree(tmp / "t.zarr")
     return rows
@@ -207,6 +211,7 @@ def run(args: argparse.Namespace) -> dict:
     parts = set(args.parts.split(","))
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-rendered-"))
     result = {"suite": SUITE, "sampling": args.sampling, "bsdf": args.bsdf, "spp": args.spp,
+              "throughput_spp": args.throughput_spp,
               "size": args.size, "throughput_size": args.throughput_size,
               "machine": machine(), "git": git_revision()}
     try:
@@ -228,7 +233,9 @@ def report(result: dict) -> str:
     if "throughput" in result:
         lines += [f"Throughput: `btf generate OUT --material M --size "
                   f"{result['throughput_size']} --sampling {result['sampling']}` (mitsuba: "
-                  f"`--renderer mitsuba --spp {result['spp']} --bsdf {result['bsdf']}`).", "",
+                  f"`--renderer mitsuba --spp {result['throughput_spp']} --bsdf "
+                  f"{result['bsdf']}`).",
+                  "",
                   "| renderer | wall s | layers/s | path samples/s | peak RSS |",
                   "|---|---|---|---|---|"]
         for r in result["throughput"]:

@@ -170,8 +170,43 @@ def write_exr(path: str | Path, pixels: np.ndarray, channels: tuple[str, ...], *
         f.write(str(path))
 
 
-def write_png(path: str | Path, pixels: np.ndarray) -> None:
-    """Write 8 or 16-bit ``(height, width[, channels])`` pixels as PNG."""
+def write_png(path: str | Path, pixels: np.ndarray, text: dict[str, str] | None = None) -> None:
+    """Write 8 or 16-bit ``(height, width[, channels])`` pixels as PNG.
+
+    ``text``: Latin-1 key/value pairs stored as PNG ``tEXt`` chunks (read by :func:`png_text`).
+    """
     import imagecodecs
 
-    Path(path).write_bytes(imagecodecs.png_encode(np.ascontiguousarray(pixels)))
+    data = imagecodecs.png_encode(np.ascontiguousarray(pixels))
+    if text:
+        chunks = b"".join(_png_chunk(b"tEXt", key.encode("latin-1") + b"\0"
+                                     + value.encode("latin-1", "replace"))
+                          for key, value in text.items())
+        end = data.rindex(b"IEND") - 4  # the IEND chunk's length field
+        data = data[:end] + chunks + data[end:]
+    Path(path).write_bytes(data)
+
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def png_text(data: bytes) -> dict[str, str]:
+    """The ``tEXt`` key/value pairs of a PNG file's bytes (empty if none or not a PNG)."""
+    import struct
+
+    out, at = {}, 8
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        return out
+    while at + 8 <= len(data):
+        (length,), kind = struct.unpack(">I", data[at : at + 4]), data[at + 4 : at + 8]
+        if kind == b"tEXt":
+            key, _, value = data[at + 8 : at + 8 + length].partition(b"\0")
+            out[key.decode("latin-1")] = value.decode("latin-1")
+        if kind == b"IEND":
+            break
+        at += 12 + length
+    return out

@@ -164,12 +164,16 @@ def compose_services() -> dict:
 REPO = Path(__file__).resolve().parents[1]
 
 
-def small_demo(folder: Path, size: int = 128) -> Path:
+def small_demo(folder: Path, size: int = 128, *, mitsuba: bool = False) -> Path:
     """configs/demo.yaml scaled down to a ``size^2`` ground truth, written into ``folder``.
 
     The sample stays the central half and the surface twice the size; the scene spec goes
-    to ``folder/configs/demo/`` where the config finds it when run from ``folder``.
+    to ``folder/configs/demo/`` where the config finds it when run from ``folder``. Without
+    ``mitsuba`` the Mitsuba render and its place in the report are left out (the default
+    tests do not need Mitsuba 3 or LLVM 16).
     """
+    import yaml
+
     text = (REPO / "configs" / "demo.yaml").read_text()
     for old, new in (("size: 256", f"size: {size}"),
                      ('"64:192,64:192"', f'"{size // 4}:{3 * size // 4},{size // 4}:'
@@ -177,6 +181,12 @@ def small_demo(folder: Path, size: int = 128) -> Path:
                      ("size: [512, 512]", f"size: [{2 * size}, {2 * size}]")):
         assert old in text, old
         text = text.replace(old, new)
+    if not mitsuba:
+        config = yaml.safe_load(text)
+        config["stages"] = [s for s in config["stages"] if "mitsuba" not in s]
+        for stage in config["stages"]:
+            stage.get("report", {}).pop("mitsuba", None)
+        text = yaml.safe_dump(config, sort_keys=False)
     scenes = folder / "configs" / "demo"
     scenes.mkdir(parents=True, exist_ok=True)
     (scenes / "scene.yaml").write_text((REPO / "configs" / "demo" / "scene.yaml").read_text())

@@ -164,3 +164,17 @@ def test_spp_that_fills_no_grid_of_strata_is_refused_naming_the_nearest(tmp_path
                  "--renderer", "mitsuba", "--spp", "10"])
     assert code != 0 and "use 12" in capsys.readouterr().err
     assert not (tmp_path / "x.zarr").exists()
+
+
+@pytest.mark.slow
+def test_the_path_traced_store_resumes_after_kill_9_to_the_same_bits(llvm, tmp_path):
+    from test_resume import _kill_and_resume
+
+    def args(out):
+        return ["generate", out, "--material", "stone", "--size", "128", "--sampling",
+                "abtf:6,2", "--chunk", "32", "--seed", "3", "--renderer", "mitsuba", "--spp",
+                "16"]
+
+    _kill_and_resume(tmp_path, args, ("radiance", "height", "albedo", "roughness", "specular"),
+                     mark="layers of", resumed_says="generate: resuming an interrupted run",
+                     seed=2)

@@ -70,8 +70,21 @@ def test_the_demo_report_renders_in_a_real_browser_with_every_picture_loaded(btf
     chromium = find_chromium()
 
     monkeypatch.chdir(tmp_path)
-    assert btf("run", small_demo(tmp_path), "--quiet").code == 0
+    # the whole demo, its tile set rendered by Mitsuba on a sphere included, where Mitsuba is
+    # installed (.ci/run installs it and LLVM 19: there the llvm variant renders it)
+    import importlib.util
+    import os
+
+    mitsuba = (os.environ.get("BTF_REQUIRE_MITSUBA") == "1"
+               or importlib.util.find_spec("mitsuba") is not None)
+    assert btf("run", small_demo(tmp_path, mitsuba=mitsuba), "--quiet").code == 0
     page = tmp_path / "out" / "demo" / "report.html"
+    if mitsuba:
+        text = page.read_text()
+        assert "Rendered by Mitsuba 3 through btf" in text
+        assert "sphere of out/demo/tiles.zarr" in text
+        if os.environ.get("BTF_REQUIRE_MITSUBA") == "1":
+            assert "(llvm_ad_rgb)" in text
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
              "--disable-background-networking", "--disable-component-update", "--disable-sync",
              f"--user-data-dir={tmp_path / 'profile'}"]
@@ -99,3 +112,18 @@ window.addEventListener('load', () => {
 
     pixels = imread(shot)[..., :3]
     assert pixels.std() > 0.05  # text, tables and pictures: not a blank page
+
+
+def test_a_png_carries_text_that_the_report_reads_back(tmp_path):
+    import imagecodecs
+
+    from pipeline.images import png_text, write_png
+
+    pixels = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
+    write_png(tmp_path / "x.png", pixels, text={"btf": "Mitsuba 3 (llvm_ad_rgb), 16 spp"})
+    data = (tmp_path / "x.png").read_bytes()
+    assert png_text(data) == {"btf": "Mitsuba 3 (llvm_ad_rgb), 16 spp"}
+    assert np.array_equal(imagecodecs.png_decode(data), pixels)  # still a valid PNG
+    write_png(tmp_path / "y.png", pixels)
+    assert png_text((tmp_path / "y.png").read_bytes()) == {}
+    assert png_text(b"not a png") == {}

@@ -27,6 +27,7 @@ from tasks.tonemap import exposure, to_uint8, tonemap
 
 SCENES = ("plane", "sphere")
 VARIANTS = ("auto", "scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")
+SCALAR_SIZE = 64  # pixels a side on the scalar variant unless --size says otherwise
 
 
 def _angles(text: str, name: str) -> tuple[float, float]:
@@ -61,7 +62,8 @@ class MitsubaParams:
     spp: int = option(16, metavar="N", help="samples per pixel")
     size: int | None = option(None, metavar="N",
                               help="image side in pixels (default: the store's texels for "
-                                   "the plane, at most 1024; 256 for the sphere)")
+                                   "the plane, at most 1024; 256 for the sphere; "
+                                   f"{SCALAR_SIZE} on the scalar variant)")
     rank: int | None = option(None, metavar="R", help="components used (default: all)")
     level: int = option(0, metavar="N", help="level of detail: eigentextures averaged over "
                                              "blocks of 2^N texels, as btf view --level")
@@ -120,7 +122,9 @@ def scene_dict(params: MitsubaParams, mi, bsdf, texels: int) -> dict:
                   "sampler": {"type": "independent", "sample_count": params.spp,
                               "seed": params.seed},
                   "film": {"type": "hdrfilm", "width": size, "height": size}}
-        shape = {"type": "sphere", "bsdf": bsdf}
+        # poles up and down (Mitsuba's sphere has them on z, where the camera looks)
+        shape = {"type": "sphere", "bsdf": bsdf,
+                 "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90)}
     return {"type": "scene", "integrator": {"type": "direct"}, "sensor": sensor,
             "light": emitter, "shape": shape}
 
@@ -131,6 +135,10 @@ def mitsuba(params: MitsubaParams, session: Session) -> Path:
 
     chosen = mitsuba_plugin.variant(params.variant, log=session.log)
     mi, _ = mitsuba_plugin.import_mitsuba()
+    if chosen.startswith("scalar") and params.size is None:  # one sample at a time in Python
+        params = dataclasses.replace(params, size=SCALAR_SIZE)
+        session.log(f"mitsuba: {chosen}: a small render, {SCALAR_SIZE} x {SCALAR_SIZE} pixels "
+                    "(--size for another)")
     if params.scene_file is not None:
         mitsuba_plugin.register()
         scene = mi.load_file(params.scene_file)
@@ -146,13 +154,17 @@ def mitsuba(params: MitsubaParams, session: Session) -> Path:
     session.log(f"mitsuba: {what}, {params.spp} spp, {chosen}")
     start = time.perf_counter()
     image = np.asarray(mi.render(scene, spp=params.spp, seed=params.seed), np.float32)
-    session.log(f"mitsuba: {image.shape[1]} x {image.shape[0]} pixels in "
-                f"{time.perf_counter() - start:.2f} s -> {params.out}")
+    seconds = time.perf_counter() - start
+    session.log(f"mitsuba: {image.shape[1]} x {image.shape[0]} pixels in {seconds:.2f} s -> "
+                f"{params.out}")
+    made = (f"Mitsuba {mi.__version__} ({chosen}), the btf BSDF: {what}; {image.shape[1]} x "
+            f"{image.shape[0]} pixels, {params.spp} spp, {seconds:.2f} s")
     with atomic_output(params.out, directory=False, overwrite=params.overwrite) as tmp:
         if Path(params.out).suffix.lower() == ".exr":
             write_exr(tmp, image[..., :3], ("R", "G", "B"))
         else:
-            write_png(tmp, to_uint8(tonemap(image[..., :3], scale=exposure(image[..., :3]))))
+            write_png(tmp, to_uint8(tonemap(image[..., :3], scale=exposure(image[..., :3]))),
+                      text={"btf": made})
     return Path(params.out)
 
 

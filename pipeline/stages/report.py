@@ -72,6 +72,9 @@ class ReportParams:
                                   help="PNG files, or folders of them, to show (comma-separated)")
     viewer: str | None = option(None, path="in", metavar="PAGE.html",
                                 help="a relighting page (btf view) to link to")
+    mitsuba: str | None = option(None, path="in", metavar="PNG",
+                                 help="a picture made by btf mitsuba (the tile set on a "
+                                      "sphere, say), shown beside the relighting page's link")
     lights: int = option(3, help="light directions shown side by side (spread over them)")
     window: int = option(256, help="largest side of the pictures' window, in texels")
     title: str = option("btf report", help="title of the page")
@@ -367,17 +370,37 @@ def _pictures(items: str) -> Section:
     return Section("Pictures", (), (), tuple(pictures))
 
 
-def _viewer(page: str, out: str) -> Section:
-    """A link to a relighting page, relative to the report where both are local files."""
+def _viewer(page: str | None, out: str, render: str | None) -> Section:
+    """The relighting page's link and a picture made by ``btf mitsuba`` beside it.
+
+    The link is relative to the report where both are local files.
+    """
     import os
 
-    href = page
-    if not storage.is_url(page) and not storage.is_url(out):
-        href = os.path.relpath(Path(page).resolve(), Path(out).resolve().parent)
-    return Section("Relight it", (
-        "The page below shows the material under a light and from a view that you drag over "
-        "the hemisphere (WebGL2, one file, no network; made by btf view). It is linked, not "
-        "embedded: this page holds no script.",), links=((f"open {Path(page).name}", href),))
+    from pipeline.images import png_text
+
+    paragraphs, links, pictures = [], (), ()
+    if page is not None:
+        href = page
+        if not storage.is_url(page) and not storage.is_url(out):
+            href = os.path.relpath(Path(page).resolve(), Path(out).resolve().parent)
+        paragraphs.append(
+            "The page below shows the material under a light and from a view that you drag "
+            "over the hemisphere (WebGL2, one file, no network; made by btf view). It is "
+            "linked, not embedded: this page holds no script.")
+        links = ((f"open {Path(page).name}", href),)
+    if render is not None:
+        path = Path(render)
+        if not path.is_file():
+            raise BTFError(f"--mitsuba: {render}: no such PNG file")
+        data = path.read_bytes()
+        made = png_text(data).get("btf", "")
+        paragraphs.append("Rendered by Mitsuba 3 through btf's BSDF plugin (btf mitsuba), as "
+                          "any scene that names it renders the material" + (f": {made}."
+                                                                            if made else "."))
+        pictures = (Picture(str(path), data),)
+    title = "Relight it" if page is not None else "Rendered by Mitsuba 3"
+    return Section(title, tuple(paragraphs), pictures=pictures, links=links)
 
 
 def report(params: ReportParams, session: Session) -> Path:
@@ -398,8 +421,8 @@ def report(params: ReportParams, session: Session) -> Path:
         sections.append(_tiles(params.tiles))
     if params.pictures:
         sections.append(_pictures(params.pictures))
-    if params.viewer:
-        sections.append(_viewer(params.viewer, params.out))
+    if params.viewer or params.mitsuba:
+        sections.append(_viewer(params.viewer, params.out, params.mitsuba))
     page = render(params.title, f"Made by btf {__version__} on "
                   f"{time.strftime('%Y-%m-%d %H:%M')} in {time.perf_counter() - start:.1f} s.",
                   sections)
