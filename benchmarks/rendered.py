@@ -33,16 +33,23 @@ import numpy as np
 from benchmarks.harness import btf_executable, git_revision, machine, measure
 
 SUITE = "rendered"
-RENDERERS = ("shading", "mitsuba")
+def renderers(args) -> list[tuple[str, str | None]]:
+    """The benches' rows per material: btf's shading, then the path tracer per BSDF."""
+    return [("shading", None)] + [("mitsuba", b) for b in args.bsdf.split(",")]
+
+
+def _first_bsdf(args) -> str:
+    return args.bsdf.split(",")[0]
 PARTS = ("throughput", "noise", "benches")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of the suite."""
-    parser.add_argument("--materials", default="leather,stone,tiles",
-                        help="procedural materials (default: leather,stone,tiles)")
-    parser.add_argument("--bsdf", default="principled",
-                        help="the path tracer's BSDF for the benches (default principled)")
+    parser.add_argument("--materials", default="leather,stone,fabric",
+                        help="procedural materials (default: leather,stone,fabric)")
+    parser.add_argument("--bsdf", default="principled,conductor",
+                        help="the path tracer's BSDFs for the benches, a row each (the first "
+                             "for throughput and noise; default principled,conductor)")
     parser.add_argument("--spp", type=int, default=256,
                         help="spp of the benches' renders (default 256: noise under 1%%)")
     parser.add_argument("--throughput-spp", type=int, default=64,
@@ -75,9 +82,9 @@ def _throughput(args, tmp: Path) -> list[dict]:
     layers = s.theta_view.size * s.theta_light.size
     rows = []
     material = args.materials.split(",")[0]
-    for renderer in RENDERERS:
+    for renderer in ("shading", "mitsuba"):
         m = measure(_generate(tmp / "t.zarr", material, args.throughput_size, args.sampling,
-                              renderer, spp=args.throughput_spp, bsdf=args.bsdf))
+                              renderer, spp=args.throughput_spp, bsdf=_first_bsdf(args)))
         rows.append({"renderer": renderer, "seconds": m.seconds, "peak_rss": m.peak_rss,
                      "layers_per_s": layers / m.seconds,
                      "samples_per_s": (layers * args.throughput_size**2 * args.throughput_spp
@@ -116,7 +123,7 @@ def _noise(args) -> dict:
                                 theta_light=s.theta_light, phi_light=s.phi_light,
                                 view_index=np.arange(s.theta_view.size),
                                 light_index=np.arange(s.theta_light.size), origin=(0, 0),
-                                tracer=PathTracer(relief=material.relief, bsdf=args.bsdf,
+                                tracer=PathTracer(relief=material.relief, bsdf=_first_bsdf(args),
                                                   spp=spp, seed=seed, variant=chosen))
                    for seed in (1, 2)]
         noise = layer_noise(*(r.astype(np.float64) for r in renders))
@@ -178,11 +185,12 @@ def _benches(args, tmp: Path, log) -> list[dict]:
     seeds = [int(v) for v in np.random.default_rng().integers(0, 2**31 - 1, args.quilt_seeds)]
     out = []
     for material in args.materials.split(","):
-        for renderer in RENDERERS:
-            work = tmp / f"{material}-{renderer}"
+        for renderer, bsdf in renderers(args):
+            work = tmp / f"{material}-{renderer}-{bsdf}"
             work.mkdir()
-            extra = (("--renderer", "mitsuba", "--spp", args.spp, "--bsdf", args.bsdf)
+            extra = (("--renderer", "mitsuba", "--spp", args.spp, "--bsdf", bsdf)
                      if renderer == "mitsuba" else ())
+            renderer = renderer if bsdf is None else f"mitsuba, {bsdf}"
             start = time.perf_counter()
             e = enlarge._material(material, argparse.Namespace(
                 size=args.size, rank=args.rank, sets="top", baselines="tiling,lookup",
@@ -234,7 +242,7 @@ def report(result: dict) -> str:
         lines += [f"Throughput: `btf generate OUT --material M --size "
                   f"{result['throughput_size']} --sampling {result['sampling']}` (mitsuba: "
                   f"`--renderer mitsuba --spp {result['throughput_spp']} --bsdf "
-                  f"{result['bsdf']}`).",
+                  f"{result['bsdf'].split(',')[0]}`).",
                   "",
                   "| renderer | wall s | layers/s | path samples/s | peak RSS |",
                   "|---|---|---|---|---|"]
@@ -255,7 +263,7 @@ def report(result: dict) -> str:
     if "benches" in result:
         ranks = [c["rank"] for c in result["benches"][0]["compression"]]
         lines += [f"Benches on {result['size']}^2 stores, `{result['sampling']}`; mitsuba: "
-                  f"{result['bsdf']}, {result['spp']} spp, 2 bounces.", "",
+                  f"{result['spp']} spp, 2 bounces.", "",
                   "Compression, eq. (11) error relative to the store's mean texel RMS:", "",
                   "| material | renderer | " + " | ".join(f"rank {k}" for k in ranks) + " |",
                   "|---|---|" + "---|" * len(ranks)]

@@ -30,7 +30,7 @@ GiB = 1 << 30
 BASE_PROCESS = 300 << 20  # interpreter, numpy, dask, zarr: a worker's memory before any task
 BUILT_IN_RATES = {  # per core, btf bench on the 2-core test VM (BENCHMARKS.md, "The terabyte plan")
     "generate_texel_directions_per_core_second": 6.2e6,
-    "generate_path_samples_per_core_second": 4.0e5,
+    "generate_path_samples_per_core_second": 1.6e6,
     "compress_bytes_per_core_second": 0.37e9,
     # --passes 1 (K = 64: k = 385, s = 771, sparse sign maps; 30603 x 65536, 8 GB), with the
     # compiled sign products, 32 MiB blocks and the untransposed scratch (BENCHMARKS.md, "The

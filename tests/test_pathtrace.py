@@ -178,3 +178,30 @@ def test_the_path_traced_store_resumes_after_kill_9_to_the_same_bits(llvm, tmp_p
     _kill_and_resume(tmp_path, args, ("radiance", "height", "albedo", "roughness", "specular"),
                      mark="layers of", resumed_says="generate: resuming an interrupted run",
                      seed=2)
+
+
+@pytest.mark.slow
+def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_path, capsys):
+    import json
+
+    from benchmarks.cli import main as bench
+
+    out = tmp_path / "r.json"
+    assert bench(["rendered", "--materials", "leather", "--bsdf", "principled", "--size", "64",
+                  "--throughput-size", "32", "--throughput-spp", "4", "--spp", "4",
+                  "--noise-spp", "1,4", "--noise-size", "16", "--ranks", "2,8", "--rank", "8",
+                  "--quilt-seeds", "1", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    for heading in ("Throughput", "Noise of the path tracer", "Compression", "Enlargement",
+                    "Quilting"):
+        assert heading in text, heading
+    result = json.loads(out.read_text())
+    noise = result["noise"]["rows"]
+    assert noise[1]["worst"] < noise[0]["worst"]  # 4 spp are less noisy than 1
+    rows = result["benches"]
+    assert [r["renderer"] for r in rows] == ["shading", "mitsuba, principled"]
+    for r in rows:
+        errors = [c["error"] for c in r["compression"]]
+        assert errors[1] < errors[0]  # rank 8 is closer than rank 2
+        e = r["enlarge"]
+        assert e["oracle"] <= e["error"] and e["oracle"] < e["lookup"]
