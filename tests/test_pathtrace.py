@@ -181,11 +181,13 @@ def test_the_path_traced_store_resumes_after_kill_9_to_the_same_bits(llvm, tmp_p
 
 
 @pytest.mark.slow
-def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_path, capsys):
+def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_path, capsys,
+                                                                     monkeypatch):
     import json
 
     from benchmarks.cli import main as bench
 
+    monkeypatch.setenv("BTF_RATES", str(tmp_path / "rates.json"))  # not the user's rates
     out = tmp_path / "r.json"
     assert bench(["rendered", "--materials", "leather", "--bsdf", "principled", "--size", "64",
                   "--throughput-size", "32", "--throughput-spp", "4", "--spp", "4",
@@ -205,3 +207,5 @@ def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_pat
         assert errors[1] < errors[0]  # rank 8 is closer than rank 2
         e = r["enlarge"]
         assert e["oracle"] <= e["error"] and e["oracle"] < e["lookup"]
+    assert "generate_path_samples_per_core_second" in json.loads(
+        (tmp_path / "rates.json").read_text())
