@@ -132,6 +132,15 @@ class Progress:
         done = self._names()
         return [n for n in names if _file(n) in done]
 
+    def marker(self, name: str) -> str:
+        """Where unit ``name``'s marker is written (by :func:`mark_done`) once it is done."""
+        return storage.join(self.dir, _file(name))
+
+    def unfinished(self, names: Iterable[str], redo: Iterable[str] = ()) -> list[str]:
+        """Those of unit ``names`` not marked done, and those in ``redo`` (one look)."""
+        finished = self._names() - {_file(n) for n in redo}
+        return [n for n in names if _file(n) not in finished]
+
     def pending(self, units: Iterable[tuple[str, Any]], redo: Iterable[str] = ()
                 ) -> tuple[list, int]:
         """Delayed ``units`` (``(name, delayed)``) not yet done, each marking itself when done.
@@ -223,13 +232,20 @@ def _file(name: str) -> str:
     return name.replace("/", "~")
 
 
+def mark_done(result: Any, marker: str) -> Any:
+    """:func:`_keep`, looked up when called (tests replace it to stop a run there)."""
+    return _keep(result, marker)
+
+
 def _keep(result: Any, marker: str) -> Any:
     """Store ``result`` as the marker of its unit, written whole.
 
     A file renamed into place, or one object. Runs after the unit it depends on: its data is
     written, so it is done.
     """
-    storage.write(marker, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
+    # not fsynced: the unit's chunks are not either, so a marker that outlived a power loss
+    # would vouch for nothing more (see the module); a killed process loses neither
+    storage.write(marker, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL), durable=False)
     return result
 
 

@@ -23,6 +23,7 @@ import functools
 import os
 import re
 import shutil
+import threading
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
@@ -505,16 +506,26 @@ def read(location: str) -> bytes | None:
             return None
 
 
-def write(location: str, data: bytes) -> None:
-    """Write a whole file or object (an object appears complete or not at all)."""
+def write(location: str, data: bytes, *, durable: bool = True) -> None:
+    """Write a whole file or object (an object appears complete or not at all).
+
+    A local file is written beside its place and renamed into it, so a killed process leaves
+    the old file or the new one; ``durable`` also flushes it to the disk first (fsync), so a
+    power loss does too. Without it a file may be lost to a power loss (not to a kill).
+    """
     if not is_url(location):
         path = Path(location)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with tmp.open("wb") as f:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            f = tmp.open("wb")
+        except FileNotFoundError:  # its folder is made on the first write into it
+            path.parent.mkdir(parents=True, exist_ok=True)
+            f = tmp.open("wb")
+        with f:
             f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
         tmp.replace(path)
         return
     import obstore
