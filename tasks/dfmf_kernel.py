@@ -171,3 +171,44 @@ def decode_colour(values: np.ndarray, model: int, eps: float, matrix: np.ndarray
                 for d in range(3):
                     x = (yuv[d, 0] * y + yuv[d, 1] * u + yuv[d, 2] * w) * f
                     values[i, t, d] = x if x > zero else zero
+
+
+@numba.njit(nogil=True, cache=True)
+def decode_layers(values: np.ndarray, out: np.ndarray, model: int, eps: float,
+                  scale: np.ndarray) -> None:
+    """Radiance layers ``out`` ``(n, texels, C)`` of BTF-matrix rows ``values`` ``(n, C, texels)``.
+
+    :meth:`tasks.transform.Transform.decode` (``model``: :data:`LINEAR`, :data:`LOG` or a YUV
+    model) and the move of the channels last, in one pass: the same float32 operations in
+    the same order as numpy's, without its temporaries (no ``fastmath``). ``scale`` ``(n,)``
+    multiplies layer ``i`` after the clamp (a cosine store's ``1 / cos theta_light``), as
+    :func:`tasks.svd.reconstruct` does.
+    """
+    n, channels, texels = values.shape
+    e = np.float32(eps)
+    zero, top = np.float32(0.0), np.float32(88.0)
+    log_eps = np.float32(np.log(np.float32(eps))) if eps > 0 else zero
+    m = _YUV
+    for i in range(n):
+        f = scale[i]
+        for t in range(texels):
+            if model == LINEAR or model == LOG:
+                for c in range(channels):
+                    x = values[i, c, t]
+                    if model == LOG:
+                        x = np.exp(min(x, top)) - e
+                    out[i, t, c] = (x if x > zero or x != x else zero) * f
+            else:
+                a0, a1, a2 = values[i, 0, t], values[i, 1, t], values[i, 2, t]
+                y = np.exp(min(a0, top))  # Y + eps
+                if model == YLOG_UV_OVER_Y:
+                    u, w = a1 * y, a2 * y
+                elif model == YLOG_ULOG_VLOG:
+                    u = np.sign(a1) * np.exp(min(abs(a1), top) + log_eps)
+                    w = np.sign(a2) * np.exp(min(abs(a2), top) + log_eps)
+                else:
+                    u, w = a1, a2
+                y = y - e
+                for d in range(3):
+                    x = m[d, 0] * y + m[d, 1] * u + m[d, 2] * w
+                    out[i, t, d] = (x if x > zero or x != x else zero) * f

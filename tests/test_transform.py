@@ -81,3 +81,28 @@ def test_old_stores_without_a_name_are_the_log_transform():
     assert Transform.from_attrs({"eps": 0.01}) == Transform("log", 0.01)
     with pytest.raises(ValueError, match="unknown transform"):
         Transform("gamma", 1.0)
+
+
+@pytest.mark.parametrize("name", ["log", "linear", "ylog-uv", "ylog-ulog-vlog", "ylog-uv-over-y"])
+@pytest.mark.parametrize("cosine", [False, True])
+def test_compiled_layers_equal_numpys_decode_and_layout(name, cosine):
+    """reconstruct_layers' compiled decode against the rows' numpy decode, moved by numpy."""
+    from tasks.svd import FUSED_DECODE, reconstruct, reconstruct_layers
+
+    rng = np.random.default_rng(3)
+    u = rng.normal(scale=0.6, size=(2, 5, 3, 7)).astype(np.float32)
+    u[0, 0, :, 0] = 40.0  # above LOG_MAX after the product: clamped, not inf
+    s = rng.uniform(0.5, 2.0, 7).astype(np.float32)
+    side = int(np.ceil(np.sqrt(FUSED_DECODE / 30))) + 1  # large enough for the kernel
+    v = rng.normal(scale=0.5, size=(side, side, 7)).astype(np.float32)
+    transform = Transform(name, 1e-3, cosine)
+    scale = rng.uniform(1.0, 3.0, (2, 5)).astype(np.float32) if cosine else None
+    got = reconstruct_layers(u, s, v, transform=transform, scale=scale)
+    rows = None if scale is None else np.repeat(scale.reshape(-1), 3)
+    want = np.moveaxis(reconstruct(u.reshape(-1, 7), s, v.reshape(-1, 7), transform=transform,
+                                   scale=rows).reshape(2, 5, 3, side, side), 2, -1)
+    assert got.shape == want.shape == (2, 5, side, side, 3) and got.dtype == np.float32
+    assert np.isfinite(got).all() and (got >= 0).all()
+    # exp's last bit differs (libm's, numpy's); the YUV models' sums cancel near 0, so the
+    # bound is relative to the layers' scale there
+    np.testing.assert_allclose(got, want, rtol=2e-6, atol=2e-6 * float(np.abs(want).max()))
