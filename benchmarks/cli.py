@@ -15,7 +15,7 @@ from benchmarks.harness import to_json
 
 SUITES = ("generate", "compress", "quilt", "roller", "enlarge", "tradeoff", "resume", "scene",
           "objectstore", "formats", "view", "checksums", "faults", "scaling", "precision",
-          "mitsuba", "rendered")
+          "mitsuba", "rendered", "writes")
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):

@@ -256,3 +256,20 @@ def test_a_resumed_quilt_keeps_the_plan_the_killed_run_stored(tmp_path, monkeypa
     keep = {"provenance", "btf_every_chunk"}
     assert {k: v for k, v in a.attrs.items() if k not in keep} == \
         {k: v for k, v in b.attrs.items() if k not in keep}
+
+
+@pytest.mark.slow
+def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
+    import json
+
+    from benchmarks.cli import main as bench
+
+    out = tmp_path / "w.json"
+    assert bench(["writes", "--texels", "16", "--components", "2", "--dir-chunks", "16",
+                  "--repeat", "1", "--json", str(out)]) == 0
+    assert "vs floor" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert [r["stage"] for r in result["rows"]] == ["reconstruct", "crop", "generate"]
+    for r in result["rows"]:
+        assert r["bytes"] == 151 * 151 * 16 * 16 * 3 * 4 and r["floor_rate"] > 0
+        assert r["rate"] == pytest.approx(r["bytes"] / r["seconds"])

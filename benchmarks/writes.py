@@ -1,0 +1,185 @@
+"""Writes: the stages that write radiance against zarr writing the same array from memory.
+
+One run, each command in a fresh process:
+
+- a Bonn-style DFMF file (colour model 11, float16 factors, 16 components per channel) with
+  the 151 x 151 dome of UBO2014 at ``--texels`` (:func:`benchmarks.formats.write_file`),
+  ingested as factors (``btf ingest``), then rebuilt whole by ``btf reconstruct`` into
+  radiance stores of 786 KB chunks (``--dir-chunk 16``, the default) and of 3 MB chunks
+  (``--dir-chunk 64``); ``btf crop`` of the 786 KB store (every layer, a copy); ``btf
+  generate`` of a store of the same shape (``--sampling dome151``; shading is most of its
+  time, shown for completeness);
+- **the floor**: zarr writing an array of the same shape, chunks and codecs (bytes, blosc
+  lz4, btf's checksum) from memory, a block of the stage's own output in every place, on as
+  many threads as the machine has cores;
+- with ``.venv-btfx`` (see ``.ci/run``), btf-extractor decoding every image of the file into
+  memory, the figure issue 56 sets ingest plus reconstruct against.
+
+Each stage's rate is reported beside its floor's, as a ratio (goal: 0.5x or more).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from benchmarks.harness import btf_executable, git_revision, machine, measure, store_bytes
+
+SUITE = "writes"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the suite."""
+    parser.add_argument("--texels", type=int, default=64, help="texels per side (default 64)")
+    parser.add_argument("--components", type=int, default=16,
+                        help="components per channel of the DFMF file (default 16)")
+    parser.add_argument("--dir-chunks", default="16,64",
+                        help="lights per chunk of the rebuilt stores (default 16,64: 786 KB "
+                             "and 3 MB chunks at 64^2)")
+    parser.add_argument("--stages", default="reconstruct,crop,generate")
+    parser.add_argument("--repeat", type=int, default=2, help="runs of each; the fastest counts")
+
+
+def zarr_floor(store: str, out: str, threads: int) -> None:
+    """Write an array like ``store``'s radiance (shape, chunks, codecs) from memory; print s."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+    import zarr
+
+    src = zarr.open_group(store, mode="r")["radiance"]
+    block = np.asarray(src[(slice(0, 1), slice(0, src.chunks[1]))])
+    z = zarr.create_array(out, shape=src.shape, chunks=src.chunks, dtype=src.dtype,
+                          serializer=src.serializer, compressors=src.compressors,
+                          filters=src.filters, overwrite=True)
+    nv, nl = src.shape[:2]
+    step = src.chunks[1]
+
+    def put(view: int) -> None:
+        for l0 in range(0, nl, step):
+            z[view, l0 : l0 + step] = block[0, : min(step, nl - l0)]
+
+    start = time.perf_counter()
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(put, range(nv)))
+    print(json.dumps({"seconds": time.perf_counter() - start}))
+
+
+def _floor(store: Path, tmp: Path, repeat: int) -> float:
+    best = None
+    for _ in range(repeat):
+        done = subprocess.run([sys.executable, "-c", "from benchmarks.writes import zarr_floor; "
+                               f"zarr_floor({str(store)!r}, {str(tmp / 'floor.zarr')!r}, "
+                               f"{os.cpu_count() or 1})"], capture_output=True, text=True,
+                              check=True)
+        seconds = json.loads(done.stdout.strip().splitlines()[-1])["seconds"]
+        best = seconds if best is None else min(best, seconds)
+        shutil.rmtree(tmp / "floor.zarr", ignore_errors=True)
+    return best
+
+
+def _best(repeat: int, argv: list[str], out: Path):
+    best = None
+    for _ in range(repeat):
+        shutil.rmtree(out, ignore_errors=True)
+        m = measure(argv)
+        best = m if best is None or m.seconds < best.seconds else best
+    return best
+
+
+def _btfx_decode(path: Path) -> float | None:
+    """btf-extractor's time to decode every image of ``path`` (None without .venv-btfx)."""
+    from benchmarks.formats import BTFX
+
+    if not BTFX.exists():
+        return None
+    code = ("import time, btf_extractor\nt = time.perf_counter()\n"
+            f"b = btf_extractor.Ubo2014({str(path)!r})\n"
+            "for a in list(b.angles_vs_index_dict):\n    b.angles_to_image(*a)\n"
+            "print(time.perf_counter() - t)\n")
+    done = subprocess.run([str(BTFX), "-c", code], capture_output=True, text=True)
+    return float(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else None
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Every stage and its floor, in this run (see the module)."""
+    from benchmarks.formats import write_file
+
+    btf = btf_executable()
+    tmp = Path(tempfile.mkdtemp(prefix="btf-bench-writes-"))
+    stages = args.stages.split(",")
+    rows = []
+    try:
+        dfmf = tmp / "dome.btf"
+        write_file(dfmf, "ubo2014", args.texels, args.components)
+        factors = tmp / "f.zarr"
+        ingest = measure([btf, "ingest", str(dfmf), str(factors), "-q"])
+        btfx = _btfx_decode(dfmf)
+        first = None
+        for dir_chunk in (int(c) for c in args.dir_chunks.split(",")):
+            out = tmp / f"r{dir_chunk}.zarr"
+            if "reconstruct" in stages:
+                m = _best(args.repeat, [btf, "reconstruct", str(factors), str(out),
+                                        "--dir-chunk", str(dir_chunk), "-q"], out)
+                rows.append(_row("reconstruct", out, m, _floor(out, tmp, args.repeat)))
+            if first is None and out.exists():
+                first = out
+        if "crop" in stages and first is not None:
+            out = tmp / "crop.zarr"
+            m = _best(args.repeat, [btf, "crop", str(first), str(out), "-q"], out)
+            rows.append(_row("crop", out, m, _floor(out, tmp, args.repeat)))
+        if "generate" in stages:
+            out = tmp / "g.zarr"
+            m = _best(1, [btf, "generate", str(out), "--material", "leather", "--size",
+                          str(args.texels), "--sampling", "dome151", "-q"], out)
+            rows.append(_row("generate", out, m, _floor(out, tmp, args.repeat)))
+        recon = next((r for r in rows if r["stage"] == "reconstruct"), None)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {"suite": SUITE, "texels": args.texels, "components": args.components,
+            "ingest_seconds": ingest.seconds, "btfx_decode_seconds": btfx,
+            "ingest_and_reconstruct_seconds": (ingest.seconds + recon["seconds"]
+                                               if recon else None),
+            "rows": rows, "repeat": args.repeat, "machine": machine(), "git": git_revision()}
+
+
+def _row(stage: str, out: Path, m, floor: float) -> dict:
+    import numpy as np
+    import zarr
+
+    radiance = zarr.open_group(out, mode="r")["radiance"]
+    nbytes = radiance.nbytes
+    return {"stage": stage, "chunk_bytes": radiance.dtype.itemsize * int(np.prod(radiance.chunks)),
+            "bytes": int(nbytes), "stored": store_bytes(out), "seconds": m.seconds,
+            "peak_rss": m.peak_rss, "floor_seconds": floor,
+            "rate": nbytes / m.seconds, "floor_rate": nbytes / floor}
+
+
+def report(result: dict) -> str:
+    """Markdown table of a result."""
+    mib = 1 << 20
+    lines = [f"A DFMF file of Bonn's 151 x 151 dome at {result['texels']}^2 "
+             f"({result['components']} components per channel); best of {result['repeat']} "
+             "runs each. Floor: zarr writing the same array (shape, chunks, codecs) from "
+             "memory on every core, in this run.", "",
+             "| stage | chunk | MiB | wall s | MB/s | floor MB/s | vs floor | peak RSS |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['stage']} | {r['chunk_bytes'] / 1024:.0f} KB | "
+                     f"{r['bytes'] / mib:.0f} | {r['seconds']:.2f} | {r['rate'] / 1e6:.0f} | "
+                     f"{r['floor_rate'] / 1e6:.0f} | {r['rate'] / r['floor_rate']:.2f}x | "
+                     f"{r['peak_rss'] / mib:.0f} MiB |")
+    both = result["ingest_and_reconstruct_seconds"]
+    lines += ["", f"`btf ingest` of the file: {result['ingest_seconds']:.2f} s."]
+    if result["btfx_decode_seconds"] and both:
+        lines.append(f"Ingest and reconstruct: {both:.2f} s; btf-extractor decoding every image "
+                     f"into memory: {result['btfx_decode_seconds']:.2f} s "
+                     f"({both / result['btfx_decode_seconds']:.1f}x its time; goal 1.5x).")
+    return "\n".join(lines)
