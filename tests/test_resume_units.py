@@ -273,3 +273,28 @@ def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
     for r in result["rows"]:
         assert r["bytes"] == 151 * 151 * 16 * 16 * 3 * 4 and r["floor_rate"] > 0
         assert r["rate"] == pytest.approx(r["bytes"] / r["seconds"])
+
+
+def test_stored_checksums_are_checked_without_decoding_and_catch_a_flipped_bit(tmp_path):
+    from helpers import generate_store
+
+    store = generate_store(tmp_path / "s.zarr", "--material", "stone", "--size", "32",
+                           "--sampling", "abtf:4,1", "--chunk", "16", "--dir-chunk", "2")
+    radiance = zarr.open_group(store, mode="r+")["radiance"]
+    whole = tuple(slice(0, n) for n in radiance.shape)
+    assert blocks._stored_sums_match(radiance, whole) is True
+    chunk = store / "radiance" / radiance.metadata.encode_chunk_key((0, 1, 1, 0, 0))
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 3] ^= 0x10
+    chunk.write_bytes(bytes(data))
+    assert blocks._stored_sums_match(radiance, whole) is False
+    other = (slice(0, 1), slice(0, 2), slice(0, 16), slice(0, 16), slice(0, 3))
+    assert blocks._stored_sums_match(radiance, other) is True  # that chunk is not in it
+    assert not blocks._intact(radiance, whole)
+    chunk.unlink()  # a chunk never written
+    assert blocks._stored_sums_match(radiance, whole) is False
+    sharded = generate_store(tmp_path / "h.zarr", "--material", "stone", "--size", "32",
+                             "--sampling", "abtf:4,1", "--chunk", "8", "--shard", "16")
+    array = zarr.open_group(sharded, mode="r")["radiance"]
+    assert blocks._stored_sums_match(array, whole) is None  # read back instead
+    assert blocks._intact(array, whole)
