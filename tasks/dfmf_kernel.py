@@ -127,6 +127,20 @@ def halves_product(u: np.ndarray, bits: np.ndarray, out: np.ndarray) -> None:
             out[i, t] = acc
 
 
+@numba.njit(inline="always")
+def _yuv(a0, a1, a2, model, e, top, log_eps):
+    """Y, U and V of one texel's values under a YUV model (Y's log and eps undone)."""
+    y1 = np.exp(min(a0, top))  # Y + eps
+    if model == YLOG_UV_OVER_Y:
+        u, w = a1 * y1, a2 * y1
+    elif model == YLOG_ULOG_VLOG:
+        u = np.sign(a1) * np.exp(min(abs(a1), top) + log_eps)
+        w = np.sign(a2) * np.exp(min(abs(a2), top) + log_eps)
+    else:
+        u, w = a1, a2
+    return y1 - e, u, w
+
+
 @numba.njit(nogil=True, fastmath=True, cache=True)
 def decode_colour(values: np.ndarray, model: int, eps: float, matrix: np.ndarray,
                   mean: np.ndarray, scale: np.ndarray) -> None:
@@ -158,16 +172,8 @@ def decode_colour(values: np.ndarray, model: int, eps: float, matrix: np.ndarray
                 for d in range(channels):
                     values[i, t, d] = tmp[d] if tmp[d] > zero else zero
             else:
-                a0, a1, a2 = values[i, t, 0], values[i, t, 1], values[i, t, 2]
-                y1 = np.exp(min(a0, top))  # Y + eps
-                if model == YLOG_UV_OVER_Y:
-                    u, w = a1 * y1, a2 * y1
-                elif model == YLOG_ULOG_VLOG:
-                    u = np.sign(a1) * np.exp(min(abs(a1), top) + log_eps)
-                    w = np.sign(a2) * np.exp(min(abs(a2), top) + log_eps)
-                else:
-                    u, w = a1, a2
-                y = y1 - e
+                y, u, w = _yuv(values[i, t, 0], values[i, t, 1], values[i, t, 2], model, e,
+                               top, log_eps)
                 for d in range(3):
                     x = (yuv[d, 0] * y + yuv[d, 1] * u + yuv[d, 2] * w) * f
                     values[i, t, d] = x if x > zero else zero
@@ -199,16 +205,8 @@ def decode_layers(values: np.ndarray, out: np.ndarray, model: int, eps: float,
                         x = np.exp(min(x, top)) - e
                     out[i, t, c] = (x if x > zero or x != x else zero) * f
             else:
-                a0, a1, a2 = values[i, 0, t], values[i, 1, t], values[i, 2, t]
-                y = np.exp(min(a0, top))  # Y + eps
-                if model == YLOG_UV_OVER_Y:
-                    u, w = a1 * y, a2 * y
-                elif model == YLOG_ULOG_VLOG:
-                    u = np.sign(a1) * np.exp(min(abs(a1), top) + log_eps)
-                    w = np.sign(a2) * np.exp(min(abs(a2), top) + log_eps)
-                else:
-                    u, w = a1, a2
-                y = y - e
+                y, u, w = _yuv(values[i, 0, t], values[i, 1, t], values[i, 2, t], model, e,
+                               top, log_eps)
                 for d in range(3):
                     x = m[d, 0] * y + m[d, 1] * u + m[d, 2] * w
                     out[i, t, d] = (x if x > zero or x != x else zero) * f

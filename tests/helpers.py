@@ -265,3 +265,28 @@ def dask_cluster(folder: Path, *, workers: int = 1, processes: int = 2, protocol
         if "Fatal Python error" in text:
             print(f"a cluster process crashed; {folder / 'cluster.log'}:\n{text}",
                   file=sys.stderr)
+
+
+def require_mitsuba_llvm():
+    """Mitsuba 3 with a working llvm variant (set), or a skip naming what is missing.
+
+    ``BTF_REQUIRE_MITSUBA=1`` (``.ci/run``) makes a missing one a failure instead.
+    """
+    import os
+
+    import pytest
+
+    from pipeline import mitsuba_plugin
+
+    required = os.environ.get("BTF_REQUIRE_MITSUBA") == "1"
+    try:
+        import mitsuba  # noqa: F401
+    except ImportError:
+        if required:
+            raise
+        pytest.skip("Mitsuba 3 is not installed (pip install 'btf-pipeline[mitsuba]')")
+    if not mitsuba_plugin.llvm_works(mitsuba_plugin.llvm_library()):
+        if required:
+            raise RuntimeError("Mitsuba's llvm variant does not run: LLVM 16 or later needed")
+        pytest.skip("Mitsuba's llvm variant needs LLVM 16 or later (apt-get install libllvm19)")
+    mitsuba_plugin.variant("llvm_ad_rgb")

@@ -7,12 +7,10 @@ tests, skipped with the reason where either is missing, unless ``BTF_REQUIRE_MIT
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
-from helpers import generate_store
+from helpers import generate_store, require_mitsuba_llvm
 from pipeline import mitsuba_plugin
 from pipeline.cli import main
 from pipeline.stores import open_layers, open_store
@@ -20,7 +18,6 @@ from tasks.sampling import direction_vectors
 from tasks.viewer import coefficients, locate, mesh
 
 pytestmark = pytest.mark.slow
-REQUIRED = os.environ.get("BTF_REQUIRE_MITSUBA") == "1"
 mi = dr = None  # mitsuba and drjit, once the module's fixture found them working
 
 
@@ -28,19 +25,11 @@ mi = dr = None  # mitsuba and drjit, once the module's fixture found them workin
 def _mitsuba():
     """Import Mitsuba and check its llvm variant here, not at collection (no cost unless run)."""
     global mi, dr
-    try:
-        import drjit
-        import mitsuba
-    except ImportError:
-        if REQUIRED:
-            raise
-        pytest.skip("Mitsuba 3 is not installed (pip install 'btf-pipeline[mitsuba]')")
-    if not mitsuba_plugin.llvm_works(mitsuba_plugin.llvm_library()):
-        if REQUIRED:
-            raise RuntimeError("Mitsuba's llvm variant does not run: LLVM 16 or later needed")
-        pytest.skip("Mitsuba's llvm variant needs LLVM 16 or later (apt-get install libllvm19)")
+    require_mitsuba_llvm()
+    import drjit
+    import mitsuba
+
     mi, dr = mitsuba, drjit
-    mitsuba_plugin.variant("llvm_ad_rgb")
 
 
 SIZE = 24

@@ -7,37 +7,22 @@ checks run in the default set.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 import zarr
 
-from helpers import facing, generate_store
-from pipeline import mitsuba_plugin
+from helpers import facing, generate_store, require_mitsuba_llvm
 from pipeline.cli import main
 from pipeline.stores.radiance import open_radiance
 from tasks.materials import Fields, Material
 from tasks.sampling import direction_vectors
 from tasks.shading import ShadingModel, normals
 
-REQUIRED = os.environ.get("BTF_REQUIRE_MITSUBA") == "1"
-
 
 @pytest.fixture(scope="module")
 def llvm():
     """Mitsuba with a working llvm variant, or a skip naming what is missing."""
-    try:
-        import mitsuba  # noqa: F401
-    except ImportError:
-        if REQUIRED:
-            raise
-        pytest.skip("Mitsuba 3 is not installed (pip install 'btf-pipeline[mitsuba]')")
-    if not mitsuba_plugin.llvm_works(mitsuba_plugin.llvm_library()):
-        if REQUIRED:
-            raise RuntimeError("Mitsuba's llvm variant does not run: LLVM 16 or later needed")
-        pytest.skip("Mitsuba's llvm variant needs LLVM 16 or later (apt-get install libllvm19)")
-    mitsuba_plugin.variant("llvm_ad_rgb")
+    require_mitsuba_llvm()
 
 
 def _trace(fields, halo, views, lights, **tracer):
