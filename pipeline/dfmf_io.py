@@ -251,7 +251,7 @@ def _release(mapped: mmap.mmap, start: int, size: int) -> None:
 
 def _kernel_model(header: DfmfHeader) -> tuple[int, float, np.ndarray, np.ndarray]:
     """The colour model as :func:`tasks.dfmf_kernel.decode_colour` takes it."""
-    from tasks.dfmf_kernel import LINEAR, LOG, YLOG_ULOG_VLOG, YLOG_UV, YLOG_UV_OVER_Y
+    from tasks.dfmf_kernel import CODES, LINEAR
     from tasks.transform import dfmf_colour_matrix
 
     name = DFMF_MODELS[header.colour_model][0]
@@ -260,9 +260,7 @@ def _kernel_model(header: DfmfHeader) -> tuple[int, float, np.ndarray, np.ndarra
         m, mean = dfmf_colour_matrix(header.colour_model, np.asarray(header.colour_matrix),
                                      np.asarray(header.colour_mean), nc)
         return LINEAR, 0.0, m.astype(np.float32), mean.astype(np.float32)
-    code = {"log": LOG, "ylog-uv": YLOG_UV, "ylog-ulog-vlog": YLOG_ULOG_VLOG,
-            "ylog-uv-over-y": YLOG_UV_OVER_Y}[name]
-    return code, DFMF_EPS, np.eye(nc, dtype=np.float32), np.zeros(nc, np.float32)
+    return CODES[name], DFMF_EPS, np.eye(nc, dtype=np.float32), np.zeros(nc, np.float32)
 
 
 def _gram(path: str, header: DfmfHeader, ys: slice, xs: slice, ones: bool) -> np.ndarray:

@@ -157,8 +157,7 @@ class Progress:
             if _file(name) in finished:
                 skipped += 1
                 continue
-            todo.append(dask.delayed(_keep, pure=True)(unit, storage.join(self.dir,
-                                                                          _file(name))))
+            todo.append(dask.delayed(_keep, pure=True)(unit, self.marker(name)))
         return todo, skipped
 
     def run(self, compute: Callable[..., tuple], units: list[tuple[str, Any]]) -> list:
@@ -184,7 +183,7 @@ class Progress:
 
     def memo(self, name: str, compute: Callable[[], Any]) -> tuple[Any, bool]:
         """``compute()``, or its result stored by an earlier run; and whether it was stored."""
-        marker = storage.join(self.dir, _file(name))
+        marker = self.marker(name)
         if storage.exists(marker):
             return _load(marker), True
         value = compute()

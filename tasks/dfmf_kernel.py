@@ -23,6 +23,8 @@ from numba.extending import intrinsic
 
 # colour model codes of decode_colour
 LINEAR, LOG, YLOG_UV, YLOG_ULOG_VLOG, YLOG_UV_OVER_Y = range(5)
+CODES = {"linear": LINEAR, "log": LOG, "ylog-uv": YLOG_UV, "ylog-ulog-vlog": YLOG_ULOG_VLOG,
+         "ylog-uv-over-y": YLOG_UV_OVER_Y}  # by tasks.transform's names
 _YUV = np.array([[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]],
                 np.float32)
 

@@ -521,8 +521,6 @@ def reconstruct(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Trans
 
 
 FUSED_DECODE = 1 << 16  # values from which reconstruct_layers decodes in compiled code
-_KERNEL_MODELS = {"linear": 0, "log": 1, "ylog-uv": 2, "ylog-ulog-vlog": 3,
-                  "ylog-uv-over-y": 4}  # tasks.dfmf_kernel's model codes
 
 
 def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform,
@@ -542,14 +540,14 @@ def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform
         # the product, then the transform and the move of the channels last in one compiled
         # pass (:func:`tasks.dfmf_kernel.decode_layers`): numpy's steps took 2.4 of a
         # block's 3.3 ms (48 rows of 4,096 texels, a YUV model)
-        from tasks.dfmf_kernel import decode_layers
+        from tasks.dfmf_kernel import CODES, decode_layers
 
         values = (blas_ready(u.reshape(-1, k)) * np.asarray(s, np.float32)) @ blas_ready(
             np.asarray(v).reshape(ny * nx, k)).T
         out = np.empty((layers, ny * nx, nc), np.float32)
         factor = (np.ones(layers, np.float32) if scale is None else
                   np.broadcast_to(np.asarray(scale, np.float32), lead).reshape(-1).copy())
-        decode_layers(values.reshape(layers, nc, ny * nx), out, _KERNEL_MODELS[transform.name],
+        decode_layers(values.reshape(layers, nc, ny * nx), out, CODES[transform.name],
                       transform.eps, factor)
         return out.reshape(*lead, ny, nx, nc)
     rows = None if scale is None else np.repeat(

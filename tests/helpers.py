@@ -33,6 +33,21 @@ def stored_dtype(path: Path) -> str:
     return str(zarr.open_group(path, mode="r")["radiance"].dtype)
 
 
+def side_lights_brighten_the_slopes_facing_them(ds, bound: float = 0.5) -> None:
+    """In a generated store's first view, each lowest light (the sides) brightens the slopes
+    facing it (correlation above ``bound``) and darkens those facing away (below -bound)."""
+    import numpy as np
+
+    h = ds["height"].values
+    theta = ds["theta_light"].values
+    for i in np.flatnonzero(theta == theta.max()):
+        phi = float(ds["phi_light"].values[i])
+        lum = ds["radiance"].values[0, i].mean(axis=-1).ravel()
+        towards = np.corrcoef(lum, facing(h, phi).ravel())[0, 1]
+        away = np.corrcoef(lum, facing(h, phi + 180).ravel())[0, 1]
+        assert towards > bound and away < -bound, (phi, towards, away)
+
+
 def facing(height, phi: float):
     """How far each texel's surface faces azimuth ``phi`` (degrees): its slope down towards it.
 

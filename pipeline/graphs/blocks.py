@@ -79,6 +79,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     """
     import dask
     import dask.array as da
+    from dask.base import tokenize
 
     for source, target in zip(sources, targets, strict=True):
         for dim, (chunks, unit) in enumerate(zip(source.chunks, write_unit(target), strict=True)):
@@ -103,7 +104,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                                 meta=np.empty((0,) * source.ndim, np.int8))
               for source, target in zip(sources, targets, strict=True)]
     graph = _optimized_together(writes)
-    token = _token([w.name for w in writes], keep is None)
+    token = tokenize([w.name for w in writes])
     for source, written, target in zip(sources, writes, targets, strict=True):
         starts = [np.cumsum((0, *c)) for c in source.chunks]
         for index in np.ndindex(written.numblocks):
@@ -123,12 +124,6 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     todo = set(progress.unfinished(regions, redo=[n for n, ok in zip(kept, whole, strict=True)
                                                   if not ok]))
     return _gathered(graph, token, [key for name, key in units if name in todo])
-
-
-def _token(*parts) -> str:
-    from dask.base import tokenize
-
-    return tokenize(*parts)
 
 
 def _gathered(graph: dict, token: str, keys: list):
@@ -195,13 +190,14 @@ def _stored_sums_match(target, region: tuple[slice, ...]) -> bool | None:
     """
     from pathlib import Path
 
+    from zarr.codecs import Crc32cCodec
     from zarr.storage import LocalStore
 
     from pipeline.checksums import chunk_slices
 
     codecs = getattr(target.metadata, "codecs", ())
     if (target.shards is not None or not isinstance(target.store, LocalStore) or not codecs
-            or getattr(codecs[-1], "to_dict", dict)().get("name") != "crc32c"):
+            or not isinstance(codecs[-1], Crc32cCodec)):
         return None
     import google_crc32c
 
@@ -230,17 +226,13 @@ def _write_here(block: np.ndarray, *, target, progress=None, block_info=None) ->
     _write_block(block, target, region)
     done = np.zeros((1,) * block.ndim, np.int8)
     if progress is not None:
+        from pipeline import resume
+
         index = ".".join(map(str, block_info[0]["chunk-location"]))
-        mark_done(done, progress.marker(f"{target.path}/{index}"))
+        resume.mark_done(done, progress.marker(f"{target.path}/{index}"))
     return done
 
 
 def _count(done: list) -> int:
     return len(done)
 
-
-def mark_done(result, marker: str):
-    """A block's marker, written once the block is (the test hook of :mod:`pipeline.resume`)."""
-    from pipeline import resume
-
-    return resume.mark_done(result, marker)

@@ -361,7 +361,7 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
     per_core, source = rate("generate_texel_directions_per_core_second")
     if params.renderer == "mitsuba":  # a rate of path samples: one texel direction is spp
         per_core, source = rate("generate_path_samples_per_core_second")
-        per_core /= params.tracer(1.0).spp
+        per_core /= params.spp or DEFAULT_SPP
     plan = StageEstimate("generate", "", bytes_written=nv * nl * n * nc * layout.itemsize
                          + n * 6 * 4,
                          tasks=nv * light_blocks * spatial + spatial, passes=1, input_reads=0,

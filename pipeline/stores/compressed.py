@@ -110,10 +110,10 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
 FACTOR_PIECE = 4 << 20  # bytes of U read at once (whole chunks; split again in memory)
 
 
-def _read_factor(array):
-    """A dask array of a factor in its stored chunks, ``U`` read a few MB at a time.
+def _read_in_pieces(array):
+    """``U`` as a dask array in its stored chunks, read a few MB at a time.
 
-    ``U``'s chunks are small (a view's block of lights: 9 KB for 16 lights at rank 48), and
+    Its chunks are small (a view's block of lights: 9 KB for 16 lights at rank 48), and
     a read per chunk costs a millisecond of zarr's bookkeeping whatever its size: 1,510
     reads took 2.1 s of a 151 x 151 store's reconstruct. Whole views of it are read at once
     (about :data:`FACTOR_PIECE`, whole chunks) and split back into the stored chunks, so the
@@ -121,7 +121,7 @@ def _read_factor(array):
     """
     import dask.array as da
 
-    if array.path.rsplit("/", 1)[-1] != "U" or array.shape[0] == 0:
+    if array.shape[0] == 0:
         return da.from_zarr(array)
     per_view = max(1, array.nbytes // array.shape[0])
     views = max(array.chunks[0], FACTOR_PIECE // per_view // array.chunks[0] * array.chunks[0])
@@ -141,6 +141,7 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     group
         Its zarr group, if already open.
     """
+    import dask.array as da
     import xarray as xr
     import zarr
 
@@ -152,9 +153,10 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
         raise BTFError(f"{path}: --rank {rank} is not between 1 and the stored rank {full}")
     # zarr arrays, not a path: dask would open a path through fsspec instead of zarr's store
     store = storage.store(location(path))
-    factors = {name: lazy_float32(_read_factor(zarr.open_array(store, path=name, mode="r"))
+    arrays = {name: zarr.open_array(store, path=name, mode="r") for name in FACTOR_DIMS}
+    factors = {name: lazy_float32((_read_in_pieces(a) if name == "U" else da.from_zarr(a))
                                   [..., :rank])
-               for name in FACTOR_DIMS}
+               for name, a in arrays.items()}
     transform = Transform.from_attrs(group.attrs["transform"])
     d = read_directions(group)
     radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], transform=transform,
