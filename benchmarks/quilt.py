@@ -83,7 +83,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tiles planned at once, as btf quilt plans them (default: one per "
                              "core; the plans are the same for any number)")
     parser.add_argument("--seams-only", action="store_true",
-                        help="measure the seams only (no planning, application or rendering)")
+                        help="measure the seams (and the photo plans) only (no planning, "
+                             "application or rendering)")
+    parser.add_argument("--photo-plans", default="brick,gravel,grass", metavar="P,..",
+                        help="scikit-image photos to plan tile sets on as btf quilt "
+                             "--corners 2 does, 256^2 crops and seeds drawn at random "
+                             "(benchmarks/photoplans.py; empty: none)")
+    parser.add_argument("--photo-seeds", type=int, default=20, metavar="N",
+                        help="draws (crop and seed) per photo (default 20; 0: none)")
+    parser.add_argument("--photo-draw", type=int, default=None, metavar="N",
+                        help="repeat the draw a run printed (default: a new one)")
+    parser.add_argument("--photos-only", action="store_true",
+                        help="the photo plans only")
 
 
 def _main_source(tile) -> np.ndarray:
@@ -199,11 +210,15 @@ def run(args: argparse.Namespace) -> dict:
     """Plan, apply and render, with their references, in this run."""
     from pipeline.session import RuntimeOptions, Session
 
+    photos = _photos(args)
+    if args.photos_only:
+        return {"suite": SUITE, "seams": [], "search": [], "photos": photos,
+                "machine": machine(), "git": git_revision()}
     seams = _seams(args)
     search = _search(args)
     if args.seams_only:
-        return {"suite": SUITE, "seams": seams, "search": search, "machine": machine(),
-                "git": git_revision()}
+        return {"suite": SUITE, "seams": seams, "search": search, "photos": photos,
+                "machine": machine(), "git": git_revision()}
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-quilt-"))
     sizes = parse_sizes(args.sizes, SUITE)
@@ -240,8 +255,17 @@ def run(args: argparse.Namespace) -> dict:
             "planning": planning, "application": application,
             "quilt_cli": {"size": sizes[-1], "seconds": quilt.seconds,
                           "peak_rss": quilt.peak_rss, "one_plan_seconds": one_plan.seconds},
-            "rendering": rendering, "seams": seams, "search": search, "machine": machine(),
-            "git": git_revision()}
+            "rendering": rendering, "seams": seams, "search": search, "photos": photos,
+            "machine": machine(), "git": git_revision()}
+
+
+def _photos(args) -> dict | None:
+    from benchmarks import photoplans
+
+    names = [n for n in args.photo_plans.split(",") if n]
+    if not names or args.photo_seeds <= 0:
+        return None
+    return photoplans.run(names, args.photo_seeds, args.photo_draw, args.seam_threads)
 
 
 def _seams(args) -> list[dict]:
@@ -270,9 +294,10 @@ def _search(args) -> list[dict]:
 
 
 def _seams_report(result: dict) -> list[str]:
+    from benchmarks.photoplans import report as photos_report
     from benchmarks.seams import seams_report, search_report
 
-    lines = []
+    lines = ["", *photos_report(result["photos"])] if result.get("photos") else []
     if result.get("search"):
         lines += ["", "The border check's nearest-patch search (`benchmarks/seams.py`, "
                       "search_accuracy): checks recorded while planning V = 2 tile sets, "

@@ -101,8 +101,12 @@ def mosaic_figures(exemplar, image: np.ndarray, tile: tuple[int, int], margin: i
 
 def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None,
                  overlap: int | None, corners: int, seed: int, candidates: int = 5,
-                 threads: int = 1) -> dict:
-    """One seed of one texture and setting quilted and measured (see the module)."""
+                 threads: int = 1, default_tiles: bool = False, max_seam: float = 1.3) -> dict:
+    """One seed of one texture and setting quilted and measured (see the module).
+
+    ``default_tiles``: tiles of ``btf quilt``'s default size (the sample's, rounded down to
+    whole steps) instead of three steps; ``max_seam``: the border check's bound.
+    """
     from tasks.corner_tiles import BorderCheck, SeamError, plan_first
     from tasks.quilt_layout import commensurate_sizes, layouts, phase_lattice
     from tasks.quilting import QuiltParams
@@ -114,7 +118,7 @@ def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None
         for layout in layouts(reference, block=block, overlap=overlap, tile=None,
                               lattice=lattice):
             tile = layout.tile
-            if corners > 1:  # a tile set of small tiles: three steps, or whole periods
+            if corners > 1 and not default_tiles:  # small tiles: three steps, or periods
                 side = 3 * layout.step
                 if lattice is not None:
                     sizes = [commensurate_sizes(side, layout.step, a, lattice, count=1)
@@ -123,7 +127,7 @@ def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None
                 else:
                     tile = (side, side)
             yield QuiltParams(layout.block, layout.overlap, candidates, corners, tile,
-                              lattice=phase)
+                              lattice=phase, max_seam=max_seam)
 
     start = time.perf_counter()
     try:
@@ -146,6 +150,7 @@ def seed_figures(name: str, reference: np.ndarray, lattice, *, block: int | None
             "structure": max(f.worst_structure for _, f in figures),
             "worst": f"tile {where}: {worst.worst_line()}" if corners > 1 else worst.worst_line(),
             "plans": max(c.plans for c in plan.checks),
+            "interior_plans": sum(c.plans for c in plan.checks),
             "sharpness": neighbour_difference(image) / neighbour_difference(reference)}
 
 

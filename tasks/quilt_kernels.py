@@ -248,3 +248,82 @@ def smallest(err, allowed, use_allowed, k):  # pragma: no cover - compiled
         if count < k:
             count += 1
     return index[:count]
+
+
+@numba.njit(nogil=True, cache=True)
+def search_kernels(target, mask):  # pragma: no cover - compiled
+    """The candidate search's kernels of a target and the target's masked squared norm.
+
+    ``target`` ``(b, b, c)`` and ``mask`` ``(b, b)`` (any real type); returns the
+    ``(1 + c, b, b)`` float32 kernels ``[M, M T_0, ..., M T_c-1]`` flipped in both axes (a
+    correlation as a convolution) and ``sum M |T|^2``: float32 products, summed in float64.
+    One pass instead of six numpy calls holding the GIL
+    (:meth:`tasks.quilting.CandidateSearch.errors`).
+    """
+    b, _, channels = target.shape
+    out = np.empty((1 + channels, b, b), np.float32)
+    norm = 0.0
+    for i in range(b):
+        for j in range(b):
+            m = np.float32(mask[i, j])
+            out[0, b - 1 - i, b - 1 - j] = m
+            for c in range(channels):
+                t = np.float32(target[i, j, c])
+                out[1 + c, b - 1 - i, b - 1 - j] = m * t
+                norm += m * (t * t)
+    return out, norm
+
+
+@numba.njit(nogil=True, cache=True)
+def clipped_errors(full, offset, rows, cols, norm):  # pragma: no cover - compiled
+    """``max(full[offset:offset + rows, offset:offset + cols] + norm, 0)``, float32."""
+    out = np.empty((rows, cols), np.float32)
+    add = np.float32(norm)
+    for i in range(rows):
+        for j in range(cols):
+            v = full[offset + i, offset + j] + add
+            out[i, j] = v if v > 0 else np.float32(0.0)
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def window_state(filled, value, y0, x0, b):  # pragma: no cover - compiled
+    """What a ``b x b`` window at ``(y0, x0)`` of a canvas holds, and the cut's free ring.
+
+    Returns ``inside`` (on the canvas), ``filled`` (on it and filled), ``target`` (the canvas
+    values, 0 off it; float32) and ``outside_free`` ``(b + 2, b + 2)``: the positions just
+    outside the window that the boundary cut may use at no cost, those next to (8-connected)
+    an empty or off-canvas window pixel, or off the canvas themselves; false inside the
+    window (:func:`tasks.quilting.boundary_cut`).
+    """
+    h, w = filled.shape
+    channels = value.shape[2]
+    inside = np.zeros((b, b), np.bool_)
+    here = np.zeros((b, b), np.bool_)
+    target = np.zeros((b, b, channels), np.float32)
+    for i in range(b):
+        y = y0 + i
+        if y < 0 or y >= h:
+            continue
+        for j in range(b):
+            x = x0 + j
+            if x < 0 or x >= w:
+                continue
+            inside[i, j] = True
+            here[i, j] = filled[y, x]
+            for c in range(channels):
+                target[i, j, c] = value[y, x, c]
+    free = np.zeros((b + 2, b + 2), np.bool_)
+    for p in range(b + 2):
+        for q in range(b + 2):
+            if 0 < p < b + 1 and 0 < q < b + 1:
+                continue  # the window itself
+            y, x = y0 - 1 + p, x0 - 1 + q
+            if y < 0 or y >= h or x < 0 or x >= w:
+                free[p, q] = True
+                continue
+            for i in range(max(p - 2, 0), min(p + 1, b)):
+                for j in range(max(q - 2, 0), min(q + 1, b)):
+                    if not here[i, j]:
+                        free[p, q] = True
+    return inside, here, target, free

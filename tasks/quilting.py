@@ -174,17 +174,15 @@ class CandidateSearch:
 
     def errors(self, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """SSD of ``target`` over ``mask`` at every sample position ``(sy, sx)``."""
-        mask = mask.astype(np.float32)
-        target = target.astype(np.float32)
-        kernels = np.concatenate([mask[None], np.moveaxis(mask[..., None] * target, -1, 0)])
-        flipped = kernels[:, ::-1, ::-1]
-        rows = scipy.fft.rfft(flipped, n=self.shape[1], axis=-1)  # only the B non-zero rows
+        from tasks.quilt_kernels import clipped_errors, search_kernels  # numba
+
+        kernels, norm = search_kernels(target, mask)  # flipped: the correlation's kernels
+        rows = scipy.fft.rfft(kernels, n=self.shape[1], axis=-1)  # only the B non-zero rows
         spectrum = scipy.fft.fft(rows, n=self.shape[0], axis=-2)
-        full = scipy.fft.irfft2(np.einsum("kij,kij->ij", self.spectra, spectrum), self.shape)
-        b = self.block
-        out = full[b - 1 : b - 1 + self.valid[0], b - 1 : b - 1 + self.valid[1]]
-        out += float(np.sum(mask[..., None] * target**2))
-        return np.maximum(out, 0.0)
+        # the kernels summed as a product and a sum over them: 0.1 ms, against einsum's 0.36
+        spectrum *= self.spectra
+        full = scipy.fft.irfft2(spectrum.sum(axis=0), self.shape)
+        return clipped_errors(full, self.block - 1, *self.valid, norm)
 
     def choose(self, target: np.ndarray, mask: np.ndarray, k: int,
                rng: np.random.Generator, allowed: np.ndarray | None = None) -> tuple[int, int]:
@@ -343,14 +341,13 @@ class Planner:
         patch's middle row, column or both (see :func:`border_positions`); ``allowed``: a mask
         of the sample positions that may be chosen (all if none of them may).
         """
+        from tasks.quilt_kernels import window_state  # numba: not loaded by `btf --help`
+
         b, o = self.params.block, self.params.overlap
-        rows, cols = canvas.window(y0, x0, b, b)
-        inside = np.zeros((b, b), bool)
-        inside[np.ix_(rows - y0, cols - x0)] = True
-        filled = np.zeros((b, b), bool)
-        filled[np.ix_(rows - y0, cols - x0)] = canvas.filled[np.ix_(rows, cols)]
-        target = np.zeros((b, b, self.reference.shape[-1]), np.float32)
-        target[np.ix_(rows - y0, cols - x0)] = canvas.value[np.ix_(rows, cols)]
+        # on the canvas, filled, the canvas values; and where the cut may run just outside the
+        # window: next to empty pixels, and off the canvas
+        inside, filled, target, outside_free = window_state(canvas.filled, canvas.value, y0,
+                                                            x0, b)
         mask = None if border is None else self.borders[border]
         if allowed is not None:
             both = allowed if mask is None else mask & allowed
@@ -366,14 +363,6 @@ class Planner:
             (slice(None), slice(0, o)), (slice(0, o), slice(None)),
             (slice(None), slice(b - o, b)), (slice(b - o, b), slice(None))), strict=True)
             if not (filled[band].all()))
-        # the cut may run just outside the window next to empty pixels, and off the canvas
-        open_px = np.pad(~filled, 1, constant_values=False)
-        outside_free = scipy.ndimage.binary_dilation(open_px, structure=np.ones((3, 3), bool))
-        ring_y = (y0 - 1 + np.arange(b + 2))[:, None]
-        ring_x = (x0 - 1 + np.arange(b + 2))[None, :]
-        h, w = canvas.shape
-        outside_free |= (ring_y < 0) | (ring_y >= h) | (ring_x < 0) | (ring_x >= w)
-        outside_free[1:-1, 1:-1] = False
         error = np.sum((value - target) ** 2, axis=-1)
         error[~filled] = 0.0
         region = boundary_cut(error, keep, outside_free=outside_free)

@@ -587,19 +587,28 @@ def test_positions_in_phase_are_lattice_vectors_to_the_texel():
         assert near.min() <= 0.5**0.5 and (near <= 1.0).sum() <= 4
 
 
-def test_each_plan_of_an_interior_starts_at_another_corner_and_of_a_strip_at_its_other_end(
+def test_each_plan_of_an_interior_fills_its_quadrants_inwards_and_of_a_strip_from_its_other_end(
         noise):
-    # the last patches placed must join two strips and two neighbours: each plan puts them
-    # along other borders (tasks.corner_tiles, "Why a check")
-    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _TileSetPlanner
+    # every patch along a border is placed on its way in from a corner; the quadrants close
+    # against each other inside the tile, and each plan starts with the next quadrant
+    # (tasks.corner_tiles, "Where the joins fall")
+    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _TileSetPlanner, fill_order
 
+    assert fill_order(5, 4, 0) == [(1, 1), (1, 2), (2, 1), (2, 2),  # top-left, by rows
+                                   (1, 3), (2, 3),  # top-right, from the right
+                                   (4, 1), (4, 2), (3, 1), (3, 2),  # bottom-left, from below
+                                   (4, 3), (3, 3)]
+    for generation in range(1, 5):
+        order = fill_order(7, 6, generation)
+        assert sorted(order) == sorted(fill_order(7, 6, 0))
+        assert order[0] == [(1, 1), (1, 5), (6, 1), (6, 5)][generation % 4]
     reference, exemplar = noise
     plan = _TileSetPlanner(np.asarray(reference, np.float32), QuiltParams(12, 3, 3, 2, (27, 27)),
                            seed=1, exemplar=exemplar)
     plan.plan_all()
     windows = [[p.window for p in plan.fill(5).placements] for _ in range(5)]
-    assert [w[0] for w in windows] == [(3, 3), (12, 12), (3, 12), (12, 3), (3, 3)]
-    assert [w[-1] for w in windows] == [(12, 12), (3, 3), (12, 3), (3, 12), (12, 12)]
+    assert [w[0] for w in windows] == [(3, 3), (3, 12), (12, 3), (12, 12), (3, 3)]
+    assert [w[-1] for w in windows] == [(12, 12), (3, 3), (3, 12), (12, 3), (12, 12)]
     assert all(sorted(w) == sorted(windows[0]) for w in windows)
     for key, ends in (((HORIZONTAL, 0, 1), [(0, 9), (0, 18)]),
                       ((VERTICAL, 1, 1), [(9, 0), (18, 0)])):
@@ -732,7 +741,7 @@ def test_the_compiled_blend_gives_the_bits_of_numpys():
 
 @pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines"), [
     (2, 18, 1.05, 2, 4),  # 4 rounds: tiles planned along strips planned again too
-    (1, 27, 1.0, 0, 2),  # one tile: its plans made ahead beside each other, 6 in 2 rounds
+    (1, 27, 0.98, 3, 2),  # one tile: its plans made ahead beside each other, 6 in 2 rounds
 ])
 def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise, corners, side,
                                                                      bound, seed, lines):
@@ -841,3 +850,36 @@ def test_the_quilt_bench_takes_its_application_rate_from_the_run_that_plans_once
     assert got["quilt_plan_seconds_per_texel_pair"] == pytest.approx(4.0 / (504**2 * 512**2))
     del result["quilt_cli"]["one_plan_seconds"]  # a run that planned until the check passed
     assert "quilt_values_per_core_second" not in rates(result)
+
+
+def test_the_photo_plans_bench_draws_crops_and_seeds_and_repeats_a_draw():
+    from benchmarks.photoplans import SIZE, draws, photo, photo_reference
+
+    first, again, other = draws(7, ["brick", "grass"], 3), draws(7, ["brick", "grass"], 3), \
+        draws(8, ["brick", "grass"], 3)
+    assert first == again and first != other
+    for case in first:
+        h, w = photo(case["photo"]).shape
+        y, x = case["crop"]
+        assert 0 <= y <= h - SIZE and 0 <= x <= w - SIZE
+    g = photo("gravel")[:SIZE, :SIZE]
+    reference = photo_reference(g)
+    assert reference.shape == (SIZE, SIZE, 3) and np.isfinite(reference).all()
+    # the reference follows the photo (the diffuse map dominates the default weights)
+    assert np.corrcoef(reference.mean(axis=-1).ravel(), g.ravel())[0, 1] > 0.7
+
+
+@pytest.mark.slow
+def test_tile_sets_planned_on_photos_keep_the_bound_for_a_random_draw():
+    """`btf quilt --corners 2`'s defaults on 256^2 photo crops (16 tiles of 240^2), one crop
+    and seed per photo drawn anew every run: every output within the bound 1.3 on its 4 x 4
+    mosaic, as sharp as the bench holds (BENCHMARKS.md, "Quilt plans on photos")."""
+    from benchmarks.photoplans import draws, measure
+
+    for case in draws(None, ["brick", "gravel", "grass"], 1):
+        r = measure(case, threads=2)
+        if r["failed"]:  # refused with its message: nothing out of bounds is written
+            assert "try another seed" in r["failed"], r
+            continue
+        assert r["seam"] <= 1.3 and r["structure"] <= 1.3, r
+        assert r["sharpness"] >= 0.75, r
