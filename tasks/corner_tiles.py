@@ -24,14 +24,21 @@ measured once planned (:class:`BorderCheck`: the seam and structure ratios of
 neighbours show there), and while its worst border stands out more than ``max_seam`` times
 its inside:
 
-1. its interior is planned again from another random stream, up to
-   :data:`INTERIOR_ATTEMPTS` times, each plan starting with the next quadrant, so that the
-   closing joins change places;
-2. if none passes, the strip along its worst border is planned again from another stream
+1. every tile not yet planned is planned once; where two or more tiles fail at the same
+   strip (their worst border), the fault is the strip's: those strips are planned again at
+   once from other streams, and so is every tile along them, in the next round (on brick,
+   a draw whose 14 tiles of 16 failed at four strips took 75 interior plans when each was
+   first planned four times, 32 this way);
+2. the other tiles beyond the bound have their interiors planned again from other random
+   streams, up to :data:`INTERIOR_ATTEMPTS` plans in all, each plan starting with the next
+   quadrant so that the closing joins change places; the best is kept;
+3. the strip along the worst border of each tile still beyond the bound is planned again
    (the corner patches stay), from its other end every second time (a strip's last patch
    must join the corner patch at its end), and so is every tile that uses that strip; after
    :data:`STRIP_ATTEMPTS` plans of a strip, the whole set is planned again from new corner
-   patches. A round is one pass over the tiles not yet planned; at most ``attempts`` rounds.
+   patches. A round is one pass of these over the tiles not yet planned; at most
+   ``attempts`` rounds. A periodic tile (``V = 1``) has no strips of its own: with more than one
+   thread, its plans are made ahead, beside each other.
 
 The best plan of a tile is kept; when a tile's best still exceeds the bound, planning stops
 with :class:`SeamError` naming the tile, its worst border and the figure. Every stream is
@@ -42,6 +49,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections import Counter
 from collections.abc import Callable, Iterable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -319,11 +327,12 @@ class _TileSetPlanner:
         return self._plan(key, place, canvas, generation)
 
     def plan_tile(self, number: int, attempts: int, spare: Executor | None = None,
-                  ahead: int = 0) -> _Tile:
+                  ahead: int = 0, best: _Tile | None = None) -> _Tile:
         """A tile's interior, planned until its borders pass, at most ``attempts`` times.
 
         With a ``spare`` pool, the ``ahead`` plans after each are made beside it in case it
-        fails; the tile and its count of plans are the same as without.
+        fails; the tile and its count of plans are the same as without. ``best``: a plan of
+        the tile made before along the same strips, kept if none of these is better.
         """
         key = ("tile", number)
         first = self.generation.get(key, 0)
@@ -334,7 +343,8 @@ class _TileSetPlanner:
             return piece, self.check.figures(piece.canvas, *strips)
 
         early: dict[int, Future] = {}
-        best, used = None, 0
+        best = None if best is None else (best.piece, best.check.figures)
+        used = 0
         for generation in range(first, first + attempts):
             if spare is not None:
                 for g in range(generation + 1, min(generation + 1 + ahead, first + attempts)):
@@ -452,13 +462,33 @@ def _rounds(plan: _TileSetPlanner, report: _Progress, pool: Executor, threads: i
     for round_ in range(params.attempts):
         pending = [n for n in range(len(plan.types)) if n not in plan.tiles]
         if len(pending) == 1 and threads > 1:  # a periodic tile: its next plans beside it
-            planned = [plan.plan_tile(pending[0], INTERIOR_ATTEMPTS, spare=pool,
-                                      ahead=threads - 1)]
-        else:
-            planned = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS), pending)
-        for number, tile in zip(pending, planned, strict=True):
-            plan.tiles[number] = tile
-            report.tile(round_)
+            plan.tiles[pending[0]] = plan.plan_tile(pending[0], INTERIOR_ATTEMPTS, spare=pool,
+                                                    ahead=threads - 1)
+        elif pending:
+            # one plan of each tile first: where tiles along one strip fail at it, the strip
+            # is planned again at once (planning their interiors again would not help)
+            for number, tile in zip(pending, pool.map(lambda n: plan.plan_tile(n, 1), pending),
+                                    strict=True):
+                plan.tiles[number] = tile
+                report.tile(round_)
+            failed = [n for n in pending if not plan.tiles[n].passed]
+            blamed = Counter(plan.worst_strip(n) for n in failed)
+            shared = sorted(k for k, count in blamed.items() if count >= 2)
+            if (shared and round_ + 1 < params.attempts
+                    and all(strip_plans.get(k, 1) < STRIP_ATTEMPTS for k in shared)):
+                result = plan.result()
+                if best is None or result.worst < best.worst:
+                    best = result
+                report.round(round_, failed, shared=len(shared))
+                plan.plan_strips(shared, pool)
+                for key in shared:
+                    strip_plans[key] = strip_plans.get(key, 1) + 1
+                continue
+            # the others: the rest of their plans, the first kept if none is better
+            again = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS - 1,
+                                                      best=plan.tiles[n]), failed)
+            for number, tile in zip(failed, again, strict=True):
+                plan.tiles[number] = tile
         result = plan.result()
         if best is None or result.worst < best.worst:
             best = result
@@ -505,8 +535,12 @@ class _Progress:
             self._say(f"round {round_ + 1}: {len(self.plan.tiles)} of "
                       f"{len(self.plan.types)} tile(s) planned")
 
-    def round(self, round_: int, failed: list[int]) -> None:
-        """A round ended with ``failed`` tiles beyond the bound."""
+    def round(self, round_: int, failed: list[int], shared: int = 0) -> None:
+        """A round ended with ``failed`` tiles beyond the bound.
+
+        ``shared``: strips that two or more of them failed at, planned again after one plan
+        of each tile.
+        """
         if self.callback is None:
             return
         n = len(self.plan.types)
@@ -517,10 +551,11 @@ class _Progress:
             last = round_ + 1 == self.plan.params.attempts
             worst = max((self.plan.tiles[k].check for k in failed),
                         key=lambda c: c.figures.worst)
+            then = (f"; {shared} strip(s) along which two or more tiles fail planned again"
+                    if shared else "" if last else "; planning the worst borders' strips again")
             self._say(f"round {round_ + 1} of at most {self.plan.params.attempts}: "
                       f"{n - len(failed)} of {n} tile(s) within the bound (worst: "
-                      f"{worst.tile}, {worst.figures.worst_line()})"
-                      + ("" if last else "; planning the worst borders' strips again"))
+                      f"{worst.tile}, {worst.figures.worst_line()}){then}")
 
 
 def plan_first(reference: np.ndarray, params: Iterable[QuiltParams], *, seed: int,
