@@ -27,7 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fractions of the work after which the run is killed")
     parser.add_argument("--size", type=int, default=1024,
                         help="texels per side of the generated and compressed store")
-    parser.add_argument("--stages", default="generate,compress,quilt,enlarge")
+    parser.add_argument("--stages",
+                        default="generate,compress,quilt,enlarge,reconstruct,crop,ingest",
+                        help="resumable stages to kill and rerun (default: every one)")
 
 
 def _stages(tmp: Path, size: int) -> dict:
@@ -45,6 +47,12 @@ def _stages(tmp: Path, size: int) -> dict:
                                "--size", "960,960"], "applying", ("radiance",)),
         "enlarge": (lambda out: [btf, "enlarge", tmp / "S_svd.zarr", tmp / "C.zarr", out,
                                  "--tile", "128"], "level 1/", ("U", "S", "V")),
+        "reconstruct": (lambda out: [btf, "reconstruct", tmp / "wide_svd.zarr", out],
+                        "layers of", ("radiance",)),
+        "crop": (lambda out: [btf, "crop", tmp / "wide.zarr", out, "--region",
+                              f"{size // 8}:{size - size // 8},{size // 8}:{size - size // 8}"],
+                 "layers of", ("radiance",)),
+        "ingest": (lambda out: [btf, "ingest", tmp / "exr", out], "layers of", ("radiance",)),
     }
 
 
@@ -55,6 +63,16 @@ def _inputs(tmp: Path, size: int, stages: set[str]) -> None:
 
     if stages & {"compress"}:
         generate_store(tmp / "src.zarr", "wood", size, "abtf:12,4")
+    # the stages that copy or expand radiance: 4x the layers, so that their work outlasts
+    # their start-up (abtf:12,4's 48 layers of 1024^2 reconstruct in 3 s)
+    if stages & {"reconstruct", "crop"}:
+        generate_store(tmp / "wide.zarr", "wood", size, "abtf:24,8")
+    if stages & {"reconstruct"}:
+        assert main([str(v) for v in ["compress", tmp / "wide.zarr", tmp / "wide_svd.zarr",
+                                      "--rank", "32", "--quiet"]]) == 0
+    if stages & {"ingest"}:  # a folder of EXR layers (exact float32) and its manifest
+        layers = generate_store(tmp / "layers.zarr", "wood", size // 2, "abtf:24,8")
+        assert main([str(v) for v in ["export", layers, tmp / "exr", "--quiet"]]) == 0
     if stages & {"quilt"}:  # light chunks of 4: 48 blocks of layers to write
         subprocess.run([btf_executable(), "generate", tmp / "small.zarr", "--material", "wood",
                         "--size", "256", "--sampling", "abtf:24,8", "--dir-chunk", "4",
