@@ -106,14 +106,41 @@ def _wait_until_up(server: S3Server) -> None:
             return
         except OSError as exc:
             if server.process.poll() is not None or time.monotonic() > deadline:
-                server.stop()
-                raise RuntimeError(f"weed server did not start: see {server.folder / 'weed.log'}"
-                                   ) from exc
+                log = server.folder / "weed.log"
+                tail = log.read_text(errors="replace")[-2000:] if log.exists() else ""
+                server.stop()  # removes the folder, its log too: the log's end is kept here
+                error = ServerDidNotStart(f"weed server did not start (exit status "
+                                          f"{server.process.returncode}); the end of its "
+                                          f"log:\n{tail}")
+                error.exited = server.process.returncode is not None
+                raise error from exc
             time.sleep(0.3)
 
 
-def start(folder: Path, bucket: str = "btf") -> S3Server:
-    """Start a server with its data in ``folder`` and make ``bucket``."""
+class ServerDidNotStart(RuntimeError):
+    """The server exited (``exited``) or did not answer in time."""
+
+    exited = False
+
+
+def start(folder: Path, bucket: str = "btf", attempts: int = 3) -> S3Server:
+    """Start a server with its data in ``folder`` and make ``bucket``.
+
+    Ports are found free, then bound by the server a moment later: another process may take
+    one in between (the range overlaps the ephemeral ports of outgoing connections), and the
+    server then exits at once (a CI run saw exit status 255). It is started again on other
+    ports, up to ``attempts`` times.
+    """
+    for attempt in range(attempts):
+        try:
+            return _start(folder, bucket)
+        except ServerDidNotStart as exc:
+            if not exc.exited or attempt + 1 == attempts:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _start(folder: Path, bucket: str) -> S3Server:
     master, volume, filer, s3, iceberg, lance = free_ports(6)
     folder.mkdir(parents=True, exist_ok=True)
     config = folder / "s3.json"

@@ -453,3 +453,21 @@ def test_btf_bench_objectstore_measures_both_locations_and_both_store_classes():
     assert {c["class"] for c in result["classes"]} == {"obstore", "fsspec"}
     text = suite.report(result)
     assert "| chunks 128 in 2x2 shards | compress |" in text and "| obstore |" in text
+
+
+def test_a_server_that_exits_at_once_is_started_again_then_named_with_its_log(tmp_path,
+                                                                              monkeypatch):
+    # a port found free may be taken before the server binds it: it exits, and is started
+    # again on other ports; one that never starts is reported with its log's end and status
+    import benchmarks.s3server as s3server
+
+    script = tmp_path / "weed"
+    script.write_text("#!/bin/sh\necho 'bind: address already in use' >&2\nexit 7\n")
+    script.chmod(0o755)
+    monkeypatch.setattr(s3server, "weed_binary", lambda: str(script))
+    starts = []
+    real = s3server._start
+    monkeypatch.setattr(s3server, "_start", lambda *a: starts.append(1) or real(*a))
+    with pytest.raises(s3server.ServerDidNotStart, match=r"(?s)exit status 7.*address already"):
+        s3server.start(tmp_path / "s3")
+    assert len(starts) == 3
