@@ -327,3 +327,100 @@ def window_state(filled, value, y0, x0, b):  # pragma: no cover - compiled
                     if not here[i, j]:
                         free[p, q] = True
     return inside, here, target, free
+
+
+@numba.njit(nogil=True, cache=True)
+def cut_costs(error, keep, outside_free):  # pragma: no cover - compiled
+    """The boundary cut's node costs and the row where its slit ends.
+
+    For :func:`tasks.quilting.boundary_cut`: ``(b + 2)^2`` float64 costs, infinite on
+    ``keep``, on a window pixel next to filled canvas outside, and outside except where
+    ``outside_free`` (cost 0); the window's pixels cost their error plus a little length
+    penalty (float32 arithmetic). The row: the first of ``keep`` in the middle column
+    (``n // 2`` if none).
+    """
+    b = error.shape[0]
+    n = b + 2
+    cost = np.full((n, n), np.inf)
+    for i in range(b):
+        for j in range(b):
+            # a window pixel next to filled canvas outside may not carry the cut
+            beside = ((i == 0 and not outside_free[0, j + 1])
+                      or (i == b - 1 and not outside_free[n - 1, j + 1])
+                      or (j == 0 and not outside_free[i + 1, 0])
+                      or (j == b - 1 and not outside_free[i + 1, n - 1]))
+            if not (keep[i, j] or beside):
+                cost[i + 1, j + 1] = np.float32(error[i, j]) + np.float32(1e-6)
+    for p in range(n):
+        for q in range(n):
+            if outside_free[p, q]:
+                cost[p, q] = 0.0
+    col = n // 2
+    top = n // 2
+    for p in range(1, n - 1):
+        if keep[p - 1, col - 1]:
+            top = p
+            break
+    return cost, top
+
+
+@numba.njit(nogil=True, cache=True)
+def filled_holes(mask):  # pragma: no cover - compiled
+    """``mask`` with its holes filled.
+
+    Everything not 4-connected to the border through ``~mask``
+    (``scipy.ndimage.binary_fill_holes`` with its default structure).
+    """
+    h, w = mask.shape
+    outside = np.zeros((h, w), np.bool_)
+    stack = np.empty(h * w, np.int64)
+    top = 0
+    for i in range(h):
+        for j in range(w):
+            if (i == 0 or j == 0 or i == h - 1 or j == w - 1) and not mask[i, j]:
+                outside[i, j] = True
+                stack[top] = i * w + j
+                top += 1
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        y, x = v // w, v % w
+        for k in range(4):
+            yy, xx = y + (k == 1) - (k == 0), x + (k == 3) - (k == 2)
+            if 0 <= yy < h and 0 <= xx < w and not mask[yy, xx] and not outside[yy, xx]:
+                outside[yy, xx] = True
+                stack[top] = yy * w + xx
+                top += 1
+    return ~outside
+
+
+@numba.njit(nogil=True, cache=True)
+def feathered(region, keep, kernel):  # pragma: no cover - compiled
+    """The patch weight of :func:`tasks.quilting.blend_weights`, float32.
+
+    ``region`` blurred by the separable ``kernel`` (zero beyond the window), 1 on ``keep``,
+    0 outside the region where the blur left less than 1e-3.
+    """
+    b = region.shape[0]
+    r = kernel.size // 2
+    rows = np.zeros((b, b))
+    for i in range(b):
+        for j in range(b):
+            s = 0.0
+            for t in range(-r, r + 1):
+                if 0 <= j + t < b and region[i, j + t]:
+                    s += kernel[t + r]
+            rows[i, j] = s
+    out = np.empty((b, b), np.float32)
+    for i in range(b):
+        for j in range(b):
+            s = 0.0
+            for t in range(-r, r + 1):
+                if 0 <= i + t < b:
+                    s += kernel[t + r] * rows[i + t, j]
+            if keep[i, j]:
+                s = 1.0
+            elif not region[i, j] and s < 1e-3:
+                s = 0.0
+            out[i, j] = s
+    return out

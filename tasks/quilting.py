@@ -43,6 +43,7 @@ Sections 2.1, 2.3 and 2.4 of the paper, with these choices where it is not speci
 from __future__ import annotations
 
 import copy
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -229,30 +230,16 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
     numpy.ndarray
         ``(B, B)`` bool: the pixels inside the cut (including the cut itself and ``keep``).
     """
-    b = error.shape[0]
-    n = b + 2
-    cost = np.full((n, n), np.inf)
-    # a window pixel next to filled canvas outside may not carry the cut (see the module)
-    closed = ~outside_free
-    beside = np.zeros((b, b), bool)
-    beside[0, :] |= closed[0, 1:-1]
-    beside[-1, :] |= closed[-1, 1:-1]
-    beside[:, 0] |= closed[1:-1, 0]
-    beside[:, -1] |= closed[1:-1, -1]
-    cost[1:-1, 1:-1] = np.where(keep | beside, np.inf, error + 1e-6)  # a little length penalty
-    cost[outside_free] = 0.0
-    inner = np.zeros((n, n), bool)
-    inner[1:-1, 1:-1] = keep
-    col = n // 2
-    top = int(np.argmax(inner[:, col])) if inner[:, col].any() else n // 2
-    from tasks.quilt_kernels import cheapest_loop  # numba: not loaded by `btf --help`
+    from tasks.quilt_kernels import cheapest_loop, cut_costs, filled_holes  # numba
 
+    b = error.shape[0]
+    cost, top = cut_costs(error, keep, outside_free)
     # the slit: rows above the keep region, between columns col and col + 1
-    loop, found = cheapest_loop(cost, col, top)
+    loop, found = cheapest_loop(cost, (b + 2) // 2, top)
     if not found:
         return np.ones((b, b), bool)
-    enclosed = scipy.ndimage.binary_fill_holes(loop | inner)
-    return enclosed[1:-1, 1:-1]
+    loop[1:-1, 1:-1] |= keep
+    return filled_holes(loop)[1:-1, 1:-1]
 
 
 def blend_weights(region: np.ndarray, keep: np.ndarray, overlap: int) -> np.ndarray:
@@ -261,12 +248,18 @@ def blend_weights(region: np.ndarray, keep: np.ndarray, overlap: int) -> np.ndar
     Beyond the window the blur sees weight 0 (the canvas), so a region reaching the window's
     edge still fades out instead of ending in a hard edge.
     """
-    alpha = scipy.ndimage.gaussian_filter(region.astype(np.float64),
-                                          sigma=max(overlap / FEATHER, 0.5), mode="constant",
-                                          cval=0.0)
-    alpha[keep] = 1.0
-    alpha[~region & (alpha < 1e-3)] = 0.0
-    return alpha.astype(np.float32)
+    from tasks.quilt_kernels import feathered  # numba: not loaded by `btf --help`
+
+    return feathered(region, keep, _feather_kernel(max(overlap / FEATHER, 0.5)))
+
+
+@functools.cache
+def _feather_kernel(sigma: float) -> np.ndarray:
+    """The Gaussian weights ``scipy.ndimage.gaussian_filter`` blurs with (radius 4 sigma)."""
+    radius = int(4.0 * sigma + 0.5)
+    x = np.arange(-radius, radius + 1)
+    weights = np.exp(-0.5 / sigma**2 * x**2)
+    return weights / weights.sum()
 
 
 @dataclass
