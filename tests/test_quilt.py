@@ -592,7 +592,13 @@ def test_each_plan_of_an_interior_fills_its_quadrants_inwards_and_of_a_strip_fro
     # every patch along a border is placed on its way in from a corner; the quadrants close
     # against each other inside the tile, and each plan starts with the next quadrant
     # (tasks.corner_tiles, "Where the joins fall")
-    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _TileSetPlanner, fill_order
+    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _TileSetPlanner, fill_order, strip_order
+
+    # a strip from both of its corner patches inwards, closing in its middle; every second
+    # plan starts with the other half
+    assert strip_order(10, 0) == [1, 2, 3, 4, 5, 9, 8, 7, 6]
+    assert strip_order(10, 1) == [9, 8, 7, 6, 1, 2, 3, 4, 5]
+    assert strip_order(3, 0) == [1, 2] and strip_order(3, 1) == [2, 1]
 
     assert fill_order(5, 4, 0) == [(1, 1), (1, 2), (2, 1), (2, 2),  # top-left, by rows
                                    (1, 3), (2, 3),  # top-right, from the right
