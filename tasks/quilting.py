@@ -234,7 +234,7 @@ def boundary_cut(error: np.ndarray, keep: np.ndarray, *, outside_free: np.ndarra
 
     b = error.shape[0]
     cost, top = cut_costs(error, keep, outside_free)
-    # the slit: rows above the keep region, between columns col and col + 1
+    # the slit: rows above the keep region, between the middle column and the next
     loop, found = cheapest_loop(cost, (b + 2) // 2, top)
     if not found:
         return np.ones((b, b), bool)
