@@ -32,14 +32,20 @@ PHOTOS = ("brick", "gravel", "grass", "moon")
 SEEDS = 20
 
 
+def photo(name: str) -> np.ndarray:
+    """A scikit-image photo as luminance in [0, 1] (float32), whole."""
+    from skimage import data
+
+    g = getattr(data, name)().astype(np.float32) / 255.0
+    if g.ndim == 3:
+        g = g[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    return g
+
+
 def reference_of(name: str, size: int = 256) -> np.ndarray:
     """The three-tone-curve reference image of a texture (see the module), ``size^2``."""
     if name in PHOTOS:
-        from skimage import data
-
-        g = getattr(data, name)().astype(np.float32) / 255.0
-        if g.ndim == 3:
-            g = g[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        g = photo(name)
     elif name == "lattice":  # an oblique lattice of blobs with noise: nothing tuned on it
         from benchmarks.lattices import random_lattice_texture
 
