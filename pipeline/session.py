@@ -330,7 +330,15 @@ class Session:
                 pool.shutdown(wait=True, cancel_futures=True)
 
     def _task_blas(self):
-        if not self._pin_blas:
+        """One BLAS thread in tasks, where stages ask for it and wherever threads run tasks.
+
+        On the threads scheduler the workers are the parallelism: each task's product on a
+        BLAS pool of its own oversubscribed the cores, its idle threads spinning (a whole
+        ``btf reconstruct`` of a 1 GB store: 10.6-11.0 s and 13.5 s of CPU with two BLAS
+        threads, 8.0 s and 6.1 s with one). The synchronous scheduler keeps BLAS's threads
+        unless a stage pins them (:meth:`blas_pinned_in_tasks`).
+        """
+        if not (self._pin_blas or self.options.scheduler == "threads"):
             return contextlib.nullcontext()
         from threadpoolctl import threadpool_limits
 

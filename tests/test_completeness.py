@@ -74,25 +74,46 @@ def test_a_missing_chunk_is_named_by_every_reader_and_listed_by_the_scan(tmp_pat
     assert not (tmp_path / "c.zarr").exists() and not (tmp_path / "r.zarr").exists()
 
 
+def _losing(monkeypatch, lost) -> None:
+    """Chunk writes whose key ``lost(key)`` picks are acknowledged and never stored.
+
+    Both ways chunks are written: zarr's ``LocalStore.set`` and btf's own whole-chunk writes
+    (:mod:`pipeline.chunk_writes`).
+    """
+    from pipeline import chunk_writes
+
+    set_, put = LocalStore.set, chunk_writes._put
+
+    async def store_set(self, key, value):
+        if not lost(key):
+            await set_(self, key, value)
+
+    def direct(store, key, data):
+        if not lost(key):
+            put(store, key, data)
+
+    monkeypatch.setattr(LocalStore, "set", store_set)
+    monkeypatch.setattr(chunk_writes, "_put", direct)
+
+
 def test_a_write_lost_on_its_way_fails_the_stage_before_its_commit(tmp_path, btf, monkeypatch):
     reference = generate_store(tmp_path / "ref.zarr", *GEN)
-    set_ = LocalStore.set
     dropped = []
 
-    async def lose_one(self, key, value):
+    def lose_one(key):
         if storage.chunk_key(key) and key.startswith("radiance/") and not dropped:
             dropped.append(key)  # acknowledged, never stored
-            return None
-        return await set_(self, key, value)
+            return True
+        return False
 
-    monkeypatch.setattr(LocalStore, "set", lose_one)
+    _losing(monkeypatch, lose_one)
     out = tmp_path / "g.zarr"
     run = btf("generate", out, *GEN)
     assert run.code == 1 and dropped, run.err
     assert f"{out}: 1 chunk object(s) are missing once the stage finished" in run.err
     assert dropped[0] in run.err and "run the same command again" in run.err
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["ref.zarr"]
-    monkeypatch.setattr(LocalStore, "set", set_)
+    monkeypatch.undo()
     assert btf("generate", out, *GEN).code == 0
     a, b = (zarr.open_group(p, mode="r") for p in (reference, out))
     assert np.array_equal(a["radiance"][...], b["radiance"][...], equal_nan=True)
@@ -126,20 +147,19 @@ def test_stores_not_sealed_read_a_missing_chunk_as_fill_values(tmp_path, btf):
 def test_a_write_lost_in_a_pyramid_leaves_the_store_as_it_was(tmp_path, btf, monkeypatch):
     store = generate_store(tmp_path / "g.zarr", *GEN)
     before = sorted(p.relative_to(store) for p in store.rglob("*"))
-    set_ = LocalStore.set
     dropped = []
 
-    async def lose_one(self, key, value):
+    def lose_one(key):
         if ".partial-" in key and "/c/" in key and "zarr.json" not in key and not dropped:
             dropped.append(key)
-            return None
-        return await set_(self, key, value)
+            return True
+        return False
 
-    monkeypatch.setattr(LocalStore, "set", lose_one)
+    _losing(monkeypatch, lose_one)
     lost = btf("pyramid", store, "--levels", "2", "--quiet")
     assert lost.code == 1 and dropped, lost.err
     assert f"{store}: group 'pyramid': 1 chunk object(s) are missing" in lost.err, lost.err
     assert sorted(p.relative_to(store) for p in store.rglob("*")) == before
-    monkeypatch.setattr(LocalStore, "set", set_)
+    monkeypatch.undo()
     assert btf("pyramid", store, "--levels", "2", "--quiet").code == 0
     assert btf("inspect", store, "--scan").code == 0

@@ -78,7 +78,6 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     blocks it keeps are computed and written.
     """
     import dask
-    import dask.array as da
     import dask.threaded
     from dask.base import tokenize
 
@@ -92,10 +91,9 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                 )
     sources = [_in_type_of(source, target) for source, target in zip(sources, targets,
                                                                       strict=True)]
-    if progress is None and keep is None:
-        return da.store(sources, targets, lock=False, compute=False)
     units, regions = [], {}
-    # each block written by the task that computes it (as da.store does), not by a task of
+    # each block written by the task that computes it (as da.store does; here in the task's
+    # own thread where it can, see pipeline.chunk_writes), not by a task of
     # its own: the processes scheduler would move every block to the client and out again
     # and each marks itself done right after its write: a marker of its own, in a task of its
     # own, ran when dask's order reached it, often long after (a kill at 60% of a generate
@@ -216,7 +214,9 @@ def _stored_sums_match(target, region: tuple[slice, ...]) -> bool | None:
 
 
 def _write_block(block: np.ndarray, target, region: tuple[slice, ...]) -> None:
-    target[region] = block
+    from pipeline import chunk_writes
+
+    chunk_writes.write(target, region, block)
 
 
 def _write_here(block: np.ndarray, *, target, progress=None, block_info=None) -> np.ndarray:

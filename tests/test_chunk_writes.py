@@ -1,0 +1,95 @@
+"""Whole chunks written past zarr's event loop (pipeline.chunk_writes): zarr's own bytes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline import chunk_writes, storage
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != "zarr.json"}
+
+
+def _array(path: Path, shape, chunks, dtype, **kw):
+    group = zarr.open_group(storage.store(path), mode="w")
+    return group.create_array("a", shape=shape, chunks=chunks, dtype=dtype,
+                              compressors=zarr.codecs.BloscCodec(cname="lz4"),
+                              fill_value=np.nan, dimension_names=None, **kw)
+
+
+CASES = [  # shape, chunks, dtype, regions written (each block a task's)
+    ((5, 7, 33, 3), (2, 3, 16, 3), np.float32,
+     [(slice(0, 2), slice(0, 6), slice(0, 32), slice(0, 3)),
+      (slice(4, 5), slice(6, 7), slice(32, 33), slice(0, 3)),  # the last, clipped chunk
+      (slice(2, 4), slice(0, 7), slice(0, 33), slice(0, 3))]),
+    ((3, 17, 9), (1, 4, 9), np.float16, [(slice(0, 3), slice(0, 17), slice(0, 9))]),
+    ((4, 4), (4, 4), np.float32, [(slice(0, 4), slice(0, 4))]),
+]
+
+
+@pytest.mark.parametrize("shape,chunks,dtype,regions", CASES)
+def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, shape, chunks, dtype, regions):
+    rng = np.random.default_rng(7)
+    ours, theirs = _array(tmp_path / "o.zarr", shape, chunks, dtype), \
+        _array(tmp_path / "t.zarr", shape, chunks, dtype)
+    assert chunk_writes._writer(ours) is not None  # the path under test is taken
+    for region in regions:
+        block = rng.standard_normal(tuple(s.stop - s.start for s in region)).astype(dtype)
+        if dtype == np.float32:
+            block[..., :1] = np.nan  # the fill value inside a block is written too
+        chunk_writes.write(ours, region, block)
+        theirs[region] = block
+    mine, zarrs = _files(tmp_path / "o.zarr"), _files(tmp_path / "t.zarr")
+    assert mine.keys() == zarrs.keys() and mine == zarrs
+    np.testing.assert_array_equal(zarr.open_array(storage.store(tmp_path / "o.zarr"),
+                                                  path="a", mode="r")[...], theirs[...])
+    assert not list((tmp_path / "o.zarr").rglob("*.partial"))
+
+
+def test_a_float64_block_is_stored_in_the_arrays_type(tmp_path):
+    ours = _array(tmp_path / "o.zarr", (4, 8), (2, 8), np.float16)
+    block = np.linspace(0, 1, 32).reshape(4, 8)
+    chunk_writes.write(ours, (slice(0, 4), slice(0, 8)), block)
+    np.testing.assert_array_equal(ours[...], block.astype(np.float16))
+
+
+def test_part_of_a_chunk_goes_through_zarr_and_keeps_the_rest(tmp_path):
+    ours = _array(tmp_path / "o.zarr", (4, 8), (4, 4), np.float32)
+    chunk_writes.write(ours, (slice(0, 4), slice(0, 8)), np.ones((4, 8), np.float32))
+    chunk_writes.write(ours, (slice(1, 3), slice(2, 6)), np.zeros((2, 4), np.float32))
+    expected = np.ones((4, 8), np.float32)
+    expected[1:3, 2:6] = 0
+    np.testing.assert_array_equal(ours[...], expected)
+
+
+def test_sharded_and_read_only_arrays_are_left_to_zarr(tmp_path):
+    sharded = _array(tmp_path / "s.zarr", (4, 8), (2, 2), np.float32, shards=(4, 4))
+    assert chunk_writes._writer(sharded) is None
+    chunk_writes.write(sharded, (slice(0, 4), slice(0, 4)), np.full((4, 4), 2, np.float32))
+    np.testing.assert_array_equal(sharded[:, :4], 2)
+    plain = _array(tmp_path / "p.zarr", (4, 8), (2, 2), np.float32)
+    reader = zarr.open_array(storage.store(tmp_path / "p.zarr"), path="a", mode="r")
+    assert chunk_writes._writer(reader) is None and chunk_writes._writer(plain) is not None
+
+
+def test_a_failed_write_leaves_no_partial_file(tmp_path, monkeypatch):
+    ours = _array(tmp_path / "o.zarr", (2, 2), (2, 2), np.float32)
+
+    class Full(OSError):
+        pass
+
+    def fail(*args):
+        raise Full("no space left on device")
+
+    monkeypatch.setattr(chunk_writes.os, "replace", fail)
+    with pytest.raises(Full):
+        chunk_writes.write(ours, (slice(0, 2), slice(0, 2)), np.ones((2, 2), np.float32))
+    monkeypatch.undo()
+    assert not [p for p in (tmp_path / "o.zarr").rglob("*") if p.is_file()
+                and p.name != "zarr.json"]
