@@ -8,7 +8,9 @@ One run, each command in a fresh process:
   radiance stores of 786 KB chunks (``--dir-chunk 16``, the default) and of 3 MB chunks
   (``--dir-chunk 64``); ``btf crop`` of the 786 KB store (every layer, a copy); ``btf
   generate`` of a store of the same shape (``--sampling dome151``; shading is most of its
-  time, shown for completeness);
+  time, shown for completeness); ``btf ingest`` of a folder of EXR layers, ``btf quilt``
+  (the planning and the application to every layer) and ``btf render`` of a large layer
+  (:func:`_more_stages`);
 - **the floor**: zarr writing an array of the same shape, chunks and codecs (bytes, blosc
   lz4, btf's checksum) from memory, a block of the stage's own output in every place, on as
   many threads as the machine has cores;
@@ -42,12 +44,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dir-chunks", default="16,64",
                         help="lights per chunk of the rebuilt stores (default 16,64: 786 KB "
                              "and 3 MB chunks at 64^2)")
-    parser.add_argument("--stages", default="reconstruct,crop,generate")
+    parser.add_argument("--stages", default="reconstruct,crop,generate,ingest,quilt,render",
+                        help="stages to measure (default: every one)")
     parser.add_argument("--repeat", type=int, default=2, help="runs of each; the fastest counts")
 
 
 def zarr_floor(store: str, out: str, threads: int) -> None:
-    """Write an array like ``store``'s radiance (shape, chunks, codecs) from memory; print s."""
+    """Write an array like ``store``'s radiance (shape, chunks, codecs) from memory; print s.
+
+    Chunk by chunk through zarr (``array[...] = block``), the stage's first chunk in every
+    place, on ``threads`` threads.
+    """
+    import itertools
     import time
     from concurrent.futures import ThreadPoolExecutor
 
@@ -55,20 +63,21 @@ def zarr_floor(store: str, out: str, threads: int) -> None:
     import zarr
 
     src = zarr.open_group(store, mode="r")["radiance"]
-    block = np.asarray(src[(slice(0, 1), slice(0, src.chunks[1]))])
+    block = np.asarray(src[tuple(slice(0, c) for c in src.chunks)])
     z = zarr.create_array(out, shape=src.shape, chunks=src.chunks, dtype=src.dtype,
                           serializer=src.serializer, compressors=src.compressors,
                           filters=src.filters, overwrite=True)
-    nv, nl = src.shape[:2]
-    step = src.chunks[1]
+    grid = itertools.product(*(range(-(-n // c)) for n, c in zip(src.shape, src.chunks,
+                                                                 strict=True)))
 
-    def put(view: int) -> None:
-        for l0 in range(0, nl, step):
-            z[view, l0 : l0 + step] = block[0, : min(step, nl - l0)]
+    def put(index: tuple[int, ...]) -> None:
+        region = tuple(slice(i * c, min((i + 1) * c, n))
+                       for i, c, n in zip(index, src.chunks, src.shape, strict=True))
+        z[region] = block[tuple(slice(0, r.stop - r.start) for r in region)]
 
     start = time.perf_counter()
     with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(put, range(nv)))
+        list(pool.map(put, grid))
     print(json.dumps({"seconds": time.perf_counter() - start}))
 
 
@@ -140,6 +149,7 @@ def run(args: argparse.Namespace) -> dict:
             m = _best(1, [btf, "generate", str(out), "--material", "leather", "--size",
                           str(args.texels), "--sampling", "dome151", "-q"], out)
             rows.append(_row("generate", out, m, _floor(out, tmp, args.repeat)))
+        rows += _more_stages(btf, tmp, stages, args.repeat)
         recon = next((r for r in rows if r["stage"] == "reconstruct"), None)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -148,6 +158,46 @@ def run(args: argparse.Namespace) -> dict:
             "ingest_and_reconstruct_seconds": (ingest.seconds + recon["seconds"]
                                                if recon else None),
             "rows": rows, "repeat": args.repeat, "machine": machine(), "git": git_revision()}
+
+
+def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int) -> list[dict]:
+    """Rows of the stages that write radiance from other inputs than the DFMF file's.
+
+    ``ingest``: a folder of 192 EXR layers of 512^2 (a generated wood, exported: 604 MB);
+    ``quilt``: one periodic texture of 960^2 from a 256^2 sample of 48 layers (530 MB; the
+    planning on the reference image is part of its time); ``render``: one layer of 8192^2
+    over a tile set of 2 x 2 corner types quilted from that sample (805 MB).
+    """
+    from benchmarks.harness import generate_store
+    from pipeline.cli import main
+
+    rows = []
+    if "ingest" in stages:
+        layers = generate_store(tmp / "layers.zarr", "wood", 512, "abtf:24,8")
+        assert main([str(v) for v in ["export", layers, tmp / "exr", "--quiet"]]) == 0
+        shutil.rmtree(layers)
+        out = tmp / "ingest.zarr"
+        m = _best(repeat, [btf, "ingest", str(tmp / "exr"), str(out), "-q"], out)
+        rows.append(_row("ingest", out, m, _floor(out, tmp, repeat)))
+        shutil.rmtree(tmp / "exr")
+        shutil.rmtree(out)
+    if "quilt" in stages or "render" in stages:
+        small = generate_store(tmp / "small.zarr", "wood", 256, "abtf:12,4")
+    if "quilt" in stages:
+        out = tmp / "quilt.zarr"
+        m = _best(repeat, [btf, "quilt", str(small), str(out), "--block", "32", "--overlap",
+                           "8", "--size", "960,960", "-q"], out)
+        rows.append(_row("quilt", out, m, _floor(out, tmp, repeat)))
+        shutil.rmtree(out)
+    if "render" in stages:
+        tiles = tmp / "tiles.zarr"
+        assert main([str(v) for v in ["quilt", small, tiles, "--corners", "2",
+                                      "--quiet"]]) == 0
+        out = tmp / "render.zarr"
+        m = _best(repeat, [btf, "render", str(tiles), str(out), "--light", "0", "--size",
+                           "8192,8192", "-q"], out)
+        rows.append(_row("render", out, m, _floor(out, tmp, repeat)))
+    return rows
 
 
 def _row(stage: str, out: Path, m, floor: float) -> dict:

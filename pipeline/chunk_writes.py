@@ -25,13 +25,25 @@ from pathlib import Path
 import numpy as np
 
 
-def write(target, region: tuple[slice, ...], block: np.ndarray) -> None:
-    """``target[region] = block``, chunk by chunk in this thread where :func:`_writer` can."""
+def write(target, region: tuple, block: np.ndarray) -> None:
+    """``target[region] = block``, chunk by chunk in this thread where :func:`_writer` can.
+
+    ``region``: one slice (step 1) or integer per axis of ``target``, as zarr takes them.
+    """
     writer = _writer(target)
-    if writer is None or not writer.covers(region):
+    region = tuple(region) + (slice(None),) * (target.ndim - len(region))
+    if writer is None or len(region) != target.ndim or not all(
+            isinstance(r, slice | int | np.integer) for r in region):
         target[region] = block
         return
-    writer.write(region, np.asarray(block, dtype=target.dtype))
+    whole = tuple(slice(int(r), int(r) + 1) if not isinstance(r, slice) else
+                  slice(*r.indices(n)[:2]) if r.step in (None, 1) else r
+                  for r, n in zip(region, target.shape, strict=True))
+    if not writer.covers(whole):
+        target[region] = block
+        return
+    shape = tuple(s.stop - s.start for s in whole)
+    writer.write(whole, np.broadcast_to(np.asarray(block, dtype=target.dtype), shape))
 
 
 def _writer(target) -> _Writer | None:

@@ -143,7 +143,7 @@ def read_image(path: str | Path, *, srgb: bool = False) -> tuple[np.ndarray, tup
             raise BTFError(f"{path}: corrupt or unreadable EXR file ({exc})") from None
         if any(p.dtype.kind != "f" for p in planes):
             raise BTFError(f"{path}: EXR channels must be half or float, not integer")
-        return np.stack(planes, axis=-1).astype(np.float32), info.channels
+        return np.stack(planes, axis=-1).astype(np.float32, copy=False), info.channels
     import imagecodecs
 
     try:

@@ -52,6 +52,21 @@ def test_whole_chunks_are_written_as_zarr_writes_them(tmp_path, shape, chunks, d
     assert not list((tmp_path / "o.zarr").rglob("*.partial"))
 
 
+def test_integer_and_open_indices_as_zarr_takes_them(tmp_path, monkeypatch):
+    put, keys = chunk_writes._put, []
+    monkeypatch.setattr(chunk_writes, "_put", lambda store, key, data: (
+        keys.append(key), put(store, key, data)))
+    ours, theirs = (_array(tmp_path / n, (3, 4, 6, 2), (1, 2, 6, 2), np.float32)
+                    for n in ("o.zarr", "t.zarr"))
+    block = np.arange(2 * 6 * 2, dtype=np.float32).reshape(2, 6, 2)
+    for index in [(1, slice(2, 4)), (0, slice(0, 2), slice(None), slice(None)),
+                  (np.int64(2), slice(-2, None))]:
+        chunk_writes.write(ours, index, block)
+        theirs[index] = block
+    assert _files(tmp_path / "o.zarr") == _files(tmp_path / "t.zarr")
+    assert len(keys) == 3  # each a whole chunk, written here
+
+
 def test_a_float64_block_is_stored_in_the_arrays_type(tmp_path):
     ours = _array(tmp_path / "o.zarr", (4, 8), (2, 8), np.float16)
     block = np.linspace(0, 1, 32).reshape(4, 8)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import chunk_writes, storage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import as_float32, stored
 
@@ -42,8 +42,8 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
         layers = as_float32(source[view, l0:l1])
         result = np.empty((l1 - l0, *tile_shape, nc), np.float32)  # reused by every tile
         for t, matrix in enumerate(matrices):
-            target[t, view, l0:l1] = stored(apply(matrix, layers, output=tile_shape,
-                                                  out=result), target.dtype, out)
+            chunk_writes.write(target, (t, view, slice(l0, l1)), stored(
+                apply(matrix, layers, output=tile_shape, out=result), target.dtype, out))
 
 
 def _copy_band(store: str, out: str, y0: int, y1: int) -> None:
