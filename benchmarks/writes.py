@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stages", default="reconstruct,crop,generate,ingest,quilt,render",
                         help="stages to measure (default: every one)")
     parser.add_argument("--repeat", type=int, default=2, help="runs of each; the fastest counts")
+    parser.add_argument("--image-size", type=int, default=512,
+                        help="texels per side of the EXR layers ingested; quilt's output is "
+                             "15/8 of it, render's layer 16x (default 512)")
 
 
 def zarr_floor(store: str, out: str, threads: int) -> None:
@@ -149,7 +152,7 @@ def run(args: argparse.Namespace) -> dict:
             m = _best(1, [btf, "generate", str(out), "--material", "leather", "--size",
                           str(args.texels), "--sampling", "dome151", "-q"], out)
             rows.append(_row("generate", out, m, _floor(out, tmp, args.repeat)))
-        rows += _more_stages(btf, tmp, stages, args.repeat)
+        rows += _more_stages(btf, tmp, stages, args.repeat, args.image_size)
         recon = next((r for r in rows if r["stage"] == "reconstruct"), None)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -160,20 +163,22 @@ def run(args: argparse.Namespace) -> dict:
             "rows": rows, "repeat": args.repeat, "machine": machine(), "git": git_revision()}
 
 
-def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int) -> list[dict]:
+def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int) -> list[dict]:
     """Rows of the stages that write radiance from other inputs than the DFMF file's.
 
-    ``ingest``: a folder of 192 EXR layers of 512^2 (a generated wood, exported: 604 MB);
-    ``quilt``: one periodic texture of 960^2 from a 256^2 sample of 48 layers (530 MB; the
-    planning on the reference image is part of its time); ``render``: one layer of 8192^2
-    over a tile set of 2 x 2 corner types quilted from that sample (805 MB).
+    At the default ``size`` of 512: ``ingest``, a folder of 192 EXR layers of 512^2 (a
+    generated wood, exported: 604 MB); ``quilt``, one periodic texture of 960^2 from a 256^2
+    sample of 48 layers (530 MB; the planning on the reference image is part of its time);
+    ``render``, one layer of 8192^2 over a tile set of 2 x 2 corner types quilted from that
+    sample (805 MB).
     """
     from benchmarks.harness import generate_store
     from pipeline.cli import main
 
+    side = size * 15 // 8
     rows = []
     if "ingest" in stages:
-        layers = generate_store(tmp / "layers.zarr", "wood", 512, "abtf:24,8")
+        layers = generate_store(tmp / "layers.zarr", "wood", size, "abtf:24,8")
         assert main([str(v) for v in ["export", layers, tmp / "exr", "--quiet"]]) == 0
         shutil.rmtree(layers)
         out = tmp / "ingest.zarr"
@@ -182,11 +187,12 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int) -> list[di
         shutil.rmtree(tmp / "exr")
         shutil.rmtree(out)
     if "quilt" in stages or "render" in stages:
-        small = generate_store(tmp / "small.zarr", "wood", 256, "abtf:12,4")
+        small = generate_store(tmp / "small.zarr", "wood", size // 2, "abtf:12,4")
     if "quilt" in stages:
         out = tmp / "quilt.zarr"
-        m = _best(repeat, [btf, "quilt", str(small), str(out), "--block", "32", "--overlap",
-                           "8", "--size", "960,960", "-q"], out)
+        block = size // 16  # 32 at the default size
+        m = _best(repeat, [btf, "quilt", str(small), str(out), "--block", str(block),
+                           "--overlap", str(block // 4), "--size", f"{side},{side}", "-q"], out)
         rows.append(_row("quilt", out, m, _floor(out, tmp, repeat)))
         shutil.rmtree(out)
     if "render" in stages:
@@ -195,7 +201,7 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int) -> list[di
                                       "--quiet"]]) == 0
         out = tmp / "render.zarr"
         m = _best(repeat, [btf, "render", str(tiles), str(out), "--light", "0", "--size",
-                           "8192,8192", "-q"], out)
+                           f"{16 * size},{16 * size}", "-q"], out)
         rows.append(_row("render", out, m, _floor(out, tmp, repeat)))
     return rows
 

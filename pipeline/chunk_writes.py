@@ -49,12 +49,9 @@ def write(target, region: tuple, block: np.ndarray) -> None:
 def _writer(target) -> _Writer | None:
     """A :class:`_Writer` for ``target``, or None where zarr must write it."""
     from zarr.core.codec_pipeline import codecs_from_list
-    from zarr.storage import LocalStore, WrapperStore
 
-    store = target.store
-    while isinstance(store, WrapperStore) and not isinstance(store, LocalStore):
-        store = store._store
-    if type(store) is not LocalStore or store.read_only or target.shards is not None:
+    store = local_store(target)
+    if store is None or store.read_only or target.shards is not None:
         return None
     config = target.async_array.config
     if not config.write_empty_chunks or target.metadata.zarr_format != 3:
@@ -63,6 +60,16 @@ def _writer(target) -> _Writer | None:
     if array_array:
         return None
     return _Writer(target, store, config, array_bytes, bytes_bytes)
+
+
+def local_store(array):
+    """The ``LocalStore`` ``array`` is in (inside btf's wrappers), or None elsewhere."""
+    from zarr.storage import LocalStore, WrapperStore
+
+    store = array.store
+    while isinstance(store, WrapperStore) and not isinstance(store, LocalStore):
+        store = store._store
+    return store if type(store) is LocalStore else None
 
 
 class _Writer:

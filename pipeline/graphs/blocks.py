@@ -192,23 +192,26 @@ def _stored_sums_match(target, region: tuple[slice, ...]) -> bool | None:
     from pathlib import Path
 
     from zarr.codecs import Crc32cCodec
-    from zarr.storage import LocalStore
 
     from pipeline.checksums import chunk_slices
+    from pipeline.chunk_writes import local_store
 
     codecs = getattr(target.metadata, "codecs", ())
-    if (target.shards is not None or not isinstance(target.store, LocalStore) or not codecs
+    store = local_store(target)  # inside btf's own wrapper (pipeline.storage.Strict)
+    if (target.shards is not None or store is None or not codecs
             or not isinstance(codecs[-1], Crc32cCodec)):
         return None
     import google_crc32c
 
-    root = Path(str(target.store.root), target.path)
+    root = Path(str(store.root), target.path)
     for index, _ in chunk_slices(target, region):
         try:
             raw = (root / target.metadata.encode_chunk_key(index)).read_bytes()
         except FileNotFoundError:
             return False
-        if len(raw) < 4 or google_crc32c.value(raw[:-4]) != int.from_bytes(raw[-4:], "little"):
+        # the bytes before the checksum as a view (a slice of the bytes copied them)
+        if len(raw) < 4 or google_crc32c.value(np.frombuffer(raw, np.uint8)[:-4]) != \
+                int.from_bytes(raw[-4:], "little"):
             return False
     return True
 
