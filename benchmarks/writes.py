@@ -47,6 +47,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stages", default="reconstruct,crop,generate,ingest,quilt,render",
                         help="stages to measure (default: every one)")
     parser.add_argument("--repeat", type=int, default=2, help="runs of each; the fastest counts")
+    parser.add_argument("--s3", action="store_true",
+                        help="also reconstruct and crop into a local S3 server (SeaweedFS on "
+                             "loopback, benchmarks.s3server), beside zarr writing the same "
+                             "array there")
     parser.add_argument("--image-size", type=int, default=512,
                         help="texels per side of the EXR layers ingested; quilt's output is "
                              "15/8 of it, render's layer 16x (default 512)")
@@ -65,11 +69,13 @@ def zarr_floor(store: str, out: str, threads: int) -> None:
     import numpy as np
     import zarr
 
-    src = zarr.open_group(store, mode="r")["radiance"]
+    from pipeline import storage
+
+    src = zarr.open_group(storage.store(store), mode="r")["radiance"]
     block = np.asarray(src[tuple(slice(0, c) for c in src.chunks)])
-    z = zarr.create_array(out, shape=src.shape, chunks=src.chunks, dtype=src.dtype,
-                          serializer=src.serializer, compressors=src.compressors,
-                          filters=src.filters, overwrite=True)
+    z = zarr.create_array(storage.store(out) if storage.is_url(out) else out, shape=src.shape,
+                          chunks=src.chunks, dtype=src.dtype, serializer=src.serializer,
+                          compressors=src.compressors, filters=src.filters, overwrite=True)
     grid = itertools.product(*(range(-(-n // c)) for n, c in zip(src.shape, src.chunks,
                                                                  strict=True)))
 
@@ -84,26 +90,60 @@ def zarr_floor(store: str, out: str, threads: int) -> None:
     print(json.dumps({"seconds": time.perf_counter() - start}))
 
 
-def _floor(store: Path, tmp: Path, repeat: int) -> float:
+def _floor(store: Path | str, tmp: Path | str, repeat: int) -> float:
+    from pipeline import storage
+
     best = None
+    out = storage.join(str(tmp), "floor.zarr")
     for _ in range(repeat):
         done = subprocess.run([sys.executable, "-c", "from benchmarks.writes import zarr_floor; "
-                               f"zarr_floor({str(store)!r}, {str(tmp / 'floor.zarr')!r}, "
+                               f"zarr_floor({str(store)!r}, {out!r}, "
                                f"{os.cpu_count() or 1})"], capture_output=True, text=True,
                               check=True)
         seconds = json.loads(done.stdout.strip().splitlines()[-1])["seconds"]
         best = seconds if best is None else min(best, seconds)
-        shutil.rmtree(tmp / "floor.zarr", ignore_errors=True)
+        storage.remove(out)
     return best
 
 
-def _best(repeat: int, argv: list[str], out: Path):
+def _best(repeat: int, argv: list[str], out: Path | str):
+    from pipeline import storage
+
     best = None
     for _ in range(repeat):
-        shutil.rmtree(out, ignore_errors=True)
+        storage.remove(str(out))
         m = measure(argv)
         best = m if best is None or m.seconds < best.seconds else best
     return best
+
+
+def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int) -> list[dict]:
+    """Reconstruct (786 KB chunks) and crop into a SeaweedFS server on loopback, each beside
+    zarr writing the same array into the same server from memory."""
+    from benchmarks.s3server import start
+    from pipeline import storage
+
+    server = start(tmp / "s3")
+    saved = {k: os.environ.get(k) for k in server.environment}
+    os.environ.update(server.environment)
+    rows = []
+    try:
+        root = server.url("bench")
+        out = storage.join(root, "r16.zarr")
+        m = _best(repeat, [btf, "reconstruct", str(factors), out, "-q"], out)
+        rows.append(_row("reconstruct (S3)", out, m, _floor(out, root, repeat)))
+        if local is not None:
+            out = storage.join(root, "crop.zarr")
+            m = _best(repeat, [btf, "crop", str(local), out, "-q"], out)
+            rows.append(_row("crop (S3)", out, m, _floor(out, root, repeat)))
+    finally:
+        server.stop()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return rows
 
 
 def _btfx_decode(path: Path) -> float | None:
@@ -152,6 +192,8 @@ def run(args: argparse.Namespace) -> dict:
             m = _best(1, [btf, "generate", str(out), "--material", "leather", "--size",
                           str(args.texels), "--sampling", "dome151", "-q"], out)
             rows.append(_row("generate", out, m, _floor(out, tmp, args.repeat)))
+        if args.s3:
+            rows += _s3_rows(btf, tmp, factors, first, args.repeat)
         rows += _more_stages(btf, tmp, stages, args.repeat, args.image_size)
         recon = next((r for r in rows if r["stage"] == "reconstruct"), None)
     finally:
@@ -210,10 +252,13 @@ def _row(stage: str, out: Path, m, floor: float) -> dict:
     import numpy as np
     import zarr
 
-    radiance = zarr.open_group(out, mode="r")["radiance"]
+    from pipeline import storage
+
+    radiance = zarr.open_group(storage.store(str(out)), mode="r")["radiance"]
     nbytes = radiance.nbytes
     return {"stage": stage, "chunk_bytes": radiance.dtype.itemsize * int(np.prod(radiance.chunks)),
-            "bytes": int(nbytes), "stored": store_bytes(out), "seconds": m.seconds,
+            "bytes": int(nbytes),
+            "stored": None if storage.is_url(str(out)) else store_bytes(out), "seconds": m.seconds,
             "peak_rss": m.peak_rss, "floor_seconds": floor,
             "rate": nbytes / m.seconds, "floor_rate": nbytes / floor}
 

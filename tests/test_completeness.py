@@ -78,11 +78,11 @@ def _losing(monkeypatch, lost) -> None:
     """Chunk writes whose key ``lost(key)`` picks are acknowledged and never stored.
 
     Both ways chunks are written: zarr's ``LocalStore.set`` and btf's own whole-chunk writes
-    (:mod:`pipeline.chunk_writes`).
+    (:mod:`pipeline.chunk_io`).
     """
-    from pipeline import chunk_writes
+    from pipeline import chunk_io
 
-    set_, put = LocalStore.set, chunk_writes._put
+    set_, put = LocalStore.set, chunk_io._put
 
     async def store_set(self, key, value):
         if not lost(key):
@@ -93,7 +93,7 @@ def _losing(monkeypatch, lost) -> None:
             put(store, key, data)
 
     monkeypatch.setattr(LocalStore, "set", store_set)
-    monkeypatch.setattr(chunk_writes, "_put", direct)
+    monkeypatch.setattr(chunk_io, "_put", direct)
 
 
 def test_a_write_lost_on_its_way_fails_the_stage_before_its_commit(tmp_path, btf, monkeypatch):

@@ -93,7 +93,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
                                                                       strict=True)]
     units, regions = [], {}
     # each block written by the task that computes it (as da.store does; here in the task's
-    # own thread where it can, see pipeline.chunk_writes), not by a task of
+    # own thread where it can, see pipeline.chunk_io), not by a task of
     # its own: the processes scheduler would move every block to the client and out again
     # and each marks itself done right after its write: a marker of its own, in a task of its
     # own, ran when dask's order reached it, often long after (a kill at 60% of a generate
@@ -194,7 +194,7 @@ def _stored_sums_match(target, region: tuple[slice, ...]) -> bool | None:
     from zarr.codecs import Crc32cCodec
 
     from pipeline.checksums import chunk_slices
-    from pipeline.chunk_writes import local_store
+    from pipeline.chunk_io import local_store
 
     codecs = getattr(target.metadata, "codecs", ())
     store = local_store(target)  # inside btf's own wrapper (pipeline.storage.Strict)
@@ -217,9 +217,9 @@ def _stored_sums_match(target, region: tuple[slice, ...]) -> bool | None:
 
 
 def _write_block(block: np.ndarray, target, region: tuple[slice, ...]) -> None:
-    from pipeline import chunk_writes
+    from pipeline import chunk_io
 
-    chunk_writes.write(target, region, block)
+    chunk_io.write(target, region, block)
 
 
 def _write_here(block: np.ndarray, *, target, progress=None, block_info=None) -> np.ndarray:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import chunk_writes, storage
+from pipeline import chunk_io, storage
 from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import as_float32, stored
 
@@ -39,10 +39,10 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
     for l0 in range(light0, light1, step):
         l1 = min(l0 + step, light1)
-        layers = as_float32(source[view, l0:l1])
+        layers = as_float32(chunk_io.read(source, (view, slice(l0, l1))))
         result = np.empty((l1 - l0, *tile_shape, nc), np.float32)  # reused by every tile
         for t, matrix in enumerate(matrices):
-            chunk_writes.write(target, (t, view, slice(l0, l1)), stored(
+            chunk_io.write(target, (t, view, slice(l0, l1)), stored(
                 apply(matrix, layers, output=tile_shape, out=result), target.dtype, out))
 
 

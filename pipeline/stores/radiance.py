@@ -289,15 +289,37 @@ def open_dataset(path: str | Path, group=None, chunks=None):
     group = open_group(path) if group is None else group
     ds = xr.open_zarr(storage.store(location(path)), consolidated=False,
                       chunks=None if chunks else {})
-    if chunks:
-        for name in ds.data_vars:
-            ds[name] = ds[name].chunk(chunks(group, name))
+    for name in ds.data_vars:
+        wanted = chunks(group, name) if chunks else None
+        array = group[name]
+        if ds[name].dtype == array.dtype and ds[name].dtype.kind == "f" and not any(
+                k in ds[name].encoding for k in ("scale_factor", "add_offset")):
+            # read in the task's thread (pipeline.chunk_io): xarray decodes nothing here
+            ds[name] = ds[name].copy(data=_direct(array, path, ds[name].data.chunks if
+                                                  wanted is None else wanted, ds[name].dims))
+        elif wanted:
+            ds[name] = ds[name].chunk(wanted)
     for name in ds.data_vars:
         if ds[name].dtype == np.float16:
             encoding = ds[name].encoding  # the stored chunks and type, which copy drops
             ds[name] = ds[name].copy(data=lazy_float32(ds[name].data))
             ds[name].encoding = encoding
     return ds
+
+
+def _direct(array, path, chunks, dims):
+    """A dask array of zarr ``array`` read by :class:`pipeline.chunk_io.Reader`."""
+    import dask.array as da
+    from dask.base import tokenize
+
+    from pipeline.chunk_io import Reader
+
+    if isinstance(chunks, dict):
+        chunks = tuple(chunks.get(d, -1) for d in dims)
+    name = f"read-{array.path}-" + tokenize(str(location(path)), array.path, array.shape,
+                                             array.dtype.str, chunks, array.metadata.to_dict())
+    return da.from_array(Reader(array), chunks=chunks, name=name, asarray=False,
+                         meta=np.empty((0,) * array.ndim, array.dtype), lock=False)
 
 
 def open_radiance(path: str | Path, chunks=None):
