@@ -34,29 +34,53 @@ def write(target, region: tuple, block: np.ndarray) -> None:
     ``region``: one slice (step 1) or integer per axis of ``target``, as zarr takes them.
     """
     writer = _writer(target)
-    region = tuple(region) + (slice(None),) * (target.ndim - len(region))
-    if writer is None or len(region) != target.ndim or not all(
-            isinstance(r, slice | int | np.integer) for r in region):
+    whole = _regions(target, region)
+    if writer is None or whole is None or not writer.covers(whole[0]):
         target[region] = block
         return
-    whole = tuple(slice(int(r), int(r) + 1) if not isinstance(r, slice) else
-                  slice(*r.indices(n)[:2]) if r.step in (None, 1) else r
-                  for r, n in zip(region, target.shape, strict=True))
-    if not writer.covers(whole):
-        target[region] = block
-        return
+    whole, integers = whole
     shape = tuple(s.stop - s.start for s in whole)
-    writer.write(whole, np.broadcast_to(np.asarray(block, dtype=target.dtype), shape))
+    block = np.expand_dims(np.asarray(block, dtype=target.dtype), integers)
+    writer.write(whole, np.broadcast_to(block, shape))
+
+
+def _regions(array, index: tuple) -> tuple[tuple[slice, ...], tuple[int, ...]] | None:
+    """``index`` as one slice per axis, and the axes that integers took; None for others.
+
+    Integers (negative ones counted from the end) and slices of step 1, as zarr takes them;
+    missing trailing axes are whole. None for anything else (zarr then takes ``index``).
+    """
+    import operator
+
+    index = tuple(index) + (slice(None),) * (array.ndim - len(index))
+    if len(index) != array.ndim:
+        return None
+    out, integers = [], []
+    for axis, (i, n) in enumerate(zip(index, array.shape, strict=True)):
+        if isinstance(i, slice):
+            if i.step not in (None, 1):
+                return None
+            out.append(slice(*i.indices(n)[:2]))
+        elif isinstance(i, int | np.integer):
+            i = operator.index(i)
+            i += n if i < 0 else 0
+            if not 0 <= i < n:
+                return None
+            out.append(slice(i, i + 1))
+            integers.append(axis)
+        else:
+            return None
+    return tuple(out), tuple(integers)
 
 
 def read(array, index: tuple) -> np.ndarray:
     """``array[index]`` (slices of step 1 and integers, as zarr takes them), read here."""
-    index = tuple(index) + (slice(None),) * (array.ndim - len(index))
-    if not all(isinstance(i, slice | int | np.integer) for i in index):
+    found = _regions(array, index)
+    if found is None:
         return array[index]
-    region = tuple(i if isinstance(i, slice) else slice(int(i), int(i) + 1) for i in index)
+    region, integers = found
     values = Reader(array)[region]
-    return values[tuple(0 if not isinstance(i, slice) else slice(None) for i in index)]
+    return values[tuple(0 if axis in integers else slice(None) for axis in range(array.ndim))]
 
 
 class Reader:
@@ -138,12 +162,17 @@ def _writer(target) -> _Writer | None:
 
 
 def local_store(array):
-    """The ``LocalStore`` ``array`` is in (inside btf's wrappers), or None elsewhere."""
-    from zarr.storage import LocalStore, WrapperStore
+    """The ``LocalStore`` ``array`` is in (inside btf's own wrappers), or None elsewhere.
+
+    Other wrappers (one that renamed keys, say) are not looked through: zarr writes there.
+    """
+    from zarr.storage import LocalStore
+
+    from pipeline.storage import OWN_WRAPPERS
 
     store = array.store
-    while isinstance(store, WrapperStore) and not isinstance(store, LocalStore):
-        store = store._store
+    while type(store).__name__ in OWN_WRAPPERS and hasattr(store, "_store"):
+        store = store._store  # btf's wrappers change reads of missing chunks, not keys
     return store if type(store) is LocalStore else None
 
 

@@ -309,6 +309,9 @@ def chunk_key(key: str) -> tuple[str, str] | None:
     return None
 
 
+OWN_WRAPPERS = ("Strict", "Aside")  # btf's zarr store wrappers: they keep zarr's keys
+
+
 def _strict_class() -> type:
     """``Strict``: a store whose read-only opens raise for a sealed store's missing chunks.
 

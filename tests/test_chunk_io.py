@@ -171,3 +171,32 @@ def test_stages_read_stores_here(tmp_path, monkeypatch):
 
     monkeypatch.setattr(zarr.Array, "__getitem__", no_zarr)
     np.testing.assert_array_equal(ds["radiance"].values, expected)
+
+
+def test_negative_and_inner_integers_as_zarr_takes_them(tmp_path):
+    ours, theirs = (_array(tmp_path / n, (3, 4, 5), (1, 1, 5), np.float32)
+                    for n in ("o.zarr", "t.zarr"))
+    for index, block in [((-1, slice(None)), np.ones((4, 5))),
+                         ((slice(None), 1), np.arange(15.0).reshape(3, 5)),
+                         ((0, -2, slice(0, 5)), np.full(5, 7.0))]:
+        chunk_io.write(ours, index, block)
+        theirs[index] = block
+        np.testing.assert_array_equal(chunk_io.read(ours, index), theirs[index])
+    assert _files(tmp_path / "o.zarr") == _files(tmp_path / "t.zarr")
+    with pytest.raises(IndexError):
+        chunk_io.read(ours, (3,))  # out of range: zarr's error
+
+
+def test_variables_xarray_decodes_are_left_to_xarray(tmp_path):
+    import xarray as xr
+
+    from pipeline.stores.radiance import open_dataset
+
+    values = np.array([[1, -1, 2], [3, 4, -1]], np.float32)
+    xr.Dataset({"plain": (("y", "x"), values), "masked": (("y", "x"), values)}).to_zarr(
+        tmp_path / "d.zarr", zarr_format=3, consolidated=False,
+        encoding={"masked": {"_FillValue": -1.0}, "plain": {"_FillValue": np.nan}})
+    ds = open_dataset(tmp_path / "d.zarr")
+    np.testing.assert_array_equal(ds["plain"].values, [[1, -1, 2], [3, 4, -1]])
+    np.testing.assert_array_equal(ds["masked"].values, [[1, np.nan, 2], [3, 4, np.nan]])
+    assert ds["plain"].data.name.startswith("read-")  # read here

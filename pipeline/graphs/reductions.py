@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import checksums, storage
+from pipeline import checksums, chunk_io, storage
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks
 from pipeline.stores.base import RADIANCE, location
@@ -36,7 +36,7 @@ def _read(store: str, variable: str, region: tuple[slice, ...]) -> np.ndarray:
 
     array = zarr.open_array(storage.store(store), path=variable, mode="r")
     try:
-        return as_float32(array[region])
+        return as_float32(chunk_io.read(array, region))
     except Exception as exc:  # re-raised with the block's key, whatever the codec raised
         if (error := checksums.named(store, variable, array, region, exc)) is not None:
             raise error from None

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import checksums, storage
+from pipeline import checksums, chunk_io, storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import as_float32
@@ -105,7 +105,7 @@ def read_rows(store: str, block: RowBlock, *, check: bool, eps: float | None = N
     found, r = BlockCheck(), 0
     for v0, v1, l0, l1 in spans(block.units, SPAN_BYTES // (4 * nc * texels)):
         try:
-            layers = as_float32(array[v0:v1, l0:l1, ys, xs])
+            layers = as_float32(chunk_io.read(array, (slice(v0, v1), slice(l0, l1), ys, xs)))
         except Exception:  # named by its unit below, whatever the codec raised
             _raise_unreadable(array, store, block, ys, xs)
             raise

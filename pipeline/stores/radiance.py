@@ -20,6 +20,7 @@ from many workers is only safe shard by shard (:func:`pipeline.graphs.blocks.sto
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -293,7 +294,9 @@ def open_dataset(path: str | Path, group=None, chunks=None):
         wanted = chunks(group, name) if chunks else None
         array = group[name]
         if ds[name].dtype == array.dtype and ds[name].dtype.kind == "f" and not any(
-                k in ds[name].encoding for k in ("scale_factor", "add_offset")):
+                k in ds[name].encoding for k in ("scale_factor", "add_offset")) and all(
+                np.isnan(ds[name].encoding.get(k, np.nan))
+                for k in ("_FillValue", "missing_value")):
             # read in the task's thread (pipeline.chunk_io): xarray decodes nothing here
             ds[name] = ds[name].copy(data=_direct(array, path, ds[name].data.chunks if
                                                   wanted is None else wanted, ds[name].dims))
@@ -317,9 +320,23 @@ def _direct(array, path, chunks, dims):
     if isinstance(chunks, dict):
         chunks = tuple(chunks.get(d, -1) for d in dims)
     name = f"read-{array.path}-" + tokenize(str(location(path)), array.path, array.shape,
-                                             array.dtype.str, chunks, array.metadata.to_dict())
+                                             array.dtype.str, chunks, array.metadata.to_dict(),
+                                             _changed(path, array.path))
     return da.from_array(Reader(array), chunks=chunks, name=name, asarray=False,
                          meta=np.empty((0,) * array.ndim, array.dtype), lock=False)
+
+
+def _changed(path, name: str) -> int | None:
+    """When a local array's metadata was last written, or None (elsewhere, or not there).
+
+    Part of the read tasks' names: a store made again at the same path gets other names.
+    """
+    if storage.is_url(str(location(path))):
+        return None
+    try:
+        return os.stat(os.path.join(str(location(path)), name, "zarr.json")).st_mtime_ns
+    except OSError:
+        return None
 
 
 def open_radiance(path: str | Path, chunks=None):
