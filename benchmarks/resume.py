@@ -10,6 +10,7 @@ The resumed output is compared with the uninterrupted one, bit for bit.
 from __future__ import annotations
 
 import argparse
+import shutil
 import subprocess
 import tempfile
 from pathlib import Path
@@ -27,6 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fractions of the work after which the run is killed")
     parser.add_argument("--size", type=int, default=1024,
                         help="texels per side of the generated and compressed store")
+    parser.add_argument("--kills", type=int, default=1,
+                        help="kills and reruns per fraction, and uninterrupted runs per stage "
+                             "(their median is the reference); the table gives each rerun and "
+                             "the median and worst (default 1)")
     parser.add_argument("--stages",
                         default="generate,compress,quilt,enlarge,reconstruct,crop,ingest",
                         help="resumable stages to kill and rerun (default: every one)")
@@ -105,15 +110,22 @@ def run(args: argparse.Namespace) -> dict:
         stages = _stages(tmp, args.size)
         for name in wanted:
             argv, mark, arrays = stages[name]
-            _, seen, total = run_until(argv(tmp / f"{name}-ref.zarr"), tmp / "log", mark=mark)
+            whole = []
+            for k in range(max(1, args.kills)):
+                ref = tmp / f"{name}-ref{'' if k == 0 else k}.zarr"
+                whole.append(run_until(argv(ref), tmp / "log", mark=mark)[1:])
+                if k:
+                    shutil.rmtree(ref)
+            seen, total = (float(np.median([w[i] for w in whole])) for i in (0, 1))
             rows = []
-            for f in fractions:
-                out = tmp / f"{name}-{f}.zarr"
+            for f, k in ((f, k) for f in fractions for k in range(max(1, args.kills))):
+                out = tmp / f"{name}-{f}-{k}.zarr"
                 killed, _, _ = run_until(argv(out), tmp / "log", mark=mark,
                                          kill_at=f * (total - seen))
                 if out.exists():  # it finished (moved its output into place) before the kill
                     rows.append({"fraction": f, "killed": False,
                                  "identical": _same(tmp / f"{name}-ref.zarr", out, arrays)})
+                    shutil.rmtree(out)
                     continue
                 _, _, rerun = run_until(argv(out), tmp / "log", mark=mark)
                 rows.append({"fraction": f, "killed": killed, "rerun_seconds": rerun,
@@ -121,7 +133,10 @@ def run(args: argparse.Namespace) -> dict:
                              "resumed": "resum" in (tmp / "log").read_text()
                              or "kept from" in (tmp / "log").read_text()
                              or "finished by the interrupted" in (tmp / "log").read_text()})
-            result["stages"][name] = {"seconds": total, "before_work": seen, "runs": rows}
+                if out.exists():
+                    shutil.rmtree(out)
+            result["stages"][name] = {"seconds": total, "before_work": seen, "runs": rows,
+                                      "uninterrupted_runs": [w[1] for w in whole]}
     return result
 
 
@@ -143,4 +158,16 @@ def report(result: dict) -> str:
                          f"work | {r['rerun_seconds']:.1f} | {r['rerun_seconds'] / total:.2f} | "
                          f"{expected:.2f} | {'yes' if r['resumed'] else 'no'} | "
                          f"{'yes' if r['identical'] else 'NO'} |")
-    return "\n".join(lines)
+    summary = []
+    for name, stage in result["stages"].items():
+        for f in sorted({r["fraction"] for r in stage["runs"]}):
+            ratios = [r["rerun_seconds"] / stage["seconds"] for r in stage["runs"]
+                      if r["fraction"] == f and r["killed"]]
+            if len(ratios) > 1:
+                summary.append(f"- {name}, killed after {f:.0%}: rerun / uninterrupted median "
+                               f"{np.median(ratios):.2f}, worst {max(ratios):.2f} over "
+                               f"{len(ratios)} kills (uninterrupted: median of "
+                               f"{len(stage['uninterrupted_runs'])} runs, "
+                               + ", ".join(f"{t:.1f}" for t in stage["uninterrupted_runs"])
+                               + " s)")
+    return "\n".join(lines + (["", *summary] if summary else []))
