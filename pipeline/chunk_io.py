@@ -73,6 +73,35 @@ def _regions(array, index: tuple) -> tuple[tuple[slice, ...], tuple[int, ...]] |
     return tuple(out), tuple(integers)
 
 
+def dask_array(array, where: str, chunks, dims=None):
+    """A dask array of zarr ``array`` (at store location ``where``) read by :class:`Reader`.
+
+    ``chunks``: dask's chunks, or a dict by dimension name (``dims``; others whole). Its tasks
+    are named by the location, the array's metadata and when that was last written, so a
+    store made again at the same path gets other names.
+    """
+    import dask.array as da
+    from dask.base import tokenize
+
+    if isinstance(chunks, dict):
+        chunks = tuple(chunks.get(d, -1) for d in dims)
+    name = f"read-{array.path}-" + tokenize(str(where), array.path, array.shape,
+                                             array.dtype.str, chunks, array.metadata.to_dict(),
+                                             _written(where, array.path))
+    return da.from_array(Reader(array), chunks=chunks, name=name, asarray=False,
+                         meta=np.empty((0,) * array.ndim, array.dtype), lock=False)
+
+
+def _written(where: str, path: str) -> int | None:
+    """When a local array's metadata was last written; None elsewhere or if not there."""
+    if "://" in str(where):
+        return None
+    try:
+        return os.stat(os.path.join(str(where), path, "zarr.json")).st_mtime_ns
+    except OSError:
+        return None
+
+
 def read(array, index: tuple) -> np.ndarray:
     """``array[index]`` (slices of step 1 and integers, as zarr takes them), read here."""
     found = _regions(array, index)
@@ -114,12 +143,12 @@ class Reader:
 
         prototype = default_buffer_prototype()
         metadata = array.metadata
-        root = Path(str(store.root), array.path)
+        prefix = f"{array.path}/" if array.path else ""
         try:
             for index, where in chunk_slices(array, region):
                 spec = metadata.get_chunk_spec(index, config, prototype)
                 data = prototype.buffer.from_bytes(
-                    (root / metadata.encode_chunk_key(index)).read_bytes())
+                    _get(store, prefix + metadata.encode_chunk_key(index)))
                 for codec in reversed(bytes_bytes):
                     data = codec._decode_sync(data, spec)
                 chunk = array_bytes._decode_sync(data, spec).as_numpy_array()
@@ -222,6 +251,11 @@ class _Writer:
             encoded = codec._encode_sync(encoded, spec)
         _put(self.store, self.prefix + metadata.encode_chunk_key(index),
              encoded.as_buffer_like())
+
+
+def _get(store, key: str) -> bytes:
+    """The bytes at ``key`` of a ``LocalStore`` (``FileNotFoundError`` if there are none)."""
+    return Path(str(store.root), key).read_bytes()
 
 
 def _put(store, key: str, data) -> None:

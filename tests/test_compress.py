@@ -368,14 +368,21 @@ class ReadCounter:
     def __init__(self, monkeypatch):
         from zarr.storage import LocalStore
 
+        from pipeline import chunk_io
+
         self.keys = []
-        real = LocalStore.get
+        real, direct = LocalStore.get, chunk_io._get
 
         async def get(store, key, *args, **kwargs):
             self.keys.append((store.root / key).as_posix())
             return await real(store, key, *args, **kwargs)
 
+        def get_here(store, key):  # chunks read in the task's thread (pipeline.chunk_io)
+            self.keys.append((store.root / key).as_posix())
+            return direct(store, key)
+
         monkeypatch.setattr(LocalStore, "get", get)
+        monkeypatch.setattr(chunk_io, "_get", get_here)
 
     def chunks(self, name):
         return [k for k in self.keys if f"/{name}/c/" in k]

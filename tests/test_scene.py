@@ -152,14 +152,21 @@ def _count_reads(monkeypatch) -> list[str]:
     """Record the key of every chunk or metadata document zarr reads from local stores."""
     from zarr.storage import LocalStore
 
+    from pipeline import chunk_io
+
     keys: list[str] = []
-    original = LocalStore.get
+    original, direct = LocalStore.get, chunk_io._get
 
     async def get(self, key, *args, **kwargs):
         keys.append(f"{Path(str(self.root)).name}/{key}")
         return await original(self, key, *args, **kwargs)
 
+    def get_here(store, key):  # chunks read in the task's thread (pipeline.chunk_io)
+        keys.append(f"{Path(str(store.root)).name}/{key}")
+        return direct(store, key)
+
     monkeypatch.setattr(LocalStore, "get", get)
+    monkeypatch.setattr(chunk_io, "_get", get_here)
     return keys
 
 

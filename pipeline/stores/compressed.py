@@ -110,6 +110,22 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
 FACTOR_PIECE = 4 << 20  # bytes of U read at once (whole chunks; split again in memory)
 
 
+def _factor(array, where: str):
+    """A factor as a dask array in its stored chunks.
+
+    On a local disk each chunk is read in its task's thread (:mod:`pipeline.chunk_io`: a
+    reconstruct's 1,510 chunks of ``U`` cost no more than their bytes); elsewhere ``U``'s
+    small chunks are read a few MB at a time (:func:`_read_in_pieces`).
+    """
+    import dask.array as da
+
+    from pipeline import chunk_io
+
+    if chunk_io.local_store(array) is not None and array.shards is None:
+        return chunk_io.dask_array(array, where, array.chunks)
+    return _read_in_pieces(array) if array.path == "U" else da.from_zarr(array)
+
+
 def _read_in_pieces(array):
     """``U`` as a dask array in its stored chunks, read a few MB at a time.
 
@@ -141,7 +157,6 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     group
         Its zarr group, if already open.
     """
-    import dask.array as da
     import xarray as xr
     import zarr
 
@@ -154,8 +169,7 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     # zarr arrays, not a path: dask would open a path through fsspec instead of zarr's store
     store = storage.store(location(path))
     arrays = {name: zarr.open_array(store, path=name, mode="r") for name in FACTOR_DIMS}
-    factors = {name: lazy_float32((_read_in_pieces(a) if name == "U" else da.from_zarr(a))
-                                  [..., :rank])
+    factors = {name: lazy_float32(_factor(a, location(path))[..., :rank])
                for name, a in arrays.items()}
     transform = Transform.from_attrs(group.attrs["transform"])
     d = read_directions(group)

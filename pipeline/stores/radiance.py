@@ -20,14 +20,13 @@ from many workers is only safe shard by shard (:func:`pipeline.graphs.blocks.sto
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline import storage
+from pipeline import chunk_io, storage
 from pipeline.errors import BTFError
 from pipeline.params import option
 from pipeline.stores.base import (
@@ -298,8 +297,9 @@ def open_dataset(path: str | Path, group=None, chunks=None):
                 np.isnan(ds[name].encoding.get(k, np.nan))
                 for k in ("_FillValue", "missing_value")):
             # read in the task's thread (pipeline.chunk_io): xarray decodes nothing here
-            ds[name] = ds[name].copy(data=_direct(array, path, ds[name].data.chunks if
-                                                  wanted is None else wanted, ds[name].dims))
+            ds[name] = ds[name].copy(data=chunk_io.dask_array(
+                array, location(path), ds[name].data.chunks if wanted is None else wanted,
+                ds[name].dims))
         elif wanted:
             ds[name] = ds[name].chunk(wanted)
     for name in ds.data_vars:
@@ -308,35 +308,6 @@ def open_dataset(path: str | Path, group=None, chunks=None):
             ds[name] = ds[name].copy(data=lazy_float32(ds[name].data))
             ds[name].encoding = encoding
     return ds
-
-
-def _direct(array, path, chunks, dims):
-    """A dask array of zarr ``array`` read by :class:`pipeline.chunk_io.Reader`."""
-    import dask.array as da
-    from dask.base import tokenize
-
-    from pipeline.chunk_io import Reader
-
-    if isinstance(chunks, dict):
-        chunks = tuple(chunks.get(d, -1) for d in dims)
-    name = f"read-{array.path}-" + tokenize(str(location(path)), array.path, array.shape,
-                                             array.dtype.str, chunks, array.metadata.to_dict(),
-                                             _changed(path, array.path))
-    return da.from_array(Reader(array), chunks=chunks, name=name, asarray=False,
-                         meta=np.empty((0,) * array.ndim, array.dtype), lock=False)
-
-
-def _changed(path, name: str) -> int | None:
-    """When a local array's metadata was last written, or None (elsewhere, or not there).
-
-    Part of the read tasks' names: a store made again at the same path gets other names.
-    """
-    if storage.is_url(str(location(path))):
-        return None
-    try:
-        return os.stat(os.path.join(str(location(path)), name, "zarr.json")).st_mtime_ns
-    except OSError:
-        return None
 
 
 def open_radiance(path: str | Path, chunks=None):
