@@ -18,7 +18,6 @@ tasks do.
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 import tempfile
@@ -67,40 +66,32 @@ def _best(repeat: int, argv: list[str]) -> object:
 
 def run(args: argparse.Namespace) -> dict:
     """Every layout on both kinds of location; then the two store classes."""
-    from benchmarks.s3server import start
+    from benchmarks.s3server import serving
     from pipeline import storage
 
     btf = btf_executable()
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-objectstore-"))
-    server = start(tmp / "s3")
-    saved = {k: os.environ.get(k) for k in server.environment}
-    os.environ.update(server.environment)
     rows = []
     try:
-        for label, layout in LAYOUTS.items():
-            row = {"layout": label}
-            for where, root in (("local", str(tmp / "local")), ("s3", "s3://btf/bench")):
-                store, svd = storage.join(root, "wood.zarr"), storage.join(root, "svd.zarr")
-                gen = [btf, "generate", store, "--material", "wood", "--size", str(args.size),
-                       "--sampling", args.sampling, "--quiet", "--overwrite", *layout]
-                row[f"{where}_generate"] = _best(args.repeat, gen)
-                row[f"{where}_bytes"], row[f"{where}_objects"] = _sizes(store)
-                comp = [btf, "compress", store, svd, "--rank", str(args.rank), "--quiet",
-                        "--overwrite"]
-                row[f"{where}_compress"] = _best(args.repeat, comp)
-                print(f"{label} {where}: generate {row[f'{where}_generate'].seconds:.1f} s, "
-                      f"compress {row[f'{where}_compress'].seconds:.1f} s", file=sys.stderr)
-                storage.remove(store)
-                storage.remove(svd)
-            rows.append(row)
-        classes = _store_classes(args)
+        with serving(tmp / "s3"):
+            for label, layout in LAYOUTS.items():
+                row = {"layout": label}
+                for where, root in (("local", str(tmp / "local")), ("s3", "s3://btf/bench")):
+                    store, svd = storage.join(root, "wood.zarr"), storage.join(root, "svd.zarr")
+                    gen = [btf, "generate", store, "--material", "wood", "--size", str(args.size),
+                           "--sampling", args.sampling, "--quiet", "--overwrite", *layout]
+                    row[f"{where}_generate"] = _best(args.repeat, gen)
+                    row[f"{where}_bytes"], row[f"{where}_objects"] = _sizes(store)
+                    comp = [btf, "compress", store, svd, "--rank", str(args.rank), "--quiet",
+                            "--overwrite"]
+                    row[f"{where}_compress"] = _best(args.repeat, comp)
+                    print(f"{label} {where}: generate {row[f'{where}_generate'].seconds:.1f} s, "
+                          f"compress {row[f'{where}_compress'].seconds:.1f} s", file=sys.stderr)
+                    storage.remove(store)
+                    storage.remove(svd)
+                rows.append(row)
+            classes = _store_classes(args)
     finally:
-        server.stop()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
         shutil.rmtree(tmp, ignore_errors=True)
     return {"suite": SUITE, "size": args.size, "sampling": args.sampling, "rank": args.rank,
             "repeat": args.repeat, "rows": [_plain(r) for r in rows], "classes": classes,

@@ -17,6 +17,8 @@ import socket
 import subprocess
 import time
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,11 +170,35 @@ def _start(folder: Path, bucket: str) -> S3Server:
     return server
 
 
-def make_bucket(server: S3Server, bucket: str) -> None:
-    """Create a bucket (an S3 ``CreateBucket``, signed with the server's credentials)."""
+@contextmanager
+def reached(server: S3Server) -> Iterator[S3Server]:
+    """This process's environment reaches ``server`` (its endpoint and credentials) inside."""
     saved = {k: os.environ.get(k) for k in server.environment}
     os.environ.update(server.environment)
     try:
+        yield server
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextmanager
+def serving(folder: Path, bucket: str = "btf") -> Iterator[S3Server]:
+    """A server started in ``folder`` (:func:`start`), reached from here, stopped after."""
+    server = start(folder, bucket)
+    try:
+        with reached(server):
+            yield server
+    finally:
+        server.stop()
+
+
+def make_bucket(server: S3Server, bucket: str) -> None:
+    """Create a bucket (an S3 ``CreateBucket``, signed with the server's credentials)."""
+    with reached(server):
         import s3fs
 
         fs = s3fs.S3FileSystem(skip_instance_cache=True)
@@ -187,9 +213,3 @@ def make_bucket(server: S3Server, bucket: str) -> None:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.5)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v

@@ -120,14 +120,11 @@ def _best(repeat: int, argv: list[str], out: Path | str):
 def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int) -> list[dict]:
     """Reconstruct (786 KB chunks) and crop into a SeaweedFS server on loopback, each beside
     zarr writing the same array into the same server from memory."""
-    from benchmarks.s3server import start
+    from benchmarks.s3server import serving
     from pipeline import storage
 
-    server = start(tmp / "s3")
-    saved = {k: os.environ.get(k) for k in server.environment}
-    os.environ.update(server.environment)
     rows = []
-    try:
+    with serving(tmp / "s3") as server:
         root = server.url("bench")
         out = storage.join(root, "r16.zarr")
         m = _best(repeat, [btf, "reconstruct", str(factors), out, "-q"], out)
@@ -136,13 +133,6 @@ def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int
             out = storage.join(root, "crop.zarr")
             m = _best(repeat, [btf, "crop", str(local), out, "-q"], out)
             rows.append(_row("crop (S3)", out, m, _floor(out, root, repeat)))
-    finally:
-        server.stop()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return rows
 
 

@@ -455,6 +455,23 @@ def test_btf_bench_objectstore_measures_both_locations_and_both_store_classes():
     assert "| chunks 128 in 2x2 shards | compress |" in text and "| obstore |" in text
 
 
+@pytest.mark.slow
+def test_btf_bench_writes_s3_rows_stand_beside_zarr_writing_to_the_same_server():
+    import argparse
+
+    from benchmarks import writes as suite
+
+    result = suite.run(argparse.Namespace(texels=16, components=2, dir_chunks="16",
+                                          stages="reconstruct,crop", repeat=1, s3=True,
+                                          image_size=128))
+    rows = {r["stage"]: r for r in result["rows"]}
+    assert {"reconstruct (S3)", "crop (S3)"} <= rows.keys()
+    for name in ("reconstruct (S3)", "crop (S3)"):
+        assert rows[name]["bytes"] == rows["reconstruct"]["bytes"] and rows[name]["stored"] is None
+        assert rows[name]["floor_rate"] > 0 and rows[name]["seconds"] > 0
+    assert "| reconstruct (S3) |" in suite.report(result)
+
+
 def test_a_server_that_exits_at_once_is_started_again_then_named_with_its_log(tmp_path,
                                                                               monkeypatch):
     # a port found free may be taken before the server binds it: it exits, and is started
