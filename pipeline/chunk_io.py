@@ -94,7 +94,9 @@ def dask_array(array, where: str, chunks, dims=None):
 
 def _written(where: str, path: str) -> int | None:
     """When a local array's metadata was last written; None elsewhere or if not there."""
-    if "://" in str(where):
+    from pipeline import storage
+
+    if storage.is_url(str(where)):
         return None
     try:
         return os.stat(os.path.join(str(where), path, "zarr.json")).st_mtime_ns
@@ -129,13 +131,12 @@ class Reader:
         from pipeline.checksums import chunk_slices
 
         array = self.array
-        found = _codecs(array)
-        if found is None or not isinstance(region, tuple) or len(region) != self.ndim or \
-                not all(isinstance(r, slice) and r.step in (None, 1) for r in region):
+        found, whole = _codecs(array), _regions(array, region) if isinstance(region, tuple) \
+            else None
+        if found is None or whole is None or whole[1]:  # dask asks for slices only
             return array[region]
         store, array_bytes, bytes_bytes, config = found
-        region = tuple(slice(*r.indices(n)[:2]) for r, n in zip(region, self.shape,
-                                                                 strict=True))
+        region = whole[0]
         out = np.empty(tuple(max(0, r.stop - r.start) for r in region), self.dtype)
         if out.size == 0:
             return out
@@ -179,6 +180,11 @@ def _codecs(array):
     return store, array_bytes, tuple(bytes_bytes), array.async_array.config
 
 
+def here(array) -> bool:
+    """Whether ``array``'s chunks are read and written here (else through zarr)."""
+    return _codecs(array) is not None
+
+
 def _writer(target) -> _Writer | None:
     """A :class:`_Writer` for ``target``, or None where zarr must write it."""
     found = _codecs(target)
@@ -217,21 +223,19 @@ class _Writer:
         self.prototype = default_buffer_prototype()
 
     def covers(self, region: tuple[slice, ...]) -> bool:
-        """Whether ``region`` is made of whole chunks (clipped at the array's end)."""
-        for s, c, n in zip(region, self.target.chunks, self.target.shape, strict=True):
-            start, stop = s.start or 0, n if s.stop is None else s.stop
-            if s.step not in (None, 1) or start % c or (stop % c and stop != n) or stop > n:
-                return False
-        return True
+        """Whether ``region`` is made of whole chunks, the last clipped at the array's end.
+
+        ``region``: slices as :func:`_regions` gives them.
+        """
+        return all(not s.start % c and (not s.stop % c or s.stop == n) for s, c, n in zip(
+            region, self.target.chunks, self.target.shape, strict=True))
 
     def write(self, region: tuple[slice, ...], block: np.ndarray) -> None:
         from pipeline.checksums import chunk_slices
 
-        starts = [s.start or 0 for s in region]
         for index, where in chunk_slices(self.target, region):
-            inside = tuple(slice(w.start - s0, w.stop - s0) for w, s0 in zip(where, starts,
-                                                                              strict=True))
-            self._put(index, block[inside])
+            self._put(index, block[tuple(slice(w.start - s.start, w.stop - s.start)
+                                         for w, s in zip(where, region, strict=True))])
 
     def _put(self, index: tuple[int, ...], values: np.ndarray) -> None:
         metadata = self.target.metadata

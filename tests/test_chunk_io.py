@@ -193,10 +193,13 @@ def test_variables_xarray_decodes_are_left_to_xarray(tmp_path):
     from pipeline.stores.radiance import open_dataset
 
     values = np.array([[1, -1, 2], [3, 4, -1]], np.float32)
-    xr.Dataset({"plain": (("y", "x"), values), "masked": (("y", "x"), values)}).to_zarr(
+    xr.Dataset({"plain": (("y", "x"), values), "masked": (("y", "x"), values),
+                "unfilled": (("y", "x"), values)}).to_zarr(
         tmp_path / "d.zarr", zarr_format=3, consolidated=False,
-        encoding={"masked": {"_FillValue": -1.0}, "plain": {"_FillValue": np.nan}})
+        encoding={"masked": {"_FillValue": -1.0}, "plain": {"_FillValue": np.nan},
+                  "unfilled": {"_FillValue": None}})
     ds = open_dataset(tmp_path / "d.zarr")
     np.testing.assert_array_equal(ds["plain"].values, [[1, -1, 2], [3, 4, -1]])
     np.testing.assert_array_equal(ds["masked"].values, [[1, np.nan, 2], [3, 4, np.nan]])
+    np.testing.assert_array_equal(ds["unfilled"].values, values)
     assert ds["plain"].data.name.startswith("read-")  # read here

@@ -121,7 +121,7 @@ def _factor(array, where: str):
 
     from pipeline import chunk_io
 
-    if chunk_io.local_store(array) is not None and array.shards is None:
+    if chunk_io.here(array):
         return chunk_io.dask_array(array, where, array.chunks)
     return _read_in_pieces(array) if array.path == "U" else da.from_zarr(array)
 

@@ -292,11 +292,7 @@ def open_dataset(path: str | Path, group=None, chunks=None):
     for name in ds.data_vars:
         wanted = chunks(group, name) if chunks else None
         array = group[name]
-        if ds[name].dtype == array.dtype and ds[name].dtype.kind == "f" and not any(
-                k in ds[name].encoding for k in ("scale_factor", "add_offset")) and all(
-                np.isnan(ds[name].encoding.get(k, np.nan))
-                for k in ("_FillValue", "missing_value")):
-            # read in the task's thread (pipeline.chunk_io): xarray decodes nothing here
+        if _undecoded(ds[name], array):  # read in the task's thread (pipeline.chunk_io)
             ds[name] = ds[name].copy(data=chunk_io.dask_array(
                 array, location(path), ds[name].data.chunks if wanted is None else wanted,
                 ds[name].dims))
@@ -308,6 +304,22 @@ def open_dataset(path: str | Path, group=None, chunks=None):
             ds[name] = ds[name].copy(data=lazy_float32(ds[name].data))
             ds[name].encoding = encoding
     return ds
+
+
+def _undecoded(variable, array) -> bool:
+    """Whether xarray gives zarr ``array``'s values as they are stored.
+
+    Floats, no scale or offset, no fill value to mask but NaN: reading them past xarray
+    (:mod:`pipeline.chunk_io`) changes nothing.
+    """
+    encoding = variable.encoding
+
+    def nan_or_none(value) -> bool:
+        return value is None or (isinstance(value, float | np.floating) and np.isnan(value))
+
+    return (variable.dtype == array.dtype and variable.dtype.kind == "f"
+            and not {"scale_factor", "add_offset"} & encoding.keys()
+            and all(nan_or_none(encoding.get(k)) for k in ("_FillValue", "missing_value")))
 
 
 def open_radiance(path: str | Path, chunks=None):
