@@ -294,7 +294,8 @@ def roller_seams(seeds, *, tiles: int = 3, log=None) -> dict:
 
 # the border check's nearest-patch searches compared by search_accuracy: (eps, candidates)
 SEARCHES = {"exact k-d tree, 8 re-ranked": (0.0, 8), "eps 1, 8 re-ranked": (1.0, 8),
-            "eps 1, 16 re-ranked": (1.0, 16)}
+            "eps 1, 16 re-ranked": (1.0, 16), "eps 2, 8 re-ranked": (2.0, 8),
+            "eps 2, 12 re-ranked": (2.0, 12)}
 
 
 def _recorded_checks(name: str, reference: np.ndarray, seeds, count: int) -> list:

@@ -35,10 +35,14 @@ its inside:
    strip (their worst border), the fault is the strip's: those strips are planned again at
    once from other streams, and so is every tile along them, in the next round (on brick,
    a draw whose 14 tiles of 16 failed at four strips took 75 interior plans when each was
-   first planned four times, 32 this way);
+   first planned four times, 32 this way); when such a strip has been planned
+   :data:`STRIP_ATTEMPTS` times already, the whole set is planned again at once from new
+   corner patches (on brick the tiles along it went on failing at it through all their
+   interior plans: the corner patches it joins leave it no good plan);
 2. the other tiles beyond the bound have their interiors planned again from other random
    streams, up to :data:`INTERIOR_ATTEMPTS` plans in all, each plan starting with the next
-   quadrant so that the closing joins change places; the best is kept;
+   quadrant so that the closing joins change places; the best is kept (a tile alone beyond
+   the bound has its next plans made beside it on the idle threads);
 3. the strip along the worst border of each tile still beyond the bound is planned again
    (the corner patches stay), and so is every tile that uses that strip; after
    :data:`STRIP_ATTEMPTS` plans of a strip, the whole set is planned again from new corner
@@ -490,34 +494,47 @@ def _rounds(plan: _TileSetPlanner, report: _Progress, pool: Executor, threads: i
             failed = [n for n in pending if not plan.tiles[n].passed]
             blamed = Counter(plan.worst_strip(n) for n in failed)
             shared = sorted(k for k, count in blamed.items() if count >= 2)
-            if (shared and round_ + 1 < params.attempts
-                    and all(strip_plans.get(k, 1) < STRIP_ATTEMPTS for k in shared)):
+            if shared and round_ + 1 < params.attempts:
                 result = plan.result()
                 if best is None or result.worst < best.worst:
                     best = result
-                report.round(round_, failed, shared=len(shared))
+                anew = any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in shared)
+                report.round(round_, failed, shared=len(shared), anew=anew)
+                if anew:
+                    # tiles still failing at a strip planned that often: its corner patches
+                    # are the fault (planning those tiles' interiors again did not help)
+                    plan.plan_all(pool)
+                    strip_plans = {}
+                    continue
                 plan.plan_strips(shared, pool)
                 for key in shared:
                     strip_plans[key] = strip_plans.get(key, 1) + 1
                 continue
-            # the others: the rest of their plans, the first kept if none is better
-            again = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS - 1,
-                                                      best=plan.tiles[n]), failed)
-            for number, tile in zip(failed, again, strict=True):
-                plan.tiles[number] = tile
+            # the others: the rest of their plans, the first kept if none is better; one
+            # alone has its next plans made beside it on the idle threads
+            if len(failed) == 1 and threads > 1:
+                plan.tiles[failed[0]] = plan.plan_tile(
+                    failed[0], INTERIOR_ATTEMPTS - 1, spare=pool, ahead=threads - 1,
+                    best=plan.tiles[failed[0]])
+            else:
+                again = pool.map(lambda n: plan.plan_tile(n, INTERIOR_ATTEMPTS - 1,
+                                                          best=plan.tiles[n]), failed)
+                for number, tile in zip(failed, again, strict=True):
+                    plan.tiles[number] = tile
         result = plan.result()
         if best is None or result.worst < best.worst:
             best = result
         failed = [n for n, t in plan.tiles.items() if not t.passed]
-        report.round(round_, failed)
+        # plan again the strip along each failed tile's worst border (and the tiles along
+        # it); a strip planned too often: the whole set, from new corner patches
+        offending = sorted({plan.worst_strip(n) for n in failed})
+        anew = any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending)
+        report.round(round_, failed, anew=anew)
         if not failed:
             return result
         if round_ + 1 == params.attempts:
             break
-        # plan again the strip along each failed tile's worst border (and the tiles along
-        # it); a strip planned too often: the whole set, from new corner patches
-        offending = sorted({plan.worst_strip(n) for n in failed})
-        if any(strip_plans.get(k, 1) >= STRIP_ATTEMPTS for k in offending):
+        if anew:
             plan.plan_all(pool)
             strip_plans = {}
             continue
@@ -551,11 +568,13 @@ class _Progress:
             self._say(f"round {round_ + 1}: {len(self.plan.tiles)} of "
                       f"{len(self.plan.types)} tile(s) planned")
 
-    def round(self, round_: int, failed: list[int], shared: int = 0) -> None:
+    def round(self, round_: int, failed: list[int], shared: int = 0, anew: bool = False
+              ) -> None:
         """A round ended with ``failed`` tiles beyond the bound.
 
         ``shared``: strips that two or more of them failed at, planned again after one plan
-        of each tile.
+        of each tile; ``anew``: the whole set is planned again instead (a strip at fault
+        was planned :data:`STRIP_ATTEMPTS` times).
         """
         if self.callback is None:
             return
@@ -567,8 +586,11 @@ class _Progress:
             last = round_ + 1 == self.plan.params.attempts
             worst = max((self.plan.tiles[k].check for k in failed),
                         key=lambda c: c.figures.worst)
-            then = (f"; {shared} strip(s) along which two or more tiles fail planned again"
-                    if shared else "" if last else "; planning the worst borders' strips again")
+            then = ("" if last else
+                    f"; a strip at fault planned {STRIP_ATTEMPTS} times: the whole set "
+                    "planned again from new corner patches" if anew else
+                    f"; {shared} strip(s) along which two or more tiles fail planned again"
+                    if shared else "; planning the worst borders' strips again")
             self._say(f"round {round_ + 1} of at most {self.plan.params.attempts}: "
                       f"{n - len(failed)} of {n} tile(s) within the bound (worst: "
                       f"{worst.tile}, {worst.figures.worst_line()}){then}")

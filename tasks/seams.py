@@ -23,14 +23,15 @@ good as the rest of this texture" and a bound holds per line, not on average:
   near 1 says the borders are joined as well as the patches inside are.
 
 The nearest patches are found on a PCA of the patches (12 dimensions, scipy's k-d tree,
-approximate with ``eps = 1``: each candidate within twice the distance of the exact one in
-PCA space) and the ``candidates`` (8) nearest are re-ranked at full dimension. Against an exact
-brute-force search at full dimension, on 40 checks per texture recorded while planning tile
-sets of the brick and moon photos, this is as close as an exact k-d tree search
-(a patch's distance on average 2.9% and 6.2% above the exact one, against 2.9% and 6.0%; a
-check's worst ratio off by 0.020 and 0.043 on average, the same) and 3.2-4.4x faster; 16
-candidates would be closer (1.6%, 4.1%) at half that gain (``btf bench quilt --search-checks
-40``, BENCHMARKS.md).
+approximate with ``eps = 2``: each candidate within three times the distance of the exact one
+in PCA space) and the ``candidates`` (12) nearest are re-ranked at full dimension. Against an
+exact brute-force search at full dimension, on 40 checks per texture recorded while planning
+tile sets of the brick, moon and gravel photos, this is as close as an exact k-d tree search
+re-ranking 8 (a patch's distance on average 2.6%, 8.6% and 6.4% above the exact one, against
+2.8%, 9.2% and 6.4%; a check's worst ratio off by 0.015, 0.065 and 0.010 on average, against
+0.017, 0.063 and 0.013) and 3.8-6x faster; on a 240^2 tile's check its searches take 0.67x
+the time of ``eps = 1`` with 8 candidates (``btf bench quilt --search-checks 40``,
+BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 PATCH = 16  # structure patches: larger than a mortar line or a thread, smaller than a block
 STRIDE = 3  # patch grid of the structure measure (texels)
-SEARCH_EPS = 1.0  # the k-d tree's approximation (see the module)
+SEARCH_EPS = 2.0  # the k-d tree's approximation (see the module)
+SEARCH_CANDIDATES = 12  # nearest in PCA space re-ranked at full dimension (see the module)
 _REPEAT_CANDIDATES = 32  # exact nearest patches searched for one not overlapping its query
 _BATCH = 4096  # queries (and sample rows) per batch: bounds the gathered patches' memory
 _ONE_THREAD = 1024  # queries searched on the calling thread alone (a tile's check: its own
@@ -185,7 +187,7 @@ class PatchExemplar:
     """
 
     def __init__(self, sample: np.ndarray, *, patch: int = PATCH, dims: int = 12,
-                 candidates: int = 8, eps: float = SEARCH_EPS):
+                 candidates: int = SEARCH_CANDIDATES, eps: float = SEARCH_EPS):
         from scipy.linalg import eigh
         from scipy.spatial import cKDTree
 

@@ -747,7 +747,8 @@ def test_the_compiled_blend_gives_the_bits_of_numpys():
 
 @pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines"), [
     (2, 18, 1.05, 2, 4),  # 4 rounds: tiles planned along strips planned again too
-    (1, 27, 0.98, 3, 2),  # one tile: its plans made ahead beside each other, 6 in 2 rounds
+    (1, 27, 1.0, 4, 2),  # one tile: its plans made ahead beside each other, 6 in 2 rounds
+    (2, 18, 1.1, 7, 4),  # a round with one tile beyond the bound: its plans made ahead too
 ])
 def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise, corners, side,
                                                                      bound, seed, lines):
