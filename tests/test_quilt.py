@@ -92,6 +92,27 @@ def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position():
     np.testing.assert_allclose(errors, brute, rtol=0, atol=1e-5 * brute.max())
 
 
+def test_the_search_keeps_each_masks_spectrum_without_changing_a_bit():
+    """The first term's spectrum is kept per mask: an error image from a kept one is the one
+    a search that never saw the mask computes, bit for bit, and masks beyond the kept number
+    push out the oldest."""
+    rng = np.random.default_rng(11)
+    sample = rng.random((41, 39, 3)).astype(np.float32)
+    masks = []
+    for n in range(CandidateSearch.MASKS_KEPT + 4):  # L-shaped bands, as a fill's masks are
+        mask = np.zeros((10, 10), bool)
+        mask[: n % 6], mask[:, : n // 6] = True, True
+        masks.append(mask)
+    masks.append(rng.random((10, 10)) > 0.5)
+    kept = CandidateSearch(sample, 10)
+    for _ in range(2):  # the second time round, the first masks were pushed out
+        for mask in masks:
+            target = rng.random((10, 10, 3)).astype(np.float32)
+            fresh = CandidateSearch(sample, 10).errors(target, mask)
+            np.testing.assert_array_equal(kept.errors(target, mask), fresh)
+        assert len(kept._masks) == CandidateSearch.MASKS_KEPT
+
+
 def test_the_boundary_cut_follows_the_cheapest_loop_around_the_kept_square():
     b = 12
     error = np.full((b, b), 10.0)
