@@ -33,9 +33,12 @@ its inside:
 
 1. every tile not yet planned is planned once; where two or more tiles fail at the same
    strip (their worst border), the fault is the strip's: those strips are planned again at
-   once from other streams, and so is every tile along them, in the next round (on brick,
-   a draw whose 14 tiles of 16 failed at four strips took 75 interior plans when each was
-   first planned four times, 32 this way); when such a strip has been planned
+   once from other streams, :data:`STRIP_CANDIDATES` times each, keeping the plan whose
+   middle line stands out least on its own (:meth:`_TileSetPlanner.strip_figure`, before
+   any tile is filled along it), and every tile along them is planned again in the next
+   round (on brick, a draw whose 14 tiles of 16 failed at four strips took 75 interior
+   plans when each was first planned four times, 32 this way; the best of four strips
+   took two draws of 44 and 34 interior plans to 28 and 25); when such a strip has been planned
    :data:`STRIP_ATTEMPTS` times already, the whole set is planned again at once from new
    corner patches (on brick the tiles along it went on failing at it through all their
    interior plans: the corner patches it joins leave it no good plan);
@@ -44,7 +47,7 @@ its inside:
    quadrant so that the closing joins change places; the best is kept (a tile alone beyond
    the bound has its next plans made beside it on the idle threads);
 3. the strip along the worst border of each tile still beyond the bound is planned again
-   (the corner patches stay), and so is every tile that uses that strip; after
+   the same way (the corner patches stay), and so is every tile that uses that strip; after
    :data:`STRIP_ATTEMPTS` plans of a strip, the whole set is planned again from new corner
    patches. A round is one pass of these over the tiles not yet planned; at most
    ``attempts`` rounds. A periodic tile (``V = 1``) has no strips of its own: with more than one
@@ -254,16 +257,41 @@ class _TileSetPlanner:
         self.plan_strips(self.strip_keys, pool)
         self.tiles = {}
 
-    def plan_strips(self, keys: list[tuple[str, int, int]], pool: Executor | None = None
-                    ) -> None:
+    def plan_strips(self, keys: list[tuple[str, int, int]], pool: Executor | None = None,
+                    candidates: int = 1) -> None:
         """:meth:`plan_strip` for each of ``keys``, at once on ``pool`` if given.
 
-        Each strip depends only on the corner patches and its own stream.
+        Each strip depends only on the corner patches and its own stream. With
+        ``candidates`` > 1 each strip is planned that many times (from its next streams) and
+        the plan whose border line stands out least (:meth:`strip_figure`) is kept.
         """
-        list((pool.map if pool is not None else map)(self.plan_strip, keys))  # run them all
+        jobs = []
+        for key in keys:
+            first = self.generation.get(key, 0)
+            self.generation[key] = first + candidates
+            jobs += [(key, g) for g in range(first, first + candidates)]
+
+        def planned(job):
+            piece = self._strip(*job)
+            return piece, self.strip_figure(job[0], piece) if candidates > 1 else 0.0
+
+        results = list((pool.map if pool is not None else map)(planned, jobs))  # all of them
+        for key in keys:
+            mine = [r for (k, _), r in zip(jobs, results, strict=True) if k == key]
+            self._keep_strip(key, min(mine, key=lambda r: r[1])[0])  # the first of equals
 
     def plan_strip(self, key: tuple[str, int, int]) -> None:
         """Edge strip ``key`` (phases 2 and 3) again; the tiles along it must be planned again."""
+        self.plan_strips([key])
+
+    def _keep_strip(self, key: tuple[str, int, int], piece: _Piece) -> None:
+        self.strips[key] = piece
+        for number, types in enumerate(self.types):
+            if key in self.tile_strips(types):
+                self.tiles.pop(number, None)
+
+    def _strip(self, key: tuple[str, int, int], generation: int) -> _Piece:
+        """Plan ``generation`` of edge strip ``key`` (phases 2 and 3)."""
         direction, a, z = key
         b, s = self.params.block, self.params.step
         horizontal = direction == HORIZONTAL
@@ -275,17 +303,31 @@ class _TileSetPlanner:
             canvas.copy_from(self.corners[c].canvas, slice(y, y + b), slice(x, x + b),
                              slice(None), slice(None))
         name = f"{direction} edge {a}{z}"
-        steps = strip_order(length // s, self.generation.get(key, 0))
+        steps = strip_order(length // s, generation)
 
         def place(planner, canvas):
             return [planner.place(canvas, name, *((0, k * s) if horizontal else (k * s, 0)),
                                   border="row" if horizontal else "col")
                     for k in steps]
 
-        self.strips[key] = self._plan(key, place, canvas)
-        for number, types in enumerate(self.types):
-            if key in self.tile_strips(types):
-                self.tiles.pop(number, None)
+        return self._plan(key, place, canvas, generation)
+
+    def strip_figure(self, key: tuple[str, int, int], piece: _Piece) -> float:
+        """How far a strip's border line stands out, to choose between plans of one strip.
+
+        The mean nearest-patch distance (:class:`BorderCheck`'s structure patches) of the
+        patches centred within the check's reach of the line through the strip's middle,
+        the worse of its two sides: what the tiles on either side will see there.
+        """
+        value = piece.canvas.value
+        if key[0] == HORIZONTAL:
+            value = value.transpose(1, 0, 2)  # the line a column, as for vertical strips
+        exemplar = self.check.exemplar
+        d, _, cx = exemplar.distance_map(value, wrap=False)
+        offset = cx - self.params.block / 2
+        sides = [d[:, (offset >= -self.check.reach) & (offset <= 0)],
+                 d[:, (offset >= 0) & (offset <= self.check.reach)]]
+        return max(float(side.mean()) for side in sides if side.size)
 
     def tile_strips(self, types: tuple[int, int, int, int]) -> list[tuple[str, int, int]]:
         """The strips along a tile's top, bottom, left and right borders."""
@@ -426,7 +468,8 @@ def fill_order(rows: int, cols: int, generation: int) -> list[tuple[int, int]]:
             for i in halves[0][far_row] for j in halves[1][far_col]]
 
 
-STRIP_ATTEMPTS = 3  # plans of a strip before the whole tile set is planned again
+STRIP_ATTEMPTS = 2  # plans of a strip before the whole tile set is planned again
+STRIP_CANDIDATES = 4  # plans of a strip planned again, the best kept (see plan_strips)
 
 
 def plan_tiles(reference: np.ndarray, params: QuiltParams, *, seed: int,
@@ -506,7 +549,7 @@ def _rounds(plan: _TileSetPlanner, report: _Progress, pool: Executor, threads: i
                     plan.plan_all(pool)
                     strip_plans = {}
                     continue
-                plan.plan_strips(shared, pool)
+                plan.plan_strips(shared, pool, STRIP_CANDIDATES)
                 for key in shared:
                     strip_plans[key] = strip_plans.get(key, 1) + 1
                 continue
@@ -538,7 +581,7 @@ def _rounds(plan: _TileSetPlanner, report: _Progress, pool: Executor, threads: i
             plan.plan_all(pool)
             strip_plans = {}
             continue
-        plan.plan_strips(offending, pool)
+        plan.plan_strips(offending, pool, STRIP_CANDIDATES)
         for key in offending:
             strip_plans[key] = strip_plans.get(key, 1) + 1
     worst = max(best.checks, key=lambda c: c.figures.worst)
