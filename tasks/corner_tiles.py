@@ -319,14 +319,12 @@ class _TileSetPlanner:
         patches centred within the check's reach of the line through the strip's middle,
         the worse of its two sides: what the tiles on either side will see there.
         """
-        value = piece.canvas.value
-        if key[0] == HORIZONTAL:
-            value = value.transpose(1, 0, 2)  # the line a column, as for vertical strips
-        exemplar = self.check.exemplar
-        d, _, cx = exemplar.distance_map(value, wrap=False)
-        offset = cx - self.params.block / 2
-        sides = [d[:, (offset >= -self.check.reach) & (offset <= 0)],
-                 d[:, (offset >= 0) & (offset <= self.check.reach)]]
+        d, cy, cx = self.check.exemplar.distance_map(piece.canvas.value, wrap=False)
+        # the patches as they lie (the sample's are not turned), the line a row or a column
+        centres, values = (cy, d.T) if key[0] == HORIZONTAL else (cx, d)
+        offset = centres - self.params.block / 2
+        sides = [values[:, (offset >= -self.check.reach) & (offset <= 0)],
+                 values[:, (offset >= 0) & (offset <= self.check.reach)]]
         return max(float(side.mean()) for side in sides if side.size)
 
     def tile_strips(self, types: tuple[int, int, int, int]) -> list[tuple[str, int, int]]:

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import copy
 import functools
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -179,7 +180,9 @@ class CandidateSearch:
         planes = [np.sum(self.sample**2, axis=-1)]
         planes += [-2.0 * self.sample[..., c] for c in range(self.sample.shape[-1])]
         self.spectra = scipy.fft.rfft2(np.stack(planes), self.shape)
-        self._masks: dict[bytes, np.ndarray] = {}  # the first term's spectrum, per mask
+        # the first term's spectrum per mask, oldest first (shared by the planners' threads:
+        # each of its calls is atomic, and a race only computes one twice)
+        self._masks: OrderedDict[tuple, np.ndarray] = OrderedDict()
 
     def _spectra(self, kernels: np.ndarray, planes: slice) -> np.ndarray:
         """The kernels' spectra times the sample's ``planes``.
@@ -196,12 +199,15 @@ class CandidateSearch:
         from tasks.quilt_kernels import clipped_errors, search_kernels  # numba
 
         kernels, norm = search_kernels(target, mask)  # flipped: the correlation's kernels
-        key = np.packbits(mask).tobytes() + bytes(mask.shape)
+        key = (mask.shape, mask.dtype.str, mask.tobytes())
         first = self._masks.get(key)
         if first is None:
             first = self._spectra(kernels, slice(0, 1))[0]
-            if len(self._masks) >= self.MASKS_KEPT:  # the oldest goes (threads: a race
-                self._masks.pop(next(iter(self._masks)), None)  # only recomputes one)
+            while len(self._masks) >= self.MASKS_KEPT:  # the oldest go
+                try:
+                    self._masks.popitem(last=False)
+                except KeyError:  # another thread emptied it meanwhile
+                    break
             self._masks[key] = first
         # the kernels summed in the frequency domain, the first term first: one inverse
         spectrum = self._spectra(kernels, slice(1, None))

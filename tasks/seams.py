@@ -280,9 +280,10 @@ class PatchExemplar:
         out = np.empty(len(queries), np.float64)
         for i in range(0, len(queries), _BATCH):
             q = np.asarray(queries[i : i + _BATCH], np.float32)
-            _, found = self.tree.query(self._project(q), k=self.candidates, eps=self.eps,
+            k = min(self.candidates, self.tree.n)  # a small sample has fewer patches
+            _, found = self.tree.query(self._project(q), k=k, eps=self.eps,
                                        workers=1 if len(q) <= _ONE_THREAD else -1)
-            sy, sx = np.divmod(found.reshape(len(q), self.candidates), self.width)
+            sy, sx = np.divmod(found.reshape(len(q), k), self.width)
             p, c = self.patch, self.sample.shape[-1]
             rows_first = np.ascontiguousarray(q.reshape(len(q), c, p, p).transpose(0, 2, 3, 1))
             out[i : i + _BATCH] = nearest_ssd(self.sample, rows_first, sy, sx)

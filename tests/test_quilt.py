@@ -92,25 +92,46 @@ def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position():
     np.testing.assert_allclose(errors, brute, rtol=0, atol=1e-5 * brute.max())
 
 
+def _errors_afresh(search: CandidateSearch, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The error image as the search computed it before it kept masks' spectra."""
+    import scipy
+
+    from tasks.quilt_kernels import clipped_errors, search_kernels
+
+    kernels, norm = search_kernels(target, mask)
+    rows = scipy.fft.rfft(kernels, n=search.shape[1], axis=-1)
+    spectrum = scipy.fft.fft(rows, n=search.shape[0], axis=-2)
+    spectrum *= search.spectra
+    full = scipy.fft.irfft2(spectrum.sum(axis=0), search.shape)
+    return clipped_errors(full, search.block - 1, *search.valid, norm)
+
+
 def test_the_search_keeps_each_masks_spectrum_without_changing_a_bit():
-    """The first term's spectrum is kept per mask: an error image from a kept one is the one
-    a search that never saw the mask computes, bit for bit, and masks beyond the kept number
-    push out the oldest."""
+    """The first term's spectrum is kept per mask: error images from a kept one and from a
+    new one are those of all terms transformed together, bit for bit; beyond the kept number
+    of masks the oldest go."""
     rng = np.random.default_rng(11)
-    sample = rng.random((41, 39, 3)).astype(np.float32)
-    masks = []
-    for n in range(CandidateSearch.MASKS_KEPT + 4):  # L-shaped bands, as a fill's masks are
-        mask = np.zeros((10, 10), bool)
-        mask[: n % 6], mask[:, : n // 6] = True, True
-        masks.append(mask)
-    masks.append(rng.random((10, 10)) > 0.5)
-    kept = CandidateSearch(sample, 10)
-    for _ in range(2):  # the second time round, the first masks were pushed out
-        for mask in masks:
-            target = rng.random((10, 10, 3)).astype(np.float32)
-            fresh = CandidateSearch(sample, 10).errors(target, mask)
-            np.testing.assert_array_equal(kept.errors(target, mask), fresh)
-        assert len(kept._masks) == CandidateSearch.MASKS_KEPT
+    for shape, channels, b in (((41, 39), 3, 10), ((33, 50), 1, 7)):
+        sample = rng.random((*shape, channels)).astype(np.float32)
+        masks = []
+        for n in range(CandidateSearch.MASKS_KEPT):  # L-shaped bands, as a fill's masks are
+            mask = np.zeros((b, b), bool)
+            mask[: n % 4], mask[:, : n // 4] = True, True
+            masks.append(mask)
+        search = CandidateSearch(sample, b)
+        kept = None
+        for _ in range(3):  # the first round computes each mask's term, then it is kept
+            for mask in masks:
+                target = rng.random((b, b, channels)).astype(np.float32)
+                np.testing.assert_array_equal(search.errors(target, mask),
+                                              _errors_afresh(search, target, mask))
+            assert list(search._masks) == [(m.shape, m.dtype.str, m.tobytes()) for m in masks]
+            kept = kept or dict(search._masks)
+            assert all(search._masks[k] is v for k, v in kept.items())  # not computed again
+        other = rng.random((b, b)) > 0.5  # one more: the oldest goes
+        search.errors(rng.random((b, b, channels)).astype(np.float32), other)
+        assert len(search._masks) == CandidateSearch.MASKS_KEPT
+        assert next(iter(search._masks))[2] == masks[1].tobytes()
 
 
 def test_the_boundary_cut_follows_the_cheapest_loop_around_the_kept_square():
@@ -672,6 +693,35 @@ def test_a_strip_planned_again_keeps_the_best_of_its_candidates(noise):
     assert set(plan.tiles) == set(range(len(plan.types))) - along
 
 
+def test_a_strip_cut_from_the_sample_stands_out_in_neither_direction():
+    """A strip's figure looks at its patches as they lie: strips cut from a striped sample
+    (rows of one period, columns of another) along either direction show the sample's own
+    patches (figure 0), while the same strips turned by 90 degrees do not."""
+    from tasks.canvas import Canvas
+    from tasks.corner_tiles import HORIZONTAL, VERTICAL, _Piece, _TileSetPlanner
+
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:60, 0:64]
+    reference = np.stack([np.sin(y * 2 * np.pi / 5), np.sin(x * 2 * np.pi / 9),
+                          0.1 * rng.random((60, 64))], axis=-1).astype(np.float32)
+    params = QuiltParams(12, 3, 3, 2, (27, 27))
+    plan = _TileSetPlanner(reference, params, seed=0)
+    b, length = params.block, params.tile[0]
+
+    def piece(value):
+        canvas = Canvas.empty(*value.shape)
+        canvas.value[...] = value
+        return _Piece(canvas, [])
+
+    across = reference[5 : 5 + b, 3 : 3 + length + b]
+    down = reference[2 : 2 + length + b, 7 : 7 + b]
+    assert plan.strip_figure((HORIZONTAL, 0, 1), piece(across)) < 1e-6
+    assert plan.strip_figure((VERTICAL, 0, 1), piece(down)) < 1e-6
+    turned = [plan.strip_figure((VERTICAL, 0, 1), piece(across.transpose(1, 0, 2))),
+              plan.strip_figure((HORIZONTAL, 0, 1), piece(down.transpose(1, 0, 2)))]
+    assert min(turned) > 0.05, turned
+
+
 def test_the_cheapest_loop_costs_what_scipys_dijkstra_finds():
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
@@ -793,19 +843,34 @@ def test_the_compiled_blend_gives_the_bits_of_numpys():
                                     np.full((2, 2), 0.5, np.float32), 1, 1)
 
 
-@pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines"), [
-    (2, 18, 1.05, 2, 4),  # 4 rounds: tiles planned along strips planned again too
-    (1, 27, 0.98, 8, 2),  # one tile: its plans made ahead beside each other, 8 in 2 rounds
-    (2, 18, 1.1, 4, 4),  # rounds with one tile beyond the bound: its plans made ahead too
+@pytest.mark.parametrize(("corners", "side", "bound", "seed", "lines", "whole", "ahead"), [
+    # 3 rounds: strips planned again (the best of four), then the whole set again
+    (2, 18, 1.1, 2, 3, True, False),
+    (1, 27, 0.98, 8, 2, False, True),  # one tile: its plans made ahead, 8 in 2 rounds
+    (2, 18, 1.05, 6, 3, False, True),  # rounds with one tile beyond the bound: ahead too
 ])
-def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(noise, corners, side,
-                                                                     bound, seed, lines):
+def test_the_tile_set_is_the_same_for_any_number_of_planning_threads(
+        noise, monkeypatch, corners, side, bound, seed, lines, whole, ahead):
+    from tasks import corner_tiles
+
     reference, exemplar = noise
     params = QuiltParams(12, 3, 3, corners, (side, side), max_seam=bound, attempts=4)
-    said = []
-    plans = [plan_tiles(reference, params, seed=seed, exemplar=exemplar, threads=threads,
-                        progress=said.append) for threads in (1, 3)]
+    said, spared = [], []
+    plan_tile = corner_tiles._TileSetPlanner.plan_tile
+
+    def spying(planner, number, attempts, spare=None, ahead=0, best=None):
+        spared.append(spare is not None)
+        return plan_tile(planner, number, attempts, spare, ahead, best)
+
+    monkeypatch.setattr(corner_tiles._TileSetPlanner, "plan_tile", spying)
+    plans = []
+    for threads in (1, 3):
+        spared.clear()
+        plans.append(plan_tiles(reference, params, seed=seed, exemplar=exemplar,
+                                threads=threads, progress=said.append))
     assert len(said) == 2 * lines
+    assert any("the whole set planned again" in line for line in said) == whole
+    assert any(spared) == ahead  # on 3 threads: plans made ahead beside a tile alone
     one, other = plans
     assert one.placements == other.placements
     assert one.checks == other.checks  # the same figures and counts of plans
