@@ -75,7 +75,14 @@ from tasks.canvas import Canvas
 from tasks.periodicity import Lattice
 from tasks.quilt_layout import in_phase
 from tasks.quilting import Blend, Placement, Planner, QuiltParams
-from tasks.seams import PATCH, BorderFigures, Borders, PatchExemplar, border_figures
+from tasks.seams import (
+    PATCH,
+    BorderFigures,
+    Borders,
+    PatchExemplar,
+    border_figures,
+    line_sides,
+)
 
 HORIZONTAL, VERTICAL = "horizontal", "vertical"
 
@@ -319,12 +326,11 @@ class _TileSetPlanner:
         patches centred within the check's reach of the line through the strip's middle,
         the worse of its two sides: what the tiles on either side will see there.
         """
-        d, cy, cx = self.check.exemplar.distance_map(piece.canvas.value, wrap=False)
-        # the patches as they lie (the sample's are not turned), the line a row or a column
-        centres, values = (cy, d.T) if key[0] == HORIZONTAL else (cx, d)
-        offset = centres - self.params.block / 2
-        sides = [values[:, (offset >= -self.check.reach) & (offset <= 0)],
-                 values[:, (offset >= 0) & (offset <= self.check.reach)]]
+        value = piece.canvas.value
+        d, cy, cx = self.check.exemplar.distance_map(value, wrap=False)
+        sides = line_sides(d, cy, cx, "row" if key[0] == HORIZONTAL else "col",
+                           self.params.block // 2, value.shape[:2], wrap=False,
+                           reach=self.check.reach)
         return max(float(side.mean()) for side in sides if side.size)
 
     def tile_strips(self, types: tuple[int, int, int, int]) -> list[tuple[str, int, int]]:
@@ -627,11 +633,15 @@ class _Progress:
             last = round_ + 1 == self.plan.params.attempts
             worst = max((self.plan.tiles[k].check for k in failed),
                         key=lambda c: c.figures.worst)
-            then = ("" if last else
-                    f"; a strip at fault planned {STRIP_ATTEMPTS} times: the whole set "
-                    "planned again from new corner patches" if anew else
-                    f"; {shared} strip(s) along which two or more tiles fail planned again"
-                    if shared else "; planning the worst borders' strips again")
+            if last:
+                then = ""
+            elif anew:
+                then = (f"; a strip at fault planned {STRIP_ATTEMPTS} times: the whole set "
+                        "planned again from new corner patches")
+            elif shared:
+                then = f"; {shared} strip(s) along which two or more tiles fail planned again"
+            else:
+                then = "; planning the worst borders' strips again"
             self._say(f"round {round_ + 1} of at most {self.plan.params.attempts}: "
                       f"{n - len(failed)} of {n} tile(s) within the bound (worst: "
                       f"{worst.tile}, {worst.figures.worst_line()}){then}")

@@ -367,13 +367,22 @@ def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Border
         scale = max(exemplar.own_repeat, exemplar.floor)
     out = []
     for kind, line in borders.lines():
-        centres, n, values = (cy, h, d) if kind == "row" else (cx, w, d.T)
-        offset = _offsets(centres, line, n, borders.wrap)
-        sides = [values[(offset >= -reach) & (offset <= 0)],
-                 values[(offset >= 0) & (offset <= reach)]]
+        sides = line_sides(d, cy, cx, kind, line, (h, w), wrap=borders.wrap, reach=reach)
         out.append(max(max(float(side.mean()), exemplar.floor) for side in sides if side.size)
                    / scale)
     return tuple(out)
+
+
+def line_sides(d: np.ndarray, cy: np.ndarray, cx: np.ndarray, kind: str, line: int,
+               shape: tuple[int, int], *, wrap: bool, reach: float) -> list[np.ndarray]:
+    """The distances of a map (:meth:`PatchExemplar.distance_map`) on each side of a line.
+
+    ``kind``: ``"row"`` or ``"col"``; a side is the patches centred within ``reach`` of the
+    line on it (one centred on the line counts on both), before it, then after it.
+    """
+    centres, n, values = (cy, shape[0], d) if kind == "row" else (cx, shape[1], d.T)
+    offset = _offsets(centres, line, n, wrap)
+    return [values[(offset >= -reach) & (offset <= 0)], values[(offset >= 0) & (offset <= reach)]]
 
 
 def border_figures(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
