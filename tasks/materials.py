@@ -262,12 +262,38 @@ def photo_relief(scale: float | None) -> float:
     return PHOTO_RELIEF_PER_SCALE * (PHOTO_SCALE if scale is None else scale)
 
 
-def image_fields(image: np.ndarray, *, relief: float) -> Fields:
+BUMP_RELIEF_PER_SCALE = 0.3
+HEIGHTS = ("photo", "bumps")
+
+
+def bump_relief(scale: float | None) -> float:
+    """Relief (px) of :func:`bump_height` at characteristic length ``scale``."""
+    return BUMP_RELIEF_PER_SCALE * (PHOTO_SCALE if scale is None else scale)
+
+
+def bump_height(ny: int, nx: int, *, seed: int, scale: float, relief: float) -> np.ndarray:
+    """Smooth bumps of two scales, independent of any photo: a height field in ``[0, relief]``.
+
+    Gradient noise at ``scale`` and at a third of it, each shaped by a smoothstep into rounded
+    domes and hollows (three quarters of the relief from the large bumps). Not periodic: the
+    lattice has no period, so no window repeats at any scale a sample could hold.
+    """
+    y = np.arange(ny, dtype=np.float64)[:, None] + 0.5
+    x = np.arange(nx, dtype=np.float64)[None, :] + 0.5
+    large = gradient_noise(x / scale, y / scale, seed=seed)
+    small = gradient_noise(3.0 * x / scale, 3.0 * y / scale, seed=seed + 1)
+    shape = 0.75 * smoothstep(-0.6, 0.6, large) + 0.25 * smoothstep(-0.6, 0.6, small)
+    return (relief * shape).astype(np.float32)
+
+
+def image_fields(image: np.ndarray, *, relief: float,
+                 height: np.ndarray | None = None) -> Fields:
     """Fields from a photograph: its colour as albedo, its band-passed lightness as height.
 
     Dark detail is taken to be low (crevices), as is usual for photos of rough surfaces;
     brighter texels are made slightly glossier. ``image`` is linear, ``(ny, nx)`` or
-    ``(ny, nx, channels)``; a single channel gives a grey albedo.
+    ``(ny, nx, channels)``; a single channel gives a grey albedo. ``height``: a relief of
+    its own (e.g. :func:`bump_height`) instead of the photo's lightness.
     """
     image = np.asarray(image, np.float32)
     rgb = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
@@ -277,9 +303,12 @@ def image_fields(image: np.ndarray, *, relief: float) -> Fields:
         raise ValueError("an albedo image needs 1 or at least 3 channels, got 2")
     albedo = np.clip(rgb, 0.0, 1.0)
     lightness = albedo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    blur = scipy.ndimage.gaussian_filter
-    detail = blur(lightness, 1.0) - blur(lightness, 12.0)
-    lo, hi = np.percentile(detail, [1.0, 99.0])
-    height = relief * np.clip((detail - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    if height is None:
+        blur = scipy.ndimage.gaussian_filter
+        detail = blur(lightness, 1.0) - blur(lightness, 12.0)
+        lo, hi = np.percentile(detail, [1.0, 99.0])
+        height = relief * np.clip((detail - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    elif height.shape != lightness.shape:
+        raise ValueError(f"a height of shape {height.shape} for an image of {lightness.shape}")
     level = lightness / max(float(lightness.max()), 1e-6)
     return Fields.stack(height, albedo, 0.55 - 0.3 * level, 0.04)

@@ -14,6 +14,7 @@ from pipeline.session import RuntimeOptions, Session
 from pipeline.stages.generate import GenerateParams, generate
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
+from tasks.materials import bump_height, bump_relief
 
 SMALL = ("--material", "stone", "--size", "40", "--sampling", "hemi:3", "--chunk", "8",
          "--shard", "16", "--dir-chunk", "2", "--seed", "11")
@@ -181,6 +182,9 @@ def test_a_failed_overwrite_keeps_the_previous_store(tmp_path, monkeypatch, btf)
     (("--material", "wood", "--size", "64", "--dir-chunk", "0"), "--dir-chunk: must be at least"),
     (("--material", "wood", "--size", "64", "--seed", str(2**64)), "--seed: must be between"),
     (("--albedo", "photo.png", "--seed", "3"), "--seed: has no effect with --albedo"),
+    (("--material", "wood", "--size", "64", "--height", "bumps"),
+     "--height: only applies with --albedo"),
+    (("--albedo", "photo.png", "--height", "dunes"), "invalid choice"),
     (("--material", "wood", "--size", "64", "--scheduler", "gpu"), "unknown scheduler"),
 ])
 def test_bad_arguments_are_refused_before_anything_is_written(tmp_path, btf, args, message):
@@ -212,6 +216,41 @@ def test_a_photo_becomes_the_albedo_of_a_generated_store(tmp_path, btf, suffix, 
     assert btf("generate", cropped, "--albedo", photo, "--size", "30", "--sampling", "abtf:3,2",
                "--quiet").code == 0
     assert np.allclose(open_radiance(cropped)["albedo"].values, expected[3:33, 7:37], atol=1e-5)
+
+
+def test_a_photo_under_bumps_keeps_its_albedo_and_takes_the_seeds_relief(tmp_path, btf):
+    photo = tmp_path / "photo.exr"
+    pixels = np.random.default_rng(3).uniform(0.05, 0.95, (48, 40, 3)).astype(np.float32)
+    write_exr(photo, pixels, ("R", "G", "B"))
+    stores = {}
+    for seed in (1, 2):
+        stores[seed] = tmp_path / f"bumps{seed}.zarr"
+        assert btf("generate", stores[seed], "--albedo", photo, "--height", "bumps", "--seed",
+                   seed, "--scale", "12", "--sampling", "abtf:3,2", "--quiet").code == 0
+    a, b = open_radiance(stores[1]), open_radiance(stores[2])
+    assert np.allclose(a["albedo"].values, pixels, atol=1e-6)
+    height = a["height"].values
+    expected = bump_height(48, 40, seed=1, scale=12.0, relief=bump_relief(12.0))
+    assert np.array_equal(height, expected)
+    assert 0 <= height.min() and height.max() <= bump_relief(12.0) == pytest.approx(3.6)
+    # the relief is the seed's, not the photo's: unrelated to the albedo's lightness
+    lightness = pixels @ np.array([0.2126, 0.7152, 0.0722])
+    assert abs(np.corrcoef(height.ravel(), lightness.ravel())[0, 1]) < 0.2
+    assert not np.array_equal(b["height"].values, height)
+    assert a.attrs["material"]["height"] == "bumps" and a.attrs["material"]["seed"] == 1
+
+
+def test_bumps_are_smooth_span_their_relief_and_do_not_repeat():
+    h = bump_height(256, 256, seed=7, scale=20.0, relief=6.0)
+    assert h.dtype == np.float32 and 0.0 <= h.min() and h.max() <= 6.0
+    assert h.max() - h.min() > 4.0  # domes and hollows, not a flat plate
+    assert np.abs(np.diff(h, axis=0)).max() < 1.5 and np.abs(np.diff(h, axis=1)).max() < 1.5
+    # no period up to half the field: every shift leaves the field well apart from itself
+    for axis in (0, 1):
+        for shift in range(8, 128):
+            a = np.take(h, np.arange(0, 256 - shift), axis=axis)
+            b = np.take(h, np.arange(shift, 256), axis=axis)
+            assert np.sqrt(np.mean((a - b) ** 2)) > 0.1 * h.std(), (axis, shift)
 
 
 def test_a_missing_or_broken_photo_is_named(tmp_path, btf):

@@ -31,7 +31,17 @@ from pipeline.session import Session
 from pipeline.stage import Stage
 from pipeline.stores.base import RADIANCE, Directions, location, readable
 from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store
-from tasks.materials import MATERIALS, Fields, Material, image_fields, photo_relief
+from tasks.materials import (
+    HEIGHTS,
+    MATERIALS,
+    PHOTO_SCALE,
+    Fields,
+    Material,
+    bump_height,
+    bump_relief,
+    image_fields,
+    photo_relief,
+)
 from tasks.pathtrace import BSDFS, PathTracer, stratified_spp
 from tasks.pathtrace import render_block as trace_block
 from tasks.sampling import SAMPLING_HELP, parse_sampling
@@ -66,6 +76,11 @@ class GenerateParams(LayoutOptions):
         None, path="in", metavar="IMAGE",
         help="EXR or PNG photo to use as albedo and height source instead of a procedural "
              "material (PNG is decoded from sRGB)")
+    height: str | None = option(
+        None, choices=HEIGHTS,
+        help="with --albedo, where the relief comes from: photo (the photo's band-passed "
+             "lightness, dark detail low; the default) or bumps (smooth bumps of two scales, "
+             "--scale and a third of it, drawn from --seed and independent of the photo)")
     renderer: str = option(
         "shading", choices=RENDERERS,
         help="shading: btf's own model (height-field parallax, cast shadows, diffuse + GGX, an "
@@ -100,8 +115,11 @@ class GenerateParams(LayoutOptions):
         if self.size is not None and not 8 <= self.size <= 1 << 20:
             raise ParamError("size", f"must be between 8 and 1048576 texels, got {self.size}")
         check_seed(self.seed)
-        if self.albedo is not None and self.seed != 0:
-            raise ParamError("seed", "has no effect with --albedo (a photo has no randomness)")
+        if self.height is not None and self.albedo is None:
+            raise ParamError("height", "only applies with --albedo")
+        if self.albedo is not None and self.height != "bumps" and self.seed != 0:
+            raise ParamError("seed", "has no effect with --albedo (a photo has no randomness; "
+                                     "--height bumps draws its bumps from it)")
         try:
             parse_sampling(self.sampling)
         except ValueError as exc:
@@ -208,8 +226,16 @@ def _photo(params: GenerateParams) -> tuple[Fields, dict]:
             raise BTFError(f"{path}: --size {params.size} is larger than the image ({h}x{w})")
         y0, x0 = (h - params.size) // 2, (w - params.size) // 2
         pixels = pixels[y0 : y0 + params.size, x0 : x0 + params.size]
-    relief = photo_relief(params.scale)
-    return image_fields(pixels, relief=relief), {"albedo_image": str(path), "relief": relief}
+    info = {"albedo_image": str(path)}
+    if params.height == "bumps":
+        scale = float(PHOTO_SCALE if params.scale is None else params.scale)
+        relief = bump_relief(params.scale)
+        height = bump_height(*pixels.shape[:2], seed=params.seed, scale=scale, relief=relief)
+        info.update(height="bumps", seed=params.seed, scale=scale)
+    else:
+        relief, height = photo_relief(params.scale), None
+    info["relief"] = relief
+    return image_fields(pixels, relief=relief, height=height), info
 
 
 def _choose_material(params: GenerateParams
