@@ -13,8 +13,9 @@ Mitsuba's path tracer (masking, cast shadows, interreflections, a physically bas
 - **benches**, for every material under both renderers, on a ``--size`` store:
   - compression: eq. (11) error of the rank-k truncation of one ``btf compress`` against the
     store, for every k of ``--ranks``, absolute and relative to the store's mean texel RMS;
-  - enlargement: ``benchmarks.enlarge``'s experiment with the top-light photo (its error,
-    the copy oracle, the per-texel lookup, tiling, the gap share and realism);
+  - enlargement: ``benchmarks.enlarge``'s experiment per material seed and photo set (the
+    top-light photo; it and nine other lights): its error, the copy oracle, the per-texel
+    lookup, tiling, the gap share and realism, and the gap's worst and median over the seeds;
   - quilting: ``benchmarks.seams``' V = 2 tile-set figures on three layers of the store
     (top, middle and lowest light of the top view), over ``--quilt-seeds`` seeds drawn at
     random from a wide range: worst and median seam and structure.
@@ -40,13 +41,26 @@ def renderers(args) -> list[tuple[str, str | None]]:
 
 def _first_bsdf(args) -> str:
     return args.bsdf.split(",")[0]
+
+
+def _procedural(args) -> str:
+    """The first procedural material of ``--materials`` (throughput and noise; leather if none)."""
+    from tasks.materials import MATERIALS
+
+    return next((m for m in args.materials.split(",") if m in MATERIALS), "leather")
+
+
+def _first_seed(args) -> int:
+    return int(str(args.seeds).split(",")[0])
 PARTS = ("throughput", "noise", "benches")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of the suite."""
-    parser.add_argument("--materials", default="leather,stone,fabric",
-                        help="procedural materials (default: leather,stone,fabric)")
+    parser.add_argument("--materials", default="leather,stone,fabric,bumps",
+                        help="materials (default: leather,stone,fabric,bumps; bumps: smooth "
+                             "bumps of two scales under scikit-image's grass photo as albedo, "
+                             "brick: the brick photo with its own lightness as relief)")
     parser.add_argument("--bsdf", default="principled,conductor",
                         help="the path tracer's BSDFs for the benches, a row each (the first "
                              "for throughput and noise; default principled,conductor)")
@@ -62,7 +76,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ranks", default="4,8,16,32")
     parser.add_argument("--rank", type=int, default=16, help="rank of the enlargement's sample")
     parser.add_argument("--quilt-seeds", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seeds", default="1",
+                        help="material seeds, a row each (default 1; the photo's own relief "
+                             "of brick has none)")
+    parser.add_argument("--compare", default="--qp-metric plain", metavar="OPTIONS",
+                        help="btf enlarge options of a second enlargement of the same stores, "
+                             "reported beside the default's (default: the paper's plain QP; "
+                             "'' for none)")
+    parser.add_argument("--sets", default="top,random",
+                        help="the enlargement's photos: top (the top light's layer), random "
+                             "(it and 9 other lights), mean (default top,random)")
     parser.add_argument("--parts", default=",".join(PARTS))
 
 
@@ -81,7 +104,7 @@ def _throughput(args, tmp: Path) -> list[dict]:
     s = parse_sampling(args.sampling)
     layers = s.theta_view.size * s.theta_light.size
     rows = []
-    material = args.materials.split(",")[0]
+    material = _procedural(args)
     for renderer in ("shading", "mitsuba"):
         m = measure(_generate(tmp / "t.zarr", material, args.throughput_size, args.sampling,
                               renderer, spp=args.throughput_spp, bsdf=_first_bsdf(args)))
@@ -109,9 +132,9 @@ def _noise(args) -> dict:
     from tasks.sampling import parse_sampling
     from tasks.shading import ShadingModel
 
-    name = args.materials.split(",")[0]
+    name = _procedural(args)
     s = parse_sampling(args.sampling)
-    material = Material(name, seed=args.seed)
+    material = Material(name, seed=_first_seed(args))
     halo = ShadingModel(relief=material.relief).halo(float(s.theta_view.max()),
                                                     float(s.theta_light.max())) + 8
     n = args.noise_size
@@ -183,35 +206,63 @@ def _benches(args, tmp: Path, log) -> list[dict]:
 
     ranks = [int(v) for v in args.ranks.split(",")]
     seeds = [int(v) for v in np.random.default_rng().integers(0, 2**31 - 1, args.quilt_seeds)]
+    material_seeds = [int(v) for v in str(args.seeds).split(",")]
     out = []
     for material in args.materials.split(","):
         for renderer, bsdf in renderers(args):
-            work = tmp / f"{material}-{renderer}-{bsdf}"
-            work.mkdir()
-            extra = (("--renderer", "mitsuba", "--spp", args.spp, "--bsdf", bsdf)
-                     if renderer == "mitsuba" else ())
-            renderer = renderer if bsdf is None else f"mitsuba, {bsdf}"
-            start = time.perf_counter()
-            e = enlarge._material(material, argparse.Namespace(
-                size=args.size, rank=args.rank, sets="top", baselines="tiling,lookup",
-                enlarge_options="", sheet=None, seed=args.seed), work, generate=extra)
-            top = e["sets"]["top"]
-            row = {"material": material, "renderer": renderer,
-                   "compression": _compression(work / "M.zarr", work, ranks),
-                   "enlarge": {"error": top["final"]["error"],
-                               "realism": top["final"]["realism"],
-                               "oracle": top["oracle"]["error"],
-                               "lookup": top["lookup"]["error"],
-                               "tiling": e["baselines"]["tiling"]["error"],
-                               "gap": gap_share(top["final"]["error"], top["lookup"]["error"],
-                                                top["oracle"]["error"]),
-                               "seconds": top["wall"]},
-                   "quilt": _quilting(work / "M.zarr", seeds)}
-            row["seconds"] = time.perf_counter() - start
-            log(f"rendered: {material} ({renderer}) done in {row['seconds']:.0f} s")
-            out.append(row)
-            shutil.rmtree(work)
+            for seed in material_seeds if material != "brick" else material_seeds[:1]:
+                work = tmp / f"{material}-{renderer}-{bsdf}-{seed}"
+                work.mkdir()
+                extra = (("--renderer", "mitsuba", "--spp", args.spp, "--bsdf", bsdf)
+                         if renderer == "mitsuba" else ())
+                name = renderer if bsdf is None else f"mitsuba, {bsdf}"
+                start = time.perf_counter()
+                e = enlarge._material(material, argparse.Namespace(
+                    size=args.size, rank=args.rank, sets=args.sets, baselines="tiling,lookup",
+                    enlarge_options="", sheet=None, seed=seed), work, generate=extra)
+                runs = {"": e}
+                if args.compare.strip():
+                    again = work / "compare"
+                    again.mkdir()
+                    (again / "M.zarr").symlink_to(work / "M.zarr")
+                    runs[args.compare.strip()] = enlarge._material(material, argparse.Namespace(
+                        size=args.size, rank=args.rank, sets=args.sets, baselines="lookup",
+                        enlarge_options=args.compare, sheet=None, seed=seed), again,
+                        generate=None)
+                sets = {}
+                for options, run in runs.items():
+                    for which, r in run["sets"].items():
+                        # one oracle for both: the lower (each is the copy through a QP)
+                        best = min(r2["oracle"]["error"] for r2 in
+                                   (x["sets"][which] for x in runs.values()))
+                        sets[which + (f" ({options})" if options else "")] = {
+                            "error": r["final"]["error"], "realism": r["final"]["realism"],
+                            "oracle": best, "lookup": r["lookup"]["error"],
+                            "tiling": e["baselines"]["tiling"]["error"],
+                            "gap": gap_share(r["final"]["error"], r["lookup"]["error"], best),
+                            "seconds": r["wall"]}
+                row = {"material": material, "renderer": name, "seed": seed,
+                       "compression": _compression(work / "M.zarr", work, ranks),
+                       "enlarge": sets,
+                       "quilt": _quilting(work / "M.zarr", seeds)}
+                row["seconds"] = time.perf_counter() - start
+                log(f"rendered: {material} ({name}, seed {seed}) done in "
+                    f"{row['seconds']:.0f} s; gap " + ", ".join(
+                        f"{k} {v['gap']:.2f}" for k, v in sets.items()))
+                out.append(row)
+                shutil.rmtree(work)
     return out
+
+
+def gap_summary(benches: list[dict]) -> list[dict]:
+    """Worst and median gap share per material, renderer and photo set, over the seeds."""
+    groups: dict[tuple, list[float]] = {}
+    for b in benches:
+        for which, e in b["enlarge"].items():
+            groups.setdefault((b["material"], b["renderer"], which), []).append(e["gap"])
+    return [{"material": m, "renderer": r, "set": w, "seeds": len(g),
+             "worst": float(max(g)), "median": float(np.median(g))}
+            for (m, r, w), g in groups.items()]
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -219,6 +270,7 @@ def run(args: argparse.Namespace) -> dict:
     parts = set(args.parts.split(","))
     tmp = Path(tempfile.mkdtemp(prefix="btf-bench-rendered-"))
     result = {"suite": SUITE, "sampling": args.sampling, "bsdf": args.bsdf, "spp": args.spp,
+              "seeds": args.seeds, "sets": args.sets, "compare": args.compare,
               "throughput_spp": args.throughput_spp,
               "size": args.size, "throughput_size": args.throughput_size,
               "machine": machine(), "git": git_revision()}
@@ -270,15 +322,23 @@ def report(result: dict) -> str:
         for b in result["benches"]:
             lines.append(f"| {b['material']} | {b['renderer']} | " + " | ".join(
                 f"{100 * c['relative']:.2f}%" for c in b["compression"]) + " |")
-        lines += ["", "Enlargement (top-light photo; eq. (11) error; gap = (E - oracle) / "
-                      "(lookup - oracle)):", "",
-                  "| material | renderer | enlarge | oracle | lookup | tiling | gap | realism | "
-                  "s |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += ["", "Enlargement (photos: top = the top light's layer, random = it and 9 "
+                      "other lights; eq. (11) error; gap = (E - oracle) / (lookup - oracle)):",
+                  "",
+                  "| material | renderer | seed | photos | enlarge | oracle | lookup | tiling | "
+                  "gap | realism | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
         for b in result["benches"]:
-            e = b["enlarge"]
-            lines.append(f"| {b['material']} | {b['renderer']} | {e['error']:.4f} | "
-                         f"{e['oracle']:.4f} | {e['lookup']:.4f} | {e['tiling']:.4f} | "
-                         f"{e['gap']:.2f} | {e['realism']:.2f} | {e['seconds']:.0f} |")
+            for which, e in b["enlarge"].items():
+                lines.append(f"| {b['material']} | {b['renderer']} | {b.get('seed', '')} | "
+                             f"{which} | {e['error']:.4f} | {e['oracle']:.4f} | "
+                             f"{e['lookup']:.4f} | {e['tiling']:.4f} | {e['gap']:.2f} | "
+                             f"{e['realism']:.2f} | {e['seconds']:.0f} |")
+        lines += ["", "Gap share over the seeds:", "",
+                  "| material | renderer | photos | seeds | worst | median |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {g['material']} | {g['renderer']} | {g['set']} | {g['seeds']} | "
+                  f"{g['worst']:.2f} | {g['median']:.2f} |"
+                  for g in gap_summary(result["benches"])]
         lines += ["", "Quilting, V = 2 tile sets on three layers of the store, the same "
                       "random seeds for every row:", "",
                   "| material | renderer | failed | seam: worst / median | "

@@ -34,10 +34,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tasks.constrained_blend import ConstraintProjector, blend
+from tasks.constrained_blend import ConstraintProjector, blend, sample_covariance
 from tasks.errors import InvalidParameter
 from tasks.statistical_synthesis import StatisticsParams, impose_statistics, sample_statistics
 from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
+
+METRICS = ("sample", "plain")
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,7 @@ class EnlargementParams:
     statistics_channels: int | None = None  # None: the components holding statistics_energy
     statistics_energy: float = 0.999
     exact: bool = False  # enforce A x = b exactly instead of to the sample's compression error
+    metric: str = "sample"  # the QP's metric: "sample" (the sample's covariance) or "plain"
 
     def __post_init__(self):
         if self.rounds < 1:
@@ -64,6 +67,9 @@ class EnlargementParams:
         if not 0 < self.statistics_energy <= 1:
             raise InvalidParameter("statistics_energy", f"statistics_energy must be in (0, 1], "
                                                         f"got {self.statistics_energy}")
+        if self.metric not in METRICS:
+            raise InvalidParameter("metric", f"metric must be one of {', '.join(METRICS)}, "
+                                             f"got {self.metric!r}")
         if not self.beta >= 0 or self.alpha + self.beta <= 0:
             raise InvalidParameter("beta", f"beta must be non-negative (and alpha + beta > 0), "
                                            f"got {self.beta}")
@@ -108,7 +114,7 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
     sample = np.asarray(sample, np.float32)
     target_constraints = np.asarray(target_constraints, np.float32)
     shape = target_constraints.shape[:2]
-    projector = ConstraintProjector.of(rows)
+    projector = qp_projector(rows, sample, params)
     noise = 0.0 if params.exact else projector.rms_residual(sample, sample_constraints)
     start = time.perf_counter()
     to = texture_optimization(sample, sample_constraints, target_constraints, shape=shape,
@@ -125,6 +131,13 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         residual=projector.residual(rounds.coefficients, target_constraints),
         residual_rms=projector.rms_residual(rounds.coefficients, target_constraints),
         noise=noise, damping=rounds.damping, energy=to.energy, constraint_rank=projector.rank)
+
+
+def qp_projector(rows: np.ndarray, sample: np.ndarray,
+                 params: EnlargementParams) -> ConstraintProjector:
+    """The QP's projector: in the sample's covariance metric, or plain (``params.metric``)."""
+    return ConstraintProjector.of(
+        rows, metric=sample_covariance(sample) if params.metric == "sample" else None)
 
 
 def statistics_channels(sample: np.ndarray, params: EnlargementParams) -> int:

@@ -104,13 +104,15 @@ def nearest_abrdfs(u: np.ndarray, sample_coef: np.ndarray, transform: Transform,
 
 def oracle(u: np.ndarray, sample_coef: np.ndarray, transform: Transform, truth: np.ndarray, *,
            rows: np.ndarray | None = None, values: np.ndarray | None = None,
-           noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+           noise: float = 0.0, metric: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     """The best a method composing the sample's ABRDFs can reach, given the ground truth.
 
     Every texel copies the sample ABRDF nearest to the truth's (:func:`nearest_abrdfs`);
     with constraint ``rows`` ``(G, K)`` and the target's constraint ``values`` ``(H, W, G)``
     (log domain) the copy then goes through the same QP as the enlargement's result
-    (:func:`tasks.constrained_blend.blend`, left to a residual of ``noise``). Returns the
+    (:func:`tasks.constrained_blend.blend`, left to a residual of ``noise``, in ``metric``:
+    :meth:`tasks.constrained_blend.ConstraintProjector.of`). Returns the
     copy and the constrained copy (the same array without constraints), ``(H, W, K)``.
     """
     from tasks.constrained_blend import ConstraintProjector, blend
@@ -120,7 +122,8 @@ def oracle(u: np.ndarray, sample_coef: np.ndarray, transform: Transform, truth: 
     copy = copy.reshape(*truth.shape[:2], -1)
     if rows is None:
         return copy, copy
-    constrained, _ = blend(copy, copy, values, ConstraintProjector.of(rows), noise=noise)
+    constrained, _ = blend(copy, copy, values, ConstraintProjector.of(rows, metric=metric),
+                           noise=noise)
     return copy, constrained
 
 

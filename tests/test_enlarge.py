@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import zarr
+from scipy import ndimage
 
 from benchmarks.enlarge import abrdf_error, lookup_baseline, truth_rows
 from helpers import SLOW_PROCESSES, Killed, generate_store, killed_before_unit, no_partial_outputs
@@ -80,6 +81,53 @@ def test_the_result_beats_the_lookup_and_tiling_baselines(inputs, enlarged):
     tiled = np.roll(np.tile(coef, (2, 2, 1)), ORIGIN, axis=(0, 1))
     tiling = abrdf_error(u, tiled, Transform("log", eps), truth, mask)
     assert result < lookup and result < tiling, (result, lookup, tiling)
+
+
+@pytest.mark.parametrize("material", ["bumps", pytest.param("stone", marks=pytest.mark.slow),
+                                      pytest.param("wood", marks=pytest.mark.slow)])
+def test_with_several_photos_the_sample_metric_qp_lands_nearer_the_truth(material, btf,
+                                                                          tmp_path):
+    """The QP in the sample's covariance (the default) against the paper's plain one."""
+    from pipeline.images import write_png
+
+    if material == "bumps":  # smooth bumps under a photo's albedo (issue 57)
+        rng = np.random.default_rng(5)
+        photo = tmp_path / "albedo.png"
+        write_png(photo, (255 * ndimage.gaussian_filter(rng.uniform(0.1, 0.9, (SIZE, SIZE, 3)),
+                                                        (1.0, 1.0, 0))).astype(np.uint8))
+        source = ("--albedo", photo, "--height", "bumps", "--seed", "2", "--scale", "12")
+    else:
+        source = ("--material", material, "--size", SIZE, "--seed", "3")
+    m = tmp_path / "M.zarr"
+    region = f"{ORIGIN[0]}:{ORIGIN[0] + HALF},{ORIGIN[1]}:{ORIGIN[1] + HALF}"
+    assert btf("generate", m, *source, "--sampling", "abtf:8,3", "--quiet").code == 0
+    theta = zarr.open_group(m, mode="r")["theta_light"][...]
+    chosen = [int(np.argmin(theta)), 3, 9, 17, len(theta) - 2]
+    for args in (("crop", m, tmp_path / "S.zarr", "--region", region),
+                 ("compress", tmp_path / "S.zarr", tmp_path / "S_svd.zarr", "--rank", 16),
+                 ("crop", m, tmp_path / "C.zarr", "--light", ",".join(map(str, chosen)))):
+        assert btf(*args, "--quiet").code == 0
+    truth = truth_rows(m)
+    mask = np.ones((SIZE, SIZE), bool)
+    mask[ORIGIN[0] : ORIGIN[0] + HALF, ORIGIN[1] : ORIGIN[1] + HALF] = False
+    errors, residuals = {}, {}
+    for metric in ("sample", "plain"):
+        out = tmp_path / f"{metric}.zarr"
+        done = btf("enlarge", tmp_path / "S_svd.zarr", tmp_path / "C.zarr", out, "--qp-metric",
+                   metric, "--quiet")
+        assert done.code == 0, done.err
+        group = zarr.open_group(out, mode="r")
+        info = group.attrs["enlargement"]
+        assert info["parameters"]["metric"] == metric
+        eps = group.attrs["transform"]["eps"]
+        errors[metric] = abrdf_error(group["U"][...].reshape(-1, 16).astype(np.float64),
+                                     group["V"][...] * group["S"][...], Transform("log", eps),
+                                     truth, mask)
+        residuals[metric] = (info["constraint_residual_rms"],
+                             info["sample_constraint_residual_rms"])
+    assert errors["sample"] < 0.9 * errors["plain"], errors
+    # the photos are met as closely as the plain QP's discrepancy principle meets them
+    assert residuals["sample"][0] <= max(residuals["plain"][0], residuals["sample"][1]) * 1.05
 
 
 def test_enlarge_output_works_with_the_other_stages(inputs, enlarged, btf, tmp_path):

@@ -81,6 +81,85 @@ def test_the_damped_qp_leaves_the_asked_residual_and_is_the_tikhonov_minimiser()
     assert np.linalg.norm(x - m) < 0.75 * np.linalg.norm(exact - m)
 
 
+def _covariance(rng, k):
+    basis = rng.standard_normal((k, k))
+    return basis @ np.diag(np.geomspace(4.0, 0.01, k)) @ basis.T
+
+
+@pytest.mark.parametrize("damping", [0.0, 0.3])
+def test_the_qp_in_a_covariance_metric_is_the_conditional_mean(damping):
+    rng = np.random.default_rng(11)
+    k = 7
+    a = rng.standard_normal((3, k))
+    sigma = _covariance(rng, k)
+    m = rng.standard_normal((40, k))
+    b = rng.standard_normal((40, 3))
+    projector = ConstraintProjector.of(a, metric=sigma)
+    x = projector.project(m, b, damping=damping)
+    # m + Sigma A^T (A Sigma A^T + damping I)^-1 (b - A m): the Gaussian conditional mean
+    gain = sigma @ a.T @ np.linalg.inv(a @ sigma @ a.T + damping * np.eye(3))
+    assert np.allclose(x, m + (b - m @ a.T) @ gain.T, atol=1e-8)
+    if damping == 0:
+        assert np.abs(x @ a.T - b).max() < 1e-8
+    # the identity metric is the paper's QP
+    plain = ConstraintProjector.of(a).project(m, b, damping=damping)
+    assert np.allclose(ConstraintProjector.of(a, metric=np.eye(k)).project(m, b,
+                                                                           damping=damping),
+                       plain, atol=1e-10)
+    assert not np.allclose(x, plain, atol=1e-3)
+
+
+def test_the_prior_damping_finds_the_scale_and_beats_the_plain_qp_on_texels_of_that_prior():
+    """Texels drawn around ``m`` with covariance ``c Sigma`` and seen through noisy photos."""
+    rng = np.random.default_rng(12)
+    k, texels, noise = 8, 20000, 0.05
+    sigma = _covariance(rng, k)
+    a = rng.standard_normal((4, k))
+    worst = 0.0
+    for c in (0.02, 0.5):
+        m = rng.standard_normal((texels, k))
+        truth = m + rng.multivariate_normal(np.zeros(k), c * sigma, texels)
+        b = truth @ a.T + noise * rng.standard_normal((texels, 4))
+        projector = ConstraintProjector.of(a, metric=sigma)
+        damping = projector.prior_damping(m, b, noise)
+        assert damping == pytest.approx(noise**2 / c, rel=0.1)
+        x, used = blend(m, m, b, projector, noise=noise)
+        assert used == damping
+        plain, _ = blend(m, m, b, ConstraintProjector.of(a), noise=noise)
+        error, plain_error = (float(np.sqrt(np.mean((y - truth) ** 2))) for y in (x, plain))
+        worst = max(worst, error / plain_error)
+    assert worst < 0.6  # the conditional mean is far nearer the truth than the shortest change
+    # photos within their noise of m: nothing to correct
+    quiet = m @ a.T + 0.5 * noise * rng.standard_normal((texels, 4))
+    x, used = blend(m, m, quiet, ConstraintProjector.of(a, metric=sigma), noise=noise)
+    assert used == np.inf and np.allclose(x, m, atol=1e-6)
+
+
+def test_the_metric_step_is_kept_within_its_trust_region_and_the_plain_qp_does_the_rest():
+    from tasks.constrained_blend import TRUST
+
+    rng = np.random.default_rng(13)
+    k, texels = 6, 400
+    sigma = _covariance(rng, k)
+    a = rng.standard_normal((2, k))
+    m = rng.standard_normal((texels, k))
+    b = m @ a.T + 0.1 * rng.standard_normal((texels, 2))
+    b[:20] += 30.0  # a few texels the synthesis got badly wrong
+    projector = ConstraintProjector.of(a, metric=sigma)
+    x, damping = blend(m, m, b, projector)  # noise 0: the constraints are met exactly
+    assert damping == 0.0 and np.abs(x @ a.T - b).max() < 1e-4
+    full = projector.project(m, b)
+    length = np.linalg.norm((full - m) @ projector.whiten.T, axis=1)
+    limit = TRUST * np.median(length)
+    inside = length <= limit
+    assert inside.sum() >= texels // 2 and not inside[:20].any()
+    assert np.allclose(x[inside], full[inside], atol=1e-5)  # short steps: the metric's own
+    capped = m + (full - m) * (limit / length)[:, None]
+    rest = ConstraintProjector.of(a).project(capped[~inside], b[~inside])
+    assert np.allclose(x[~inside], rest, atol=1e-5)  # long ones: capped, then the plain QP
+    assert not np.allclose(x[~inside], full[~inside], atol=1e-2)
+
+
 def _smooth_field(rng, shape, k, sigma=2.5):
     field = ndimage.gaussian_filter(rng.standard_normal((*shape, k)), (sigma, sigma, 0),
                                     mode="wrap")

@@ -173,13 +173,13 @@ def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_pat
 
     monkeypatch.setenv("BTF_RATES", str(tmp_path / "rates.json"))  # not the user's rates
     out = tmp_path / "r.json"
-    assert bench(["rendered", "--materials", "leather", "--bsdf", "principled", "--size", "64",
+    assert bench(["rendered", "--materials", "bumps", "--bsdf", "principled", "--size", "64",
                   "--throughput-size", "32", "--throughput-spp", "4", "--spp", "4",
                   "--noise-spp", "1,4", "--noise-size", "16", "--ranks", "2,8", "--rank", "8",
                   "--quilt-seeds", "1", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     for heading in ("Throughput", "Noise of the path tracer", "Compression", "Enlargement",
-                    "Quilting"):
+                    "Gap share over the seeds", "Quilting"):
         assert heading in text, heading
     result = json.loads(out.read_text())
     noise = result["noise"]["rows"]
@@ -189,7 +189,10 @@ def test_btf_bench_rendered_runs_end_to_end_and_reports_every_part(llvm, tmp_pat
     for r in rows:
         errors = [c["error"] for c in r["compression"]]
         assert errors[1] < errors[0]  # rank 8 is closer than rank 2
-        e = r["enlarge"]
-        assert e["oracle"] <= e["error"] and e["oracle"] < e["lookup"]
+        assert r["material"] == "bumps" and set(r["enlarge"]) == {
+            "top", "random", "top (--qp-metric plain)", "random (--qp-metric plain)"}
+        for e in r["enlarge"].values():
+            assert e["oracle"] <= e["error"] and e["oracle"] < e["lookup"]
+    assert result["noise"]["material"] == "leather"  # procedural: the first, or leather
     assert "generate_path_samples_per_core_second" in json.loads(
         (tmp_path / "rates.json").read_text())

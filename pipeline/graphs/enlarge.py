@@ -279,13 +279,13 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
 
     from pipeline.resume import Progress
     from pipeline.stores.base import location
-    from tasks.constrained_blend import ConstraintProjector
+    from tasks.enlargement import qp_projector
     from tasks.texture_optimization import SampleLevel, leading_components
 
     to = params.texture
     rng = np.random.default_rng(seed)
     rotation = leading_components(sample, to.search_energy)
-    projector = ConstraintProjector.of(rows)
+    projector = qp_projector(rows, sample, params)
     noise = 0.0 if params.exact else projector.rms_residual(sample, sample_values)
     big_h, big_w = guide.shape
     halo = HALO * to.patch

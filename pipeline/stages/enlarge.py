@@ -60,7 +60,7 @@ from pipeline.stores.base import (
     read_directions,
 )
 from pipeline.stores.compressed import create_compressed_store
-from tasks.enlargement import EnlargementParams, enlarge, mean_colour_rows
+from tasks.enlargement import METRICS, EnlargementParams, enlarge, mean_colour_rows
 from tasks.registration import AMBIGUITY, Match, locate
 from tasks.sampling import nearest_layer
 from tasks.statistical_synthesis import StatisticsParams
@@ -123,6 +123,13 @@ class EnlargeParams:
     exact_constraints: bool = option(False, help="make the result reproduce the photos exactly "
                                                  "(the paper's QP) rather than to within the "
                                                  "sample's own compression error of them")
+    qp_metric: str = option(
+        "sample", choices=METRICS,
+        help="how the QP measures a texel's departure from the synthesis while it meets the "
+             "photos: sample (in the sample's covariance of coefficients: a photo's misfit is "
+             "explained by the ways the sample's texels vary together, e.g. albedo or slope, "
+             "which change every layer; the default) or plain (the paper's: the shortest "
+             "change, mostly in the photos' own layers)")
     rounds: int = option(5, metavar="N", help="at most N rounds of statistics and QP")
     beta: float = option(0.25, metavar="B", help="weight of the statistical synthesis against "
                                                  "Texture Optimization (weight 1) in the QP")
@@ -177,7 +184,7 @@ class EnlargeParams:
                                               iterations=self.iterations, search=self.search),
             statistics=StatisticsParams() if self.statistics else None,
             rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints,
-            statistics_energy=self.statistics_energy)
+            statistics_energy=self.statistics_energy, metric=self.qp_metric)
 
 
 @dataclasses.dataclass(frozen=True)
