@@ -229,7 +229,7 @@ def _photo(params: GenerateParams) -> tuple[Fields, dict]:
     info = {"albedo_image": str(path)}
     if params.height == "bumps":
         scale = float(PHOTO_SCALE if params.scale is None else params.scale)
-        relief = bump_relief(params.scale)
+        relief = bump_relief(scale)
         height = bump_height(*pixels.shape[:2], seed=params.seed, scale=scale, relief=relief)
         info.update(height="bumps", seed=params.seed, scale=scale)
     else:
