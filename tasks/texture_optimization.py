@@ -9,7 +9,9 @@ grid of spacing ``n / 4`` looks like some neighbourhood ``z_p`` of the sample::
 alternating an E-step (find the most similar sample neighbourhood of every output
 neighbourhood) and an M-step (every texel becomes the weighted mean of the sample texels the
 overlapping matches put there; Kwatra's robust weights ``||.||^(r-2)``, ``r = 0.8``, make this
-an iteratively reweighted least squares, which never increases ``E``).
+an iteratively reweighted least squares, which never increases ``E``). At the finest level the
+last M-step moves each texel ``pick`` of the way to the one candidate texel that fits it best
+(:func:`pick_vote`: an extension, issue 57; the mean blurs texels the photos tell apart).
 
 **Guide (the constraint images).** A texel's feature ``f`` is its coefficients stacked with
 ``sqrt(lambda)`` times its constraint values (log domain): the sample's own constraint images
@@ -74,6 +76,9 @@ class TextureOptimizationParams:
     coherence: int = 4  # k of k-coherence: similar sample neighbourhoods kept per one (0: the
     # coherent search has nothing to look at besides the neighbours' matches; it then runs
     # the exact search instead)
+    pick: float = 0.5  # share of the finest level's last vote given to the candidate texel
+    # that fits each texel best (:func:`pick_vote`; 0: Kwatra's weighted mean alone)
+    pick_lookups: int = 8  # sample texels nearest to a texel's guide added to its candidates
 
     def __post_init__(self):
         if self.levels < 1:
@@ -96,6 +101,11 @@ class TextureOptimizationParams:
         if self.coherence < 0:
             raise InvalidParameter("coherence",
                                    f"coherence must be non-negative, got {self.coherence}")
+        if not 0 <= self.pick <= 1:
+            raise InvalidParameter("pick", f"pick must be in [0, 1], got {self.pick}")
+        if self.pick_lookups < 0:
+            raise InvalidParameter("pick_lookups",
+                                   f"pick_lookups must be non-negative, got {self.pick_lookups}")
 
     @property
     def spacing(self) -> int:
@@ -227,11 +237,23 @@ class SampleLevel:
         self.mean = mean.astype(np.float32)
         self.projected = _project(self.features, self.ys, self.xs, p, self.basis, self.mean)
         self._index = None
+        self._guide_tree = None
         self.coherence = ((table or coherence)(self.projected, params.coherence)
                           if params.search == "coherent" and params.coherence else None)
 
     def __getstate__(self):
-        return {**self.__dict__, "_index": None}
+        return {**self.__dict__, "_index": None, "_guide_tree": None}
+
+    @property
+    def guide_tree(self):
+        """A k-d tree over the sample texels' weighted guide values (built on first use)."""
+        if self._guide_tree is None:
+            from scipy.spatial import cKDTree
+
+            lead = self.rotation.shape[1]
+            self._guide_tree = cKDTree(
+                self.features.reshape(-1, self.features.shape[-1])[:, lead:])
+        return self._guide_tree
 
     @property
     def index(self):
@@ -495,7 +517,7 @@ def texture_optimization(sample: np.ndarray, sample_guide: np.ndarray | None,
         target_l = downsample(target_guide, factor) if guided else None
         x = (initial(source, target_l, level_shape, params, rng) if x is None
              else upsample(x, level_shape))
-        x, energies = optimize(source, x, target_l, params)
+        x, energies = optimize(source, x, target_l, params, final=level == 0)
         result.energy.append(energies)
         result.seconds.append(time.perf_counter() - start)
     result.coefficients = x
@@ -503,10 +525,13 @@ def texture_optimization(sample: np.ndarray, sample_guide: np.ndarray | None,
 
 
 def optimize(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray | None,
-             params: TextureOptimizationParams) -> tuple[np.ndarray, list[float]]:
+             params: TextureOptimizationParams, *, final: bool = False
+             ) -> tuple[np.ndarray, list[float]]:
     """EM iterations of one level from the coefficients ``x`` (``(H, W, K)``).
 
     Returns the optimised coefficients and the energy after each E-step (never increasing).
+    ``final`` (the finest level): the last M-step also gives ``params.pick`` of each texel to
+    its best candidate (:func:`pick_vote`); the energies are those of the matches, before it.
     """
     p, s, r = params.patch, params.spacing, params.robust
     shape = x.shape[:2]
@@ -537,7 +562,69 @@ def optimize(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray | None
         x = _vote(source.coefficients, shape, qy, qx, my, mx, _robust_weights(d, r), p)
         if len(energies) > 1 and energies[-1] >= energies[-2] * (1 - 1e-7):
             break  # no neighbourhood found a better match: converged
+    if (final and params.pick > 0 and target_guide is not None and source.guide is not None
+            and target_guide.shape[-1] > 0):
+        x = pick_vote(source, x, target_guide, qy, qx, match, params)
     return x, energies
+
+
+PICK_QUERIES = 1 << 15  # texels whose nearest sample guides are searched at a time
+PICK_EPS = 1.0  # the lookups' k-d tree search: within 2x the true distances (the pick is exact
+# among the candidates; eps 0 and 2 picked the same on stone: error 0.0202 either way)
+
+
+def pick_vote(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray, qy: np.ndarray,
+              qx: np.ndarray, match: np.ndarray, params: TextureOptimizationParams
+              ) -> np.ndarray:
+    """The finest level's last M-step, moved ``params.pick`` of the way to each texel's pick.
+
+    Kwatra's M-step makes every texel the weighted mean of what the overlapping matches put
+    there. Where the photos say more than a neighbourhood does (several photos under
+    different lights pin down a texel's slope and albedo), that mean blurs texels that each
+    fit the photos into one that fits none of them. A texel's candidates are the sample texels
+    its ``patch^2`` overlapping matches put there and the ``params.pick_lookups`` sample texels
+    whose constraint values are nearest to its own (approximately: a k-d tree searched with
+    ``eps = PICK_EPS``, within 2x the true distances; a texel the sample holds exactly is always
+    found); its pick is the one
+    nearest in the search's own feature space, to the mean's leading coefficients and to the
+    target's weighted constraint values (ties: the first, matches before lookups, in offset
+    order). Returns ``(1 - pick) * mean + pick * picked``: half and half measured best over
+    one and ten photos on rendered materials (BENCHMARKS.md, issue 57), since where one photo
+    leaves a texel's slope open the mean of the plausible candidates is the better guess.
+    Memory is a few arrays of the output's size; the same bits for the same inputs.
+    """
+    h, w, k = x.shape
+    p, sw = params.patch, source.features.shape[1]
+    query = _features(x, target_guide, source.rotation, source.guide_weight).reshape(h * w, -1)
+    features = source.features.reshape(-1, source.features.shape[-1])
+    best = np.zeros(h * w, np.int64)
+    best_d = np.full(h * w, np.inf, np.float32)
+
+    def offer(texels: np.ndarray, candidates: np.ndarray) -> None:
+        # ``texels`` are distinct within a call (one offset of the grid's distinct origins, or
+        # a range), so plain indexing keeps each one's minimum; ties keep the earlier offer
+        d = features[candidates] - query[texels]
+        d = np.einsum("qc,qc->q", d, d)
+        better = d < best_d[texels]
+        best_d[texels[better]] = d[better]
+        best[texels[better]] = candidates[better]
+
+    my, mx = source.origin(match)
+    for dy in range(p):
+        for dx in range(p):
+            offer((qy + dy) * w + qx + dx, (my + dy) * sw + mx + dx)
+    lookups = min(params.pick_lookups, len(features))
+    if lookups:
+        lead = source.rotation.shape[1]
+        tree = source.guide_tree
+        for start in range(0, h * w, PICK_QUERIES):
+            texels = np.arange(start, min(start + PICK_QUERIES, h * w))
+            _, found = tree.query(query[texels, lead:], k=lookups, eps=PICK_EPS)
+            for column in found.reshape(len(texels), lookups).T:
+                offer(texels, column)
+    picked = source.coefficients.reshape(-1, k)[best].reshape(h, w, k)
+    pick = np.float32(params.pick)
+    return ((np.float32(1) - pick) * x + pick * picked).astype(np.float32)
 
 
 def leading_components(sample: np.ndarray, energy: float) -> np.ndarray:

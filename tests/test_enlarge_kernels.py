@@ -20,7 +20,13 @@ from tasks.statistical_synthesis import (
     sample_statistics,
 )
 from tasks.svd import refactor
-from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
+from tasks.texture_optimization import (
+    SampleLevel,
+    TextureOptimizationParams,
+    leading_components,
+    pick_vote,
+    texture_optimization,
+)
 
 
 def _kkt(a, b, m):
@@ -184,6 +190,87 @@ def test_texture_optimization_never_increases_its_energy_and_recovers_a_rearrang
     assert error < 0.15  # of unit-variance channels; a random sample texel gives ~1.4
     shuffled = rng.permutation(target.reshape(-1, 5)).reshape(target.shape)
     assert np.sqrt(np.mean((shuffled - target) ** 2)) > 1.0
+
+
+@pytest.mark.parametrize("lookups", [0, 5])
+def test_the_pick_is_the_nearest_candidate_in_the_search_features(lookups, monkeypatch):
+    import tasks.texture_optimization
+
+    monkeypatch.setattr(tasks.texture_optimization, "PICK_EPS", 0.0)  # exact lookups
+    rng = np.random.default_rng(11)
+    params = TextureOptimizationParams(patch=4, pick=0.3, pick_lookups=lookups)
+    sample = rng.standard_normal((20, 24, 6)).astype(np.float32)
+    guide = rng.standard_normal((20, 24, 4)).astype(np.float32)
+    source = SampleLevel(sample, guide, leading_components(sample, 0.9), 2.0, params, rng)
+    x = rng.standard_normal((13, 11, 6)).astype(np.float32)
+    target = rng.standard_normal((13, 11, 4)).astype(np.float32)
+    qy, qx = (a.ravel() for a in np.meshgrid(np.arange(10), np.arange(8), indexing="ij"))
+    match = rng.integers(0, len(source.ys) * source.width, len(qy))
+    out = pick_vote(source, x, target, qy, qx, match, params)
+    # brute force: every texel's candidates listed, distances in float64
+    lead = source.rotation
+    feat_s = np.concatenate([sample @ lead, 2.0 * guide], -1).reshape(-1, lead.shape[1] + 4)
+    feat_x = np.concatenate([x @ lead, 2.0 * target], -1).reshape(-1, lead.shape[1] + 4)
+    my, mx = source.origin(match)
+    picked = np.empty((13 * 11, 6), np.float32)
+    for t in range(13 * 11):
+        ty, tx = divmod(t, 11)
+        cands = [(my[i] + ty - qy[i]) * 24 + mx[i] + tx - qx[i] for i in range(len(qy))
+                 if 0 <= ty - qy[i] < 4 and 0 <= tx - qx[i] < 4]
+        g = ((feat_s[:, lead.shape[1]:] - feat_x[t, lead.shape[1]:]) ** 2).sum(1)
+        cands += list(np.argsort(g, kind="stable")[:lookups])
+        d = ((feat_s[cands].astype(np.float64) - feat_x[t]) ** 2).sum(1)
+        picked[t] = sample.reshape(-1, 6)[cands[int(np.argmin(d))]]
+    expected = 0.7 * x + 0.3 * picked.reshape(13, 11, 6)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-6)
+
+
+def test_the_pick_tells_apart_texels_the_guide_tells_apart_and_the_mean_blurs():
+    # texels without neighbourhood structure, told apart only by an informative guide (8
+    # values of 5 coefficients): a weighted mean of the overlapping matches blurs them
+    rng = np.random.default_rng(3)
+    sample = rng.standard_normal((48, 48, 5)).astype(np.float32)
+    rows = rng.standard_normal((8, 5)).astype(np.float32)
+    target = rng.permutation(sample.reshape(-1, 5)).reshape(sample.shape)
+    errors = {}
+    for pick in (0.0, 0.5, 1.0):
+        result = texture_optimization(
+            sample, sample @ rows.T, target @ rows.T, shape=(48, 48),
+            params=TextureOptimizationParams(levels=1, patch=4, iterations=3, pick=pick),
+            guide_weight=3.0, seed=2)
+        errors[pick] = float(np.sqrt(np.mean((result.coefficients - target) ** 2)))
+    assert errors[1.0] < 0.05  # every texel's own: the lookups find it
+    assert errors[0.5] < 0.6 * errors[0.0]
+    assert errors[0.0] > 0.3  # the mean of 16 texels fits the guide on average, no texel
+
+
+def test_only_the_finest_level_picks_and_a_tie_keeps_the_first_candidate():
+    rng = np.random.default_rng(4)
+    sample = _smooth_field(rng, (40, 40), 5)
+    rows = rng.standard_normal((6, 5)).astype(np.float32)
+    target = np.roll(sample, (7, -5), axis=(0, 1))
+    results = [texture_optimization(
+        sample, sample @ rows.T, target @ rows.T, shape=(40, 40),
+        params=TextureOptimizationParams(levels=2, patch=4, iterations=2, pick=pick),
+        guide_weight=3.0, seed=1) for pick in (0.0, 0.5)]
+    # the coarse level and the finest level's matches are the same: only the last vote moved
+    assert results[0].energy == results[1].energy
+    assert not np.array_equal(results[0].coefficients, results[1].coefficients)
+    # a sample of one texel repeated: every candidate ties, and the first (a match) is kept
+    params = TextureOptimizationParams(patch=2, pick=1.0, pick_lookups=3)
+    flat = np.ones((4, 4, 2), np.float32)
+    source = SampleLevel(flat, np.ones((4, 4, 1), np.float32), np.eye(2, dtype=np.float32),
+                         1.0, params, rng)
+    source.coefficients = rng.standard_normal((4, 4, 2)).astype(np.float32)  # tells them apart
+    qy, qx = (a.ravel() for a in np.meshgrid(np.arange(2), np.arange(2), indexing="ij"))
+    match = np.array([4, 0, 2, 6])  # origins (1, 1), (0, 0), (0, 2), (2, 0) in a 3-wide grid
+    out = pick_vote(source, np.ones((3, 3, 2), np.float32), np.ones((3, 3, 1), np.float32),
+                    qy, qx, match, params)
+    my, mx = source.origin(match)
+    # texel (0, 0) is covered by match 0 only, at offset (0, 0): sample texel (1, 1)
+    np.testing.assert_array_equal(out[0, 0], source.coefficients[1, 1])
+    # texel (1, 1): the first offer is offset (0, 0) of the grid origin (1, 1), match 3
+    np.testing.assert_array_equal(out[1, 1], source.coefficients[my[3], mx[3]])
 
 
 def test_statistics_imposed_on_itself_change_little_and_pull_noise_towards_the_sample():

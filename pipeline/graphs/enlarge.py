@@ -170,7 +170,7 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
         x = initial(source, target, (grown[1] - grown[0], grown[3] - grown[2]), params, None)
     else:
         x = _start(out, coarse, coarse_shape, shape, grown)
-    x, energies = optimize(source, x, target, params)
+    x, energies = optimize(source, x, target, params, final=finish is not None)
     report = {"energy": energies}
     if finish is not None:
         projector, noise, enlargement, statistics = finish

@@ -110,6 +110,13 @@ class EnlargeParams:
                               "cost per texel that does not grow with the sample) or 'exact' "
                               "(the whole sample for every neighbourhood, every time: the "
                               "paper's)")
+    pick: float = option(
+        0.5, metavar="F",
+        help="share of each texel's last Texture Optimization vote given to the one candidate "
+             "texel that fits it best (among those its overlapping matches put there and the "
+             "sample texels whose photo values are nearest its own) instead of their "
+             "weighted mean: 0 is the paper's mean alone, which blurs texels the photos tell "
+             "apart (several photos under different lights); see docs/enlargement.md")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -162,6 +169,8 @@ class EnlargeParams:
             raise ParamError("sample_origin", f"expected Y,X, got {self.sample_origin}")
         if self.lambda_ is not None and not self.lambda_ > 0:
             raise ParamError("lambda", f"must be positive, got {self.lambda_}")
+        if not 0 <= self.pick <= 1:
+            raise ParamError("pick", f"must be in [0, 1], got {self.pick}")
         if not self.max_angle >= 0:
             raise ParamError("max_angle", f"must be non-negative, got {self.max_angle}")
         if self.tile is not None and self.tile != 0 and self.tile < 2 * HALO * self.patch:
@@ -181,7 +190,8 @@ class EnlargeParams:
         """The kernels' parameters."""
         return EnlargementParams(
             texture=TextureOptimizationParams(levels=self.levels, patch=self.patch,
-                                              iterations=self.iterations, search=self.search),
+                                              iterations=self.iterations, search=self.search,
+                                              pick=self.pick),
             statistics=StatisticsParams() if self.statistics else None,
             rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints,
             statistics_energy=self.statistics_energy, metric=self.qp_metric)
