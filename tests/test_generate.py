@@ -253,6 +253,28 @@ def test_bumps_are_smooth_span_their_relief_and_do_not_repeat():
             assert np.sqrt(np.mean((a - b) ** 2)) > 0.1 * h.std(), (axis, shift)
 
 
+def test_a_top_light_cannot_tell_bumps_from_their_flip_and_grazing_lights_can():
+    # why one top-lit photo leaves the enlargement's gap on the bumps (issue 57): the relief
+    # turned upside down (domes for hollows) shades the same under a top light, texel for
+    # texel, and differs under every other light by about as much as the texture varies
+    from tasks.materials import image_fields
+    from tasks.shading import ShadingModel, render_block
+
+    relief = bump_relief(20.0)
+    h = bump_height(96, 96, seed=3, scale=20.0, relief=relief)
+    albedo = np.random.default_rng(3).uniform(0.1, 0.9, (96, 96, 3)).astype(np.float32)
+    model = ShadingModel(relief=relief)
+    theta, phi = np.array([0.0, 45.0, 60.0, 75.0]), np.array([0.0, 90.0, 180.0, 270.0])
+    layers = [np.log(1e-4 + render_block(
+        image_fields(albedo, relief=relief, height=field), halo=model.halo(0.0, 75.0),
+        theta_view=np.zeros(1), phi_view=np.zeros(1), theta_light=theta, phi_light=phi,
+        model=model)[0].astype(np.float64)) for field in (h, relief - h)]
+    apart = np.sqrt(np.mean((layers[0] - layers[1]) ** 2, axis=(1, 2, 3)))
+    spread = layers[0].std(axis=(1, 2, 3))
+    assert apart[0] < 1e-4 * spread[0]
+    assert np.all(apart[1:] > 0.5 * spread[1:])
+
+
 def test_a_missing_or_broken_photo_is_named(tmp_path, btf):
     result = btf("generate", tmp_path / "s.zarr", "--albedo", tmp_path / "nope.png")
     assert result.code == 1 and "nope.png: albedo image not found" in result.err
