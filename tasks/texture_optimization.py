@@ -585,13 +585,14 @@ def pick_vote(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray, qy: 
     its ``patch^2`` overlapping matches put there and the ``params.pick_lookups`` sample texels
     whose constraint values are nearest to its own (approximately: a k-d tree searched with
     ``eps = PICK_EPS``, within 2x the true distances; a texel the sample holds exactly is always
-    found); its pick is the one
-    nearest in the search's own feature space, to the mean's leading coefficients and to the
-    target's weighted constraint values (ties: the first, matches before lookups, in offset
-    order). Returns ``(1 - pick) * mean + pick * picked``: half and half measured best over
-    one and ten photos on rendered materials (BENCHMARKS.md, issue 57), since where one photo
-    leaves a texel's slope open the mean of the plausible candidates is the better guess.
-    Memory is a few arrays of the output's size; the same bits for the same inputs.
+    found); its pick is the one nearest in the search's own feature space, to the mean's
+    leading coefficients and to the target's weighted constraint values (ties: the first,
+    matches before lookups, in offset order). Returns ``(1 - pick) * mean + pick * picked``:
+    half and half measured best over one and ten photos on rendered materials (BENCHMARKS.md,
+    issue 57), since where one photo leaves a texel's slope open the mean of the plausible
+    candidates is the better guess.
+    Memory is a few arrays of the output's size and differences of :data:`PICK_QUERIES`
+    texels at a time; the same bits for the same inputs.
     """
     h, w, k = x.shape
     p, sw = params.patch, source.features.shape[1]
@@ -602,12 +603,15 @@ def pick_vote(source: SampleLevel, x: np.ndarray, target_guide: np.ndarray, qy: 
 
     def offer(texels: np.ndarray, candidates: np.ndarray) -> None:
         # ``texels`` are distinct within a call (one offset of the grid's distinct origins, or
-        # a range), so plain indexing keeps each one's minimum; ties keep the earlier offer
-        d = features[candidates] - query[texels]
-        d = np.einsum("qc,qc->q", d, d)
-        better = d < best_d[texels]
-        best_d[texels[better]] = d[better]
-        best[texels[better]] = candidates[better]
+        # a range), so plain indexing keeps each one's minimum; ties keep the earlier offer.
+        # PICK_QUERIES at a time: the differences are (texels, features) floats
+        for a in range(0, len(texels), PICK_QUERIES):
+            t, c = texels[a : a + PICK_QUERIES], candidates[a : a + PICK_QUERIES]
+            d = features[c] - query[t]
+            d = np.einsum("qc,qc->q", d, d)
+            better = d < best_d[t]
+            best_d[t[better]] = d[better]
+            best[t[better]] = c[better]
 
     my, mx = source.origin(match)
     for dy in range(p):
