@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 PHOTOS = ("brick", "gravel", "grass", "moon")
 SEEDS = 20
@@ -353,9 +354,12 @@ def search_accuracy(name: str, *, checks: int = 16, seeds=range(20)) -> dict:
                 self.known[key] = self._distances(queries)
             return self.known[key]
 
-        def _distances(self, queries):
-            flat = self.windows.reshape(-1, queries.shape[1]).astype(np.float64)
+        def _distances(self, queries):  # (n, p, p, channels) patches, as the search's
+            p, c = self.patch, self.sample.shape[-1]
+            rows_first = sliding_window_view(self.sample, (p, p, c))[:, :, 0]
+            flat = rows_first.reshape(-1, p * p * c).astype(np.float64)
             norms = np.einsum("ij,ij->i", flat, flat)
+            queries = np.asarray(queries).reshape(len(queries), -1)
             out = np.empty(len(queries))
             for i in range(0, len(queries), 256):
                 q = np.asarray(queries[i : i + 256], np.float64)

@@ -85,6 +85,9 @@ from tasks.seams import (
 )
 
 HORIZONTAL, VERTICAL = "horizontal", "vertical"
+# a tile's check measures its inside on every other patch of the grid each way (the borders'
+# sides on every patch): :func:`tasks.seams.structure_ratios`
+SPARSE_INSIDE = 2
 
 
 @dataclass(frozen=True)
@@ -128,7 +131,8 @@ class BorderCheck:
     side of every border sees the tile and, within half a structure patch beyond, the strip
     its neighbours share; their sides are theirs to pass. Either way each side of a border is
     compared with the tile's inside, the patches whose centres lie more than half a block
-    from every border. Structure patches are ``min(16, block)`` texels, compared with the
+    from every border (every other one of them each way, :data:`SPARSE_INSIDE`). Structure
+    patches are ``min(16, block)`` texels, compared with the
     reference image's own.
     """
 
@@ -162,9 +166,10 @@ class BorderCheck:
         """Both ratios of the tile's borders (periodic: its wrap, rows then columns)."""
         if self.periodic:
             return border_figures(self.exemplar, tile.value, Borders.periodic(),
-                                  reach=self.reach)
+                                  reach=self.reach, sparse_inside=SPARSE_INSIDE)
         return border_figures(self.exemplar, self.frame(tile, top, bottom, left, right),
-                              Borders.framed(tile.shape, self.half), reach=self.reach)
+                              Borders.framed(tile.shape, self.half), reach=self.reach,
+                              sparse_inside=SPARSE_INSIDE)
 
 
 @dataclass

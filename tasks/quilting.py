@@ -174,8 +174,10 @@ class CandidateSearch:
         self.sample = np.asarray(sample, np.float32)
         self.block = block
         h, w, _ = self.sample.shape
-        self.shape = (scipy.fft.next_fast_len(h + block - 1, real=True),
-                      scipy.fft.next_fast_len(w + block - 1, real=True))
+        # a circular correlation of the sample's own size: the window at (sy, sx) reads rows
+        # sy .. sy + block - 1 < h, so only positions past the last valid one wrap
+        self.shape = (scipy.fft.next_fast_len(h, real=True),
+                      scipy.fft.next_fast_len(w, real=True))
         self.valid = (h - block + 1, w - block + 1)
         planes = [np.sum(self.sample**2, axis=-1)]
         planes += [-2.0 * self.sample[..., c] for c in range(self.sample.shape[-1])]

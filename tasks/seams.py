@@ -36,6 +36,7 @@ BENCHMARKS.md).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,7 @@ STRIDE = 3  # patch grid of the structure measure (texels)
 SEARCH_EPS = 2.0  # the k-d tree's approximation (see the module)
 SEARCH_CANDIDATES = 12  # nearest in PCA space re-ranked at full dimension (see the module)
 _REPEAT_CANDIDATES = 32  # exact nearest patches searched for one not overlapping its query
+SPARSE_INSIDE_LEAST = 400  # patches a thinned inside keeps at least (structure_ratios)
 _BATCH = 4096  # queries (and sample rows) per batch: bounds the gathered patches' memory
 _ONE_THREAD = 1024  # queries searched on the calling thread alone (a tile's check: its own
 # threads cost more than they gain there, and tiles may be checked in threads of their own)
@@ -215,6 +217,14 @@ class PatchExemplar:
         keep = min(dims, n, len(centred))
         _, vectors = eigh(centred.T @ centred, subset_by_index=(n - keep, n - 1))
         self.basis = np.ascontiguousarray(vectors[:, ::-1], np.float32)
+        # the same basis and mean for patches flattened rows first, (p, p, channels): the
+        # order sliding windows over all three axes give, and the re-ranking reads
+        channels = sample.shape[-1]
+        self._rows_basis = np.ascontiguousarray(
+            self.basis.reshape(channels, patch, patch, -1).transpose(1, 2, 0, 3)
+            .reshape(-1, self.basis.shape[1]))
+        self._rows_offset = (self.mean.reshape(channels, patch, patch).transpose(1, 2, 0)
+                             .reshape(-1).astype(np.float32) @ self._rows_basis)
         self.tree = cKDTree(self._project_windows())
         self.width = nx
         contrast = float(np.sqrt(np.mean((sample - sample.mean(axis=(0, 1))) ** 2)))
@@ -274,23 +284,24 @@ class PatchExemplar:
         return np.ascontiguousarray((flat - self.mean) @ self.basis, np.float32)
 
     def distances(self, queries: np.ndarray) -> np.ndarray:
-        """RMS distance of each flattened ``(channels, p, p)`` query patch to its nearest."""
+        """RMS distance of each ``(p, p, channels)`` query patch to its nearest."""
         from tasks.quilt_kernels import nearest_ssd  # numba: not loaded by `btf --help`
 
         out = np.empty(len(queries), np.float64)
         for i in range(0, len(queries), _BATCH):
-            q = np.asarray(queries[i : i + _BATCH], np.float32)
+            q = np.ascontiguousarray(queries[i : i + _BATCH], np.float32)
+            flat = q.reshape(len(q), -1)
             k = min(self.candidates, self.tree.n)  # a small sample has fewer patches
-            _, found = self.tree.query(self._project(q), k=k, eps=self.eps,
+            _, found = self.tree.query(flat @ self._rows_basis - self._rows_offset, k=k,
+                                       eps=self.eps,
                                        workers=1 if len(q) <= _ONE_THREAD else -1)
             sy, sx = np.divmod(found.reshape(len(q), k), self.width)
-            p, c = self.patch, self.sample.shape[-1]
-            rows_first = np.ascontiguousarray(q.reshape(len(q), c, p, p).transpose(0, 2, 3, 1))
-            out[i : i + _BATCH] = nearest_ssd(self.sample, rows_first, sy, sx)
-        return np.sqrt(out / queries.shape[1])
+            out[i : i + _BATCH] = nearest_ssd(self.sample, q, sy, sx)
+        return np.sqrt(out / queries[0].size) if len(queries) else out
 
     def distance_map(self, image: np.ndarray, *, wrap: bool, stride: int = STRIDE,
-                     within: tuple[slice, slice] | None = None
+                     within: tuple[slice, slice] | None = None,
+                     measure: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nearest-patch distances of an image's patches on a grid of ``stride``.
 
@@ -298,7 +309,9 @@ class PatchExemplar:
         (rows, columns: between texel ``c - 1`` and ``c``). With ``wrap`` the image is a
         torus and every position is a patch origin. With ``within`` (rows, columns) only the
         patches of the grid whose centre lines lie in that part (ends included) are measured:
-        the rest of the grid is left out of all three.
+        the rest of the grid is left out of all three. With ``measure``, a function of the
+        centre lines ``(cy, cx)`` giving the ``(ny, nx)`` grid points to measure, the others
+        are NaN.
         """
         image = np.asarray(image, np.float32)
         if image.ndim == 2:
@@ -307,7 +320,8 @@ class PatchExemplar:
         h, w = image.shape[:2]
         if wrap:
             image = np.pad(image, ((0, p - 1), (0, p - 1), (0, 0)), mode="wrap")
-        windows = sliding_window_view(image, (p, p), axis=(0, 1))[::stride, ::stride]
+        # (ny, nx, p, p, channels): each window rows first, as the search reads it
+        windows = sliding_window_view(image, (p, p, image.shape[-1]))[::stride, ::stride, 0]
         cy = np.arange(windows.shape[0]) * stride + p / 2
         cx = np.arange(windows.shape[1]) * stride + p / 2
         if wrap:
@@ -316,11 +330,18 @@ class PatchExemplar:
             keep = [_kept(c, s) for c, s in zip((cy, cx), within, strict=True)]
             windows, cy, cx = windows[keep[0]][:, keep[1]], cy[keep[0]], cx[keep[1]]
         ny, nx = windows.shape[:2]
+        if measure is not None:
+            d = np.full((ny, nx), np.nan)
+            iy, ix = np.nonzero(measure(cy, cx))
+            for i in range(0, len(iy), _BATCH):
+                at = iy[i : i + _BATCH], ix[i : i + _BATCH]
+                d[at] = self.distances(windows[at])
+            return d, cy, cx
         d = np.empty((ny, nx))
         rows = max(1, _BATCH // max(nx, 1))
         for y in range(0, ny, rows):
             block = windows[y : y + rows]
-            d[y : y + rows] = self.distances(block.reshape(-1, block[0, 0].size)).reshape(
+            d[y : y + rows] = self.distances(block.reshape(-1, *block.shape[2:])).reshape(
                 block.shape[:2])
         return d, cy, cx
 
@@ -337,7 +358,8 @@ def _kept(centres: np.ndarray, part: slice) -> slice | np.ndarray:
 
 
 def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
-                     reach: float, stride: int = STRIDE) -> tuple[float, ...]:
+                     reach: float, stride: int = STRIDE, sparse_inside: int = 1
+                     ) -> tuple[float, ...]:
     """Per line: the worse side's mean nearest-patch distance over the inside's mean.
 
     A side of a line is the patches centred within ``reach`` of it on that side (one centred
@@ -352,16 +374,36 @@ def structure_ratios(exemplar: PatchExemplar, image: np.ndarray, borders: Border
     with; there a border is compared with :attr:`PatchExemplar.own_repeat`, how far the
     sample's own patches lie from their nearest other one (how much its periods differ), at
     least the floor.
+
+    ``sparse_inside``: the inside's mean from every ``sparse_inside``-th patch of the grid in
+    each direction (the lines' sides keep every patch). A tile's check takes 2: a quarter of
+    the inside, 60% fewer searches; on 96 checks of brick, grass and gravel tile sets the
+    inside's mean moved by 0.6% (median; at most 2.9%) and no check's verdict changed. An
+    inside thinned to fewer than :data:`SPARSE_INSIDE_LEAST` patches is measured whole.
     """
     h, w = np.shape(image)[:2]
     ys, xs = borders.within((h, w))  # only patches centred within the judged part count
+
+    def inside_of(cy, cx):
+        return (~_near(cy, borders.rows, h, borders.wrap, reach)[:, None]
+                & ~_near(cx, borders.cols, w, borders.wrap, reach)[None, :])
+
+    def measured(cy, cx):
+        inside = inside_of(cy, cx)
+        sparse = np.zeros_like(inside)
+        sparse[::sparse_inside, ::sparse_inside] = True
+        enough = np.count_nonzero(inside & sparse) >= SPARSE_INSIDE_LEAST
+        return ~inside | (sparse if enough else inside)
+
     d, cy, cx = exemplar.distance_map(image, wrap=borders.wrap, stride=stride,
-                                      within=(ys, xs))
-    inside = (~_near(cy, borders.rows, h, borders.wrap, reach)[:, None]
-              & ~_near(cx, borders.cols, w, borders.wrap, reach)[None, :])
+                                      within=(ys, xs),
+                                      measure=measured if sparse_inside > 1 else None)
+    inside = inside_of(cy, cx)
     if not inside.any():
         raise ValueError(f"no patch of the {h} x {w} image lies farther than {reach} texels "
                          "from every border: nothing to compare the borders with")
+    if sparse_inside > 1:
+        inside[~measured(cy, cx)] = False
     scale = float(d[inside].mean())
     if scale <= exemplar.floor:
         scale = max(exemplar.own_repeat, exemplar.floor)
@@ -386,11 +428,12 @@ def line_sides(d: np.ndarray, cy: np.ndarray, cx: np.ndarray, kind: str, line: i
 
 
 def border_figures(exemplar: PatchExemplar, image: np.ndarray, borders: Borders, *,
-                   reach: float, stride: int = STRIDE) -> BorderFigures:
-    """Both measures of every line of ``borders`` (see the module)."""
+                   reach: float, stride: int = STRIDE, sparse_inside: int = 1
+                   ) -> BorderFigures:
+    """Both measures of every line of ``borders`` (the module; :func:`structure_ratios`)."""
     return BorderFigures(tuple(borders.lines()), seam_ratios(image, borders),
                          structure_ratios(exemplar, image, borders, reach=reach,
-                                          stride=stride))
+                                          stride=stride, sparse_inside=sparse_inside))
 
 
 def cell_figures(exemplar: PatchExemplar, image: np.ndarray, cells: np.ndarray, *,

@@ -79,14 +79,19 @@ def _naive_copy(img, block, size, seed=0):
     return out
 
 
-def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position():
+@pytest.mark.parametrize("shape", [(37, 45), (40, 36), (8, 9)])
+def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position(shape):
+    """The transforms are circular, of the sample's size rounded up to a fast length (40 and
+    36 are such lengths themselves): only positions past the last window may wrap."""
     rng = np.random.default_rng(4)
-    sample = rng.random((37, 45, 3))
+    h, w = shape
+    sample = rng.random((h, w, 3))
     target = rng.random((8, 8, 3))
     mask = rng.random((8, 8)) > 0.4
-    errors = CandidateSearch(sample, 8).errors(target, mask)
+    search = CandidateSearch(sample, 8)
+    errors = search.errors(target, mask)
     brute = np.array([[np.sum(mask[..., None] * (sample[y : y + 8, x : x + 8] - target) ** 2)
-                       for x in range(45 - 7)] for y in range(37 - 7)])
+                       for x in range(w - 7)] for y in range(h - 7)])
     assert errors.shape == brute.shape
     # float32 transforms: off by a few 1e-7 of the terms' size (here up to about 60)
     np.testing.assert_allclose(errors, brute, rtol=0, atol=1e-5 * brute.max())

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
-from tasks.seams import Borders, PatchExemplar, border_figures, seam_ratios, structure_ratios
+from tasks.seams import (
+    Borders,
+    PatchExemplar,
+    border_figures,
+    line_sides,
+    seam_ratios,
+    structure_ratios,
+)
 
 
 def stripes(h: int, w: int, period: int, shift: float = 0.0) -> np.ndarray:
@@ -106,3 +113,43 @@ def test_the_search_benchmark_finds_no_patch_nearer_than_the_exact_search():
         assert r["excess_mean"] >= 0 and r["excess_p99"] >= 0, r
         assert 0 <= r["worst_error_mean"] <= r["worst_error_max"] < 0.3, r
     assert len(search_report([result])) == 2 + len(SEARCHES)
+
+
+def test_a_sparse_inside_is_the_inside_measured_on_every_other_patch_and_sides_in_full():
+    """``sparse_inside=2`` (a tile's check): the inside's mean over the grid's even rows and
+    columns only, every patch beside a line still measured, fewer patches searched; an inside
+    too small to thin is measured whole."""
+    rng = np.random.default_rng(8)
+    sample = rng.random((64, 64, 2)).astype(np.float32)
+    sample = (sample + np.roll(sample, 1, 0) + np.roll(sample, 1, 1)) / 3
+    image = np.tile(sample, (4, 4, 1))[:250, :244]
+    image[:, 120:] = np.roll(image[:, 120:], 5, axis=0)  # a break along column 120
+    image += 0.05 * rng.random(image.shape).astype(np.float32)
+    exemplar = PatchExemplar(sample)
+    borders, reach = Borders.framed((210, 204), 20), 8.0
+    searched = []
+    distances = exemplar.distances
+    exemplar.distances = lambda q: searched.append(len(q)) or distances(q)
+
+    d, cy, cx = exemplar.distance_map(image, wrap=False, within=borders.within(image.shape[:2]))
+    full = sum(searched)
+    near_y = np.any([np.abs(cy - line) <= reach for line in borders.rows], axis=0)
+    near_x = np.any([np.abs(cx - line) <= reach for line in borders.cols], axis=0)
+    inside = ~near_y[:, None] & ~near_x[None, :]
+    thinned = np.zeros_like(inside)
+    thinned[::2, ::2] = True
+    assert np.count_nonzero(inside & thinned) >= 400  # enough to thin
+    scale = d[inside & thinned].mean()
+    expected = [max(max(side.mean(), exemplar.floor) for side in
+                    line_sides(d, cy, cx, kind, line, image.shape[:2], wrap=False, reach=reach))
+                / scale for kind, line in borders.lines()]
+    searched.clear()
+    got = structure_ratios(exemplar, image, borders, reach=reach, sparse_inside=2)
+    assert got == pytest.approx(expected, rel=1e-6)
+    assert sum(searched) < 0.6 * full
+    whole = structure_ratios(exemplar, image, borders, reach=reach)
+    assert whole != got and whole == pytest.approx(got, rel=0.05)
+
+    small = Borders.framed((60, 60), 20)  # an inside of a few dozen patches
+    assert (structure_ratios(exemplar, image[:100, :100], small, reach=reach, sparse_inside=2)
+            == structure_ratios(exemplar, image[:100, :100], small, reach=reach))
