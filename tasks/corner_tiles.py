@@ -130,7 +130,7 @@ class BorderCheck:
     measured framed by the halves of its four edge strips that lie beyond its borders: its
     side of every border sees the tile and, within half a structure patch beyond, the strip
     its neighbours share; their sides are theirs to pass. Either way each side of a border is
-    compared with the tile's inside, the patches whose centres lie more than half a block
+    compared with the tile's inside, the patches whose centres lie more than half a step
     from every border (every other one of them each way, :data:`SPARSE_INSIDE`). Structure
     patches are ``min(16, block)`` texels, compared with the
     reference image's own.

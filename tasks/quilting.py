@@ -111,11 +111,12 @@ class QuiltParams:
         """About how much memory planning and compiling the prescriptions hold at their peak.
 
         Every tile's canvas (index, weight, value, filled), the candidate search's spectra of
-        the sample (padded by a block) and of the masks it keeps, and a CSR matrix per tile
-        (about two terms per texel).
+        the sample (its size rounded up to fast transform lengths) and of the masks it keeps,
+        and a CSR matrix per tile (about two terms per texel).
         """
         per_texel = TERMS * (4 + 4) + 4 * channels + 1 + 2 * (4 + 4) + 4
-        padded = (sample[0] + self.block) * (sample[1] + self.block)
+        padded = (scipy.fft.next_fast_len(sample[0], real=True)
+                  * scipy.fft.next_fast_len(sample[1], real=True))
         search = padded * (4 * channels + 8 * (1 + channels) + 4 * CandidateSearch.MASKS_KEPT)
         return self.corners**4 * self.tile[0] * self.tile[1] * per_texel + search
 

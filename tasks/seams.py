@@ -19,8 +19,10 @@ good as the rest of this texture" and a bound holds per line, not on average:
   another, a blend of two misaligned motifs) do not occur in the sample and lie far from
   it; copied texture lies at 0. A line's figure is the mean over the patches centred within
   ``reach`` of it, over the mean of the patches whose centres are farther than ``reach``
-  from every line. The inside of a quilted texture holds its ordinary patch cuts, so a ratio
-  near 1 says the borders are joined as well as the patches inside are.
+  from every line (a tile's check takes that mean on every other patch of the grid each
+  way: :func:`structure_ratios`' ``sparse_inside``). The inside of a quilted texture holds
+  its ordinary patch cuts, so a ratio near 1 says the borders are joined as well as the
+  patches inside are.
 
 The nearest patches are found on a PCA of the patches (12 dimensions, scipy's k-d tree,
 approximate with ``eps = 2``: each candidate within three times the distance of the exact one
@@ -223,8 +225,9 @@ class PatchExemplar:
         self._rows_basis = np.ascontiguousarray(
             self.basis.reshape(channels, patch, patch, -1).transpose(1, 2, 0, 3)
             .reshape(-1, self.basis.shape[1]))
-        self._rows_offset = (self.mean.reshape(channels, patch, patch).transpose(1, 2, 0)
-                             .reshape(-1).astype(np.float32) @ self._rows_basis)
+        self._rows_mean = np.ascontiguousarray(
+            self.mean.reshape(channels, patch, patch).transpose(1, 2, 0).reshape(-1),
+            np.float32)
         self.tree = cKDTree(self._project_windows())
         self.width = nx
         contrast = float(np.sqrt(np.mean((sample - sample.mean(axis=(0, 1))) ** 2)))
@@ -292,7 +295,8 @@ class PatchExemplar:
             q = np.ascontiguousarray(queries[i : i + _BATCH], np.float32)
             flat = q.reshape(len(q), -1)
             k = min(self.candidates, self.tree.n)  # a small sample has fewer patches
-            _, found = self.tree.query(flat @ self._rows_basis - self._rows_offset, k=k,
+            # the mean first: a product first would lose float32 digits to a large mean
+            _, found = self.tree.query((flat - self._rows_mean) @ self._rows_basis, k=k,
                                        eps=self.eps,
                                        workers=1 if len(q) <= _ONE_THREAD else -1)
             sy, sx = np.divmod(found.reshape(len(q), k), self.width)

@@ -146,7 +146,7 @@ def test_a_sparse_inside_is_the_inside_measured_on_every_other_patch_and_sides_i
     searched.clear()
     got = structure_ratios(exemplar, image, borders, reach=reach, sparse_inside=2)
     assert got == pytest.approx(expected, rel=1e-6)
-    assert sum(searched) < 0.6 * full
+    assert sum(searched) < 0.45 * full  # 1,796 of 4,899 here: the sides and a quarter
     whole = structure_ratios(exemplar, image, borders, reach=reach)
     assert whole != got and whole == pytest.approx(got, rel=0.05)
 
