@@ -41,6 +41,7 @@ every orthonormalisation and small factorisation is float64.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -555,6 +556,27 @@ def reconstruct_layers(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform
     flat = reconstruct(u.reshape(-1, k), s, np.asarray(v).reshape(ny * nx, k),
                        transform=transform, scale=rows)
     return np.moveaxis(flat.reshape(*lead, nc, ny, nx), -3, -1)
+
+
+def reconstruct_pieces(u: np.ndarray, s: np.ndarray, v: np.ndarray, *, transform: Transform,
+                       cuts: tuple[list[tuple[int, int]], ...],
+                       scale: np.ndarray | None = None) -> np.ndarray:
+    """A block of radiance ``(view, light, y, x, channel)`` rebuilt piece by piece.
+
+    ``u`` ``(view, light, channel, k)`` and ``v`` ``(y, x, k)`` are the block's factors;
+    ``cuts`` the pieces' ``(start, stop)`` along view, light, y and x. Each piece is
+    :func:`reconstruct_layers` of its own rows of ``u`` and tile of ``v``, written into the
+    block: the same bits as rebuilding each piece alone and concatenating them (a product's
+    last bit depends on its shape), without the copy of the concatenation.
+    """
+    out = np.empty((u.shape[0], u.shape[1], v.shape[0], v.shape[1], u.shape[2]), np.float32)
+    for (a0, a1), (b0, b1) in itertools.product(cuts[0], cuts[1]):
+        rows = u[a0:a1, b0:b1]
+        layer_scale = None if scale is None else scale[a0:a1, b0:b1]
+        for (y0, y1), (x0, x1) in itertools.product(cuts[2], cuts[3]):
+            out[a0:a1, b0:b1, y0:y1, x0:x1] = reconstruct_layers(
+                rows, s, v[y0:y1, x0:x1], transform=transform, scale=layer_scale)
+    return out
 
 
 def squared_errors(original: np.ndarray, approx: np.ndarray, *, tile: int = TILE

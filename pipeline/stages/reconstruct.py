@@ -23,7 +23,7 @@ from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, selected_directions
 from pipeline.stores.base import RADIANCE, Directions, layer_indices
-from pipeline.stores.compressed import open_compressed
+from pipeline.stores.compressed import open_compressed, radiance_in
 from pipeline.stores.radiance import LayoutOptions, create_radiance_store
 
 
@@ -62,7 +62,10 @@ class ReconstructParams(LayoutOptions):
 
 
 def select(params: ReconstructParams):
-    """The lazy radiance DataArray of exactly the requested layers, region and rank."""
+    """The compressed Dataset of exactly the requested layers, region and rank.
+
+    Its lazy radiance, and the factors it is built from.
+    """
     ds = open_compressed(params.store, rank=params.rank)
     rad = ds[RADIANCE]
     views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
@@ -73,7 +76,7 @@ def select(params: ReconstructParams):
         if ys.stop > rad.sizes["y"] or xs.stop > rad.sizes["x"]:
             raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
                            f"{rad.sizes['y']} x {rad.sizes['x']} texels of the store")
-    return rad.isel(view=views, light=lights, y=ys, x=xs)
+    return ds.isel(view=views, light=lights, y=ys, x=xs)
 
 
 def _write_layer(pixels: np.ndarray, path: str, channels: tuple[str, ...]) -> None:
@@ -84,7 +87,8 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
     """Write the reconstruction requested by ``params``; returns the output path."""
     import dask
 
-    sel = select(params)
+    selected = select(params)
+    sel = selected[RADIANCE]
     d = Directions.of(sel)
     channels = tuple(str(c) for c in sel["channel"].values)
     nv, nl, ny, nx, _ = sel.shape
@@ -125,7 +129,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                 layout=params.layout(), attrs=attrs))
             if progress.count():
                 session.log(f"reconstruct: resuming: {progress.count()} blocks already written")
-            data = sel.data.rechunk(aligned_chunks(group[RADIANCE]))
+            data = radiance_in(selected, aligned_chunks(group[RADIANCE]))
             keep = None if needs is None else (lambda r: needs.keeps(
                 r[0].start, range(r[1].start, r[1].stop), r[2], r[3]))
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,
