@@ -129,7 +129,10 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                 layout=params.layout(), attrs=attrs))
             if progress.count():
                 session.log(f"reconstruct: resuming: {progress.count()} blocks already written")
-            data = radiance_in(selected, aligned_chunks(group[RADIANCE]))
+            chunks = aligned_chunks(group[RADIANCE])
+            whole = all(getattr(params, n) is None for n in ("light", "view", "region"))
+            # the whole store's blocks rebuilt in place; a selection's cut blocks rechunked
+            data = radiance_in(selected, chunks) if whole else sel.data.rechunk(chunks)
             keep = None if needs is None else (lambda r: needs.keeps(
                 r[0].start, range(r[1].start, r[1].stop), r[2], r[3]))
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,

@@ -104,15 +104,17 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
 
 
 def radiance_in(ds, chunks):
-    """The lazy radiance of an opened (and selected) compressed Dataset in dask ``chunks``.
+    """The lazy radiance of :func:`open_compressed`'s Dataset in dask ``chunks``.
 
-    ``ds``: :func:`open_compressed`'s Dataset, or a selection of it (``isel`` over views,
-    lights and texels); ``chunks``: per axis of ``(view, light, y, x, channel)``. Where the
-    chunks are whole pieces of the factors (``U``'s chunks by ``V``'s tiles, as
-    :func:`lazy_radiance` makes its blocks), each block is rebuilt piece by piece into one
-    array (:func:`tasks.svd.reconstruct_pieces`): the same bits as the rechunked
-    :func:`lazy_radiance`, without concatenating its blocks (a copy of every value, and on
-    this machine 1.5x the time of a whole reconstruct). Elsewhere it is that rechunk.
+    ``chunks``: per axis of ``(view, light, y, x, channel)``. Where every chunk is made of
+    whole blocks of :func:`lazy_radiance` (one per ``U`` chunk and ``V`` tile), each chunk
+    is rebuilt block by block into one array (:func:`tasks.svd.reconstruct_pieces`): the
+    same bits as the radiance rechunked, without dask concatenating the blocks (one more
+    copy of every value). Elsewhere it is that rechunk.
+
+    ``ds`` must be the whole Dataset: in a selection (``isel``) the factors are cut where
+    the radiance's blocks were computed whole and then cut, and a product's last bit depends
+    on its shape.
     """
     import dask.array as da
 
@@ -125,7 +127,7 @@ def radiance_in(ds, chunks):
     regular = all(len(set(p[:-1])) <= 1 and p[-1] <= p[0] for p in pieces)
     if not regular or tuple(chunks[4]) != u.chunks[2] or not all(
             set(np.cumsum(c)) <= set(np.cumsum(p)) for c, p in zip(chunks, pieces, strict=False)):
-        return lazy_radiance(u, s, v, transform=transform, theta_light=theta).rechunk(chunks)
+        return ds[RADIANCE].data.rechunk(chunks)
     u = u.rechunk((*chunks[:2], chunks[4], -1))
     v = v.rechunk((*chunks[2:4], -1))
     extra = _layer_scale(u, transform, theta)
