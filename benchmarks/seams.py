@@ -347,6 +347,11 @@ def search_accuracy(name: str, *, checks: int = 16, seeds=range(20)) -> dict:
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             self.known = {}  # each check's map is asked for twice
+            # every sample patch rows first, as the search's queries are (made once)
+            p, c = self.patch, self.sample.shape[-1]
+            rows_first = sliding_window_view(self.sample, (p, p, c))[:, :, 0]
+            self.flat = rows_first.reshape(-1, p * p * c).astype(np.float64)
+            self.norms = np.einsum("ij,ij->i", self.flat, self.flat)
 
         def distances(self, queries):
             key = hash(np.ascontiguousarray(queries).tobytes())
@@ -355,15 +360,11 @@ def search_accuracy(name: str, *, checks: int = 16, seeds=range(20)) -> dict:
             return self.known[key]
 
         def _distances(self, queries):  # (n, p, p, channels) patches, as the search's
-            p, c = self.patch, self.sample.shape[-1]
-            rows_first = sliding_window_view(self.sample, (p, p, c))[:, :, 0]
-            flat = rows_first.reshape(-1, p * p * c).astype(np.float64)
-            norms = np.einsum("ij,ij->i", flat, flat)
             queries = np.asarray(queries).reshape(len(queries), -1)
             out = np.empty(len(queries))
             for i in range(0, len(queries), 256):
                 q = np.asarray(queries[i : i + 256], np.float64)
-                d = norms - 2 * q @ flat.T + np.einsum("ij,ij->i", q, q)[:, None]
+                d = self.norms - 2 * q @ self.flat.T + np.einsum("ij,ij->i", q, q)[:, None]
                 out[i : i + 256] = np.maximum(d.min(axis=1), 0.0)
             return np.sqrt(out / queries.shape[1])
 

@@ -126,7 +126,8 @@ def radiance_in(ds, chunks):
     # block's pieces then follow from its size alone
     regular = all(len(set(p[:-1])) <= 1 and p[-1] <= p[0] for p in pieces)
     if not regular or tuple(chunks[4]) != u.chunks[2] or not all(
-            set(np.cumsum(c)) <= set(np.cumsum(p)) for c, p in zip(chunks, pieces, strict=False)):
+            set(np.cumsum(c)) <= set(np.cumsum(p)) for c, p in zip(chunks[:4], pieces,
+                                                                    strict=True)):
         return ds[RADIANCE].data.rechunk(chunks)
     u = u.rechunk((*chunks[:2], chunks[4], -1))
     v = v.rechunk((*chunks[2:4], -1))
