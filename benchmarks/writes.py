@@ -9,8 +9,9 @@ One run, each command in a fresh process:
   (``--dir-chunk 64``); ``btf crop`` of the 786 KB store (every layer, a copy); ``btf
   generate`` of a store of the same shape (``--sampling dome151``; shading is most of its
   time, shown for completeness); ``btf ingest`` of a folder of EXR layers, ``btf quilt``
-  (the planning and the application to every layer) and ``btf render`` of a large layer
-  (:func:`_more_stages`);
+  (the planning and the application to every layer), quilting's and the roller's application
+  alone (their stored plans applied in a new process, :func:`apply_stored_plan`) and ``btf
+  render`` of a large layer (:func:`_more_stages`);
 - **the floor**: zarr writing an array of the same shape, chunks and codecs (bytes, blosc
   lz4, btf's checksum) from memory, a block of the stage's own output in every place, on as
   many threads as the machine has cores;
@@ -44,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dir-chunks", default="16,64",
                         help="lights per chunk of the rebuilt stores (default 16,64: 786 KB "
                              "and 3 MB chunks at 64^2)")
-    parser.add_argument("--stages", default="reconstruct,crop,generate,ingest,quilt,render",
+    parser.add_argument("--stages",
+                        default="reconstruct,crop,generate,ingest,quilt,roller,render",
                         help="stages to measure (default: every one)")
     parser.add_argument("--repeat", type=int, default=2, help="runs of each; the fastest counts")
     parser.add_argument("--s3", action="store_true",
@@ -200,7 +202,9 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
 
     At the default ``size`` of 512: ``ingest``, a folder of 192 EXR layers of 512^2 (a
     generated wood, exported: 604 MB); ``quilt``, one periodic texture of 960^2 from a 256^2
-    sample of 48 layers (530 MB; the planning on the reference image is part of its time);
+    sample of 48 layers (530 MB; the planning on the reference image is part of its time),
+    and ``quilt apply``, that plan applied alone; ``roller apply``, a roller's 4 tiles of 6 x 6
+    periods of a generated ``tiles`` material of ``size``^2 and 48 layers applied (340 MB);
     ``render``, one layer of 8192^2 over a tile set of 2 x 2 corner types quilted from that
     sample (805 MB).
     """
@@ -226,7 +230,16 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
         m = _best(repeat, [btf, "quilt", str(small), str(out), "--block", str(block),
                            "--overlap", str(block // 4), "--size", f"{side},{side}", "-q"], out)
         rows.append(_row("quilt", out, m, _floor(out, tmp, repeat)))
+        rows.append(_apply_row("quilt apply", out, small, tmp, repeat))
         shutil.rmtree(out)
+    if "roller" in stages:
+        tiles = generate_store(tmp / "lattice.zarr", "tiles", size, "abtf:12,4")
+        plan = tmp / "roller.zarr"
+        assert main([str(v) for v in ["roller", tiles, plan, "--tiles", "4", "--periods",
+                                      "6,6", "--quiet"]]) == 0
+        rows.append(_apply_row("roller apply", plan, tiles, tmp, repeat))
+        shutil.rmtree(plan)
+        shutil.rmtree(tiles)
     if "render" in stages:
         tiles = tmp / "tiles.zarr"
         assert main([str(v) for v in ["quilt", small, tiles, "--corners", "2",
@@ -236,6 +249,33 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
                            f"{16 * size},{16 * size}", "-q"], out)
         rows.append(_row("render", out, m, _floor(out, tmp, repeat)))
     return rows
+
+
+def apply_stored_plan(tileset: str, sample: str, out: str) -> None:
+    """Apply the plan stored in ``tileset`` to ``sample`` into a new tile set ``out``.
+
+    What ``btf quilt`` and ``btf roller`` do once their plan is made (and what a killed run
+    resumed after its plan was stored does): the store created, every tile's layers written,
+    the output sealed (:func:`pipeline.graphs.prescriptions.write_tileset`), on the threads
+    scheduler with a worker per core.
+    """
+    from pipeline.graphs.prescriptions import write_tileset
+    from pipeline.session import RuntimeOptions, Session
+    from pipeline.stores.tileset import read_plan
+
+    with Session(RuntimeOptions(quiet=True)) as session:
+        write_tileset(read_plan(tileset), out, source=sample, session=session, label="apply",
+                      overwrite=False)
+
+
+def _apply_row(stage: str, plan: Path, sample: Path, tmp: Path, repeat: int) -> dict:
+    """The row of a tile set's application alone: its stored plan applied in a new process."""
+    out = tmp / "applied.zarr"
+    m = _best(repeat, [sys.executable, "-c", "from benchmarks.writes import apply_stored_plan; "
+                       f"apply_stored_plan({str(plan)!r}, {str(sample)!r}, {str(out)!r})"], out)
+    row = _row(stage, out, m, _floor(out, tmp, repeat))
+    shutil.rmtree(out)
+    return row
 
 
 def _row(stage: str, out: Path, m, floor: float) -> dict:

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from helpers import SLOW_PROCESSES, generate_store, quilt
+from pipeline.graphs.prescriptions import PAIR, light_blocks
 from pipeline.graphs.surface import lazy_layer
 from pipeline.stores import open_store
 from pipeline.stores.base import RADIANCE
@@ -333,6 +334,36 @@ def test_every_layer_is_the_prescription_applied_to_the_sample(tmp_path, btf, sa
         for light in range(layers.shape[1]):
             expected = (matrix @ layers[0, light].reshape(n, -1)).reshape(24, 24, -1)
             assert np.array_equal(group[RADIANCE][t, 0, light], expected)
+
+
+@given(views=st.integers(1, 3), lights=st.integers(1, 70), chunk=st.integers(1, 20),
+       tasks=st.integers(1, 40))
+@settings(max_examples=200, deadline=None)
+def test_application_tasks_take_every_light_once_within_its_stored_block(views, lights, chunk,
+                                                                         tasks):
+    blocks = light_blocks(views, lights, chunk, tasks=tasks)
+    for view in range(views):
+        mine = sorted((l0, l1) for v, l0, l1 in blocks if v == view)
+        assert [i for l0, l1 in mine for i in range(l0, l1)] == list(range(lights))
+        # a part never spans two stored blocks (each is read whole), and only a stored
+        # block's last part may be shorter than a pair
+        assert all(l0 // chunk == (l1 - 1) // chunk for l0, l1 in mine)
+        assert all(l1 - l0 >= PAIR or l1 == min(lights, (l0 // chunk + 1) * chunk)
+                   for l0, l1 in mine)
+    stored = views * -(-lights // chunk)
+    if stored >= tasks:
+        assert len(blocks) == stored  # enough tasks: the stored blocks, unsplit
+    else:
+        most = views * sum(-(-min(chunk, lights - l0) // PAIR) for l0 in range(0, lights, chunk))
+        assert len(blocks) >= min(tasks, most) // 2  # halving overshoots by at most twice
+
+
+def test_application_tasks_keep_only_the_lights_a_scene_needs():
+    class Needs:
+        def keeps(self, view, lights):
+            return view == 1 and 21 in lights
+
+    assert light_blocks(2, 48, 16, tasks=8, needs=Needs()) == [(1, 20, 22)]
 
 
 @pytest.mark.parametrize("channels", [1, 3, 4])

@@ -1,11 +1,11 @@
 """Applying a tile set's prescriptions to every layer, or to the eigentextures (papers 003, 004).
 
 A prescription ``P`` may take any texel of the sample, so a whole layer is the smallest unit a
-task reads. For a radiance source, one task per (view, block of stored lights) reads a few whole
-layers at a time within :data:`APPLY_BUDGET` and writes every tile's layers. A compressed
-source's tile set keeps the prescriptions and a copy of the sample's eigentextures ``V``
-(:func:`sample_copies`); its tiles are computed where they are read
-(:mod:`pipeline.stores.tileset`).
+task reads. For a radiance source, one task per view and block of stored lights (or part of
+one, :func:`light_blocks`) reads a few whole layers at a time within :data:`APPLY_BUDGET` and
+writes every tile's layers. A compressed source's tile set keeps the prescriptions and a copy
+of the sample's eigentextures ``V`` (:func:`sample_copies`); its tiles are computed where they
+are read (:mod:`pipeline.stores.tileset`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from pipeline.stores.base import RADIANCE, location
 from pipeline.stores.radiance import as_float32, stored
 
 APPLY_BUDGET = 128 * 2**20  # bytes of layers one application task holds at a time
+PAIR = 2  # layers applied at once (the product works on two RGB layers in one pass)
+TASKS_PER_WORKER = 4  # blocks of lights are split until there are this many tasks a worker
 
 
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
@@ -26,7 +28,10 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     """Apply every tile's prescription to a block of lights, a few whole layers at a time.
 
     When fewer layers than a stored chunk holds fit in the budget, that chunk is read (and
-    decompressed) once per group of layers.
+    decompressed) once per group of layers. The results are made :data:`PAIR` layers at a
+    time into one buffer, written as soon as they are made: a buffer of the whole group (110
+    MB for ten 960^2 layers) was mapped afresh for every group (see
+    :func:`pipeline.session.steady_memory`), and its page faults cost six times the products.
     """
     import zarr
 
@@ -37,13 +42,17 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     ny, nx, nc = source.shape[-3:]
     layer = 4 * nc * (ny * nx + tile_shape[0] * tile_shape[1])  # a source and a tile layer
     step = max(1, min(light1 - light0, APPLY_BUDGET // layer))
+    result = np.empty((min(PAIR, light1 - light0), *tile_shape, nc), np.float32)  # reused
     for l0 in range(light0, light1, step):
         l1 = min(l0 + step, light1)
         layers = as_float32(chunk_io.read(source, (view, slice(l0, l1))))
-        result = np.empty((l1 - l0, *tile_shape, nc), np.float32)  # reused by every tile
-        for t, matrix in enumerate(matrices):
-            chunk_io.write(target, (t, view, slice(l0, l1)), stored(
-                apply(matrix, layers, output=tile_shape, out=result), target.dtype, out))
+        for p0 in range(0, l1 - l0, PAIR):
+            pair = layers[p0:p0 + PAIR]
+            made = result[:len(pair)]
+            for t, matrix in enumerate(matrices):
+                chunk_io.write(target, (t, view, slice(l0 + p0, l0 + p0 + len(pair))),
+                               stored(apply(matrix, pair, output=tile_shape, out=made),
+                                      target.dtype, out))
 
 
 def _copy_band(store: str, out: str, y0: int, y1: int) -> None:
@@ -70,24 +79,46 @@ def sample_copies(store: str, out: str) -> list:
             for y0 in range(0, v.shape[0], step)]
 
 
+def light_blocks(nv: int, nl: int, dir_chunk: int, *, tasks: int = 1,
+                 needs=None) -> list[tuple[int, int, int]]:
+    """``(view, light0, light1)`` of the application tasks of ``nv`` views of ``nl`` lights.
+
+    A task takes a stored block of ``dir_chunk`` lights, or a part of one while there are
+    fewer than ``tasks`` tasks (halved down to :data:`PAIR` lights; each part reads its block
+    again): three blocks on two threads left one thread idle a third of the time. With
+    ``needs`` (:class:`pipeline.scene_needs.Needs`), only parts holding a layer it needs.
+    """
+    def kept(blocks):
+        return [(v, l0, l1) for v, l0, l1 in blocks
+                if needs is None or needs.keeps(v, range(l0, l1))]
+
+    blocks = kept((v, l0, min(l0 + dir_chunk, nl)) for v in range(nv)
+                  for l0 in range(0, nl, dir_chunk))
+    while len(blocks) < tasks and any(l1 - l0 > PAIR for _, l0, l1 in blocks):
+        parts = []
+        for v, l0, l1 in blocks:
+            middle = l0 + max(PAIR, (l1 - l0) // (2 * PAIR) * PAIR)  # whole pairs first
+            parts += [(v, l0, middle), (v, middle, l1)] if middle < l1 else [(v, l0, l1)]
+        blocks = kept(parts)
+    return blocks
+
+
 def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_chunk: int,
-                 tile_shape: tuple[int, int], needs=None) -> list:
+                 tile_shape: tuple[int, int], needs=None, tasks: int = 1) -> list:
     """Delayed tasks writing every tile's layers of a radiance source of ``shape``.
 
-    ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`). With
-    ``needs`` (:class:`pipeline.scene_needs.Needs`), only blocks of lights holding a layer
-    it needs.
+    ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`); the
+    tasks' lights are :func:`light_blocks`'s.
     """
     import dask
 
-    nv, nl = shape[:2]
-    return [dask.delayed(_apply_block)(location(store), location(out), v, l0,
-                                       min(l0 + dir_chunk, nl), matrices, tile_shape)
-            for v in range(nv) for l0 in range(0, nl, dir_chunk)
-            if needs is None or needs.keeps(v, range(l0, min(l0 + dir_chunk, nl)))]
+    return [dask.delayed(_apply_block)(location(store), location(out), v, l0, l1, matrices,
+                                       tile_shape)
+            for v, l0, l1 in light_blocks(*shape[:2], dir_chunk, tasks=tasks, needs=needs)]
 
 
-def apply_tileset(source, out, tiles, *, share, needs=None) -> tuple[list, str]:
+def apply_tileset(source, out, tiles, *, share, needs=None, parallelism: int = 1
+                  ) -> tuple[list, str]:
     """Delayed tasks filling a tile-set store at ``out`` from ``source``, and what they do.
 
     ``source`` is the sample's store handle; ``tiles`` the
@@ -107,7 +138,7 @@ def apply_tileset(source, out, tiles, *, share, needs=None) -> tuple[list, str]:
     radiance = source[RADIANCE]
     writes = layer_writes(source.location, out, handle, shape=radiance.shape,
                           dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape,
-                          needs=needs)
+                          needs=needs, tasks=TASKS_PER_WORKER * parallelism)
     return writes, f"{len(matrices)} prescription(s) to {len(writes)} blocks of layers"
 
 
@@ -141,7 +172,8 @@ def write_tileset(tiles, out: str | Path, *, source: str, session, label: str,
         elif callable(tiles):
             tiles = tiles()
         progress.skeleton(lambda: write_tileset_store(tmp, tiles, source=sample))
-        writes, what = apply_tileset(sample, tmp, tiles, share=session.share, needs=needs)
+        writes, what = apply_tileset(sample, tmp, tiles, share=session.share, needs=needs,
+                                     parallelism=session.parallelism)
         # the writes' names carry the session's parallelism: a rerun with other workers keeps
         # nothing of the killed run's
         grouping = f"{len(writes)}x{session.parallelism}"
