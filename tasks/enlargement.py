@@ -12,7 +12,10 @@ sample direction row ``i`` of ``U_S`` is the linear function ``U_S[i] x`` of the
    statistical synthesis (:mod:`tasks.statistical_synthesis`) of ``R`` gives ``R'``, and the
    per-texel QP (:mod:`tasks.constrained_blend`) between ``R`` and ``R'`` under ``A x = b``
    gives the next ``R``;
-3. the result is the last ``R``, which meets the constraints to within the sample's own
+3. with ``regress``, each texel of ``R`` is moved that share of the way to the expected
+   coefficients given its constraint values (a local linear regression fitted on the sample,
+   :mod:`tasks.photo_regression`), and the QP applied again;
+4. the result is the last ``R``, which meets the constraints to within the sample's own
    compression error of the constraint layers (the QP's damping, chosen by the discrepancy
    principle, see :mod:`tasks.constrained_blend`), or exactly with ``exact`` (the paper's
    QP; up to nearly dependent rows, and in the least-squares sense for more rows than
@@ -56,6 +59,7 @@ class EnlargementParams:
     statistics_energy: float = 0.999
     exact: bool = False  # enforce A x = b exactly instead of to the sample's compression error
     metric: str = "sample"  # the QP's metric: "sample" (the sample's covariance) or "plain"
+    regress: float = 0.0  # share of the photos' local regression after the rounds (then a QP)
 
     def __post_init__(self):
         if self.rounds < 1:
@@ -70,6 +74,8 @@ class EnlargementParams:
         if self.metric not in METRICS:
             raise InvalidParameter("metric", f"metric must be one of {', '.join(METRICS)}, "
                                              f"got {self.metric!r}")
+        if not 0 <= self.regress <= 1:
+            raise InvalidParameter("regress", f"regress must be in [0, 1], got {self.regress}")
         if not self.beta >= 0 or self.alpha + self.beta <= 0:
             raise InvalidParameter("beta", f"beta must be non-negative (and alpha + beta > 0), "
                                            f"got {self.beta}")
@@ -124,6 +130,10 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         sample, shape, params=params.statistics, channels=statistics_channels(sample, params))
     rounds = refine(to.coefficients, target_constraints, projector, noise=noise,
                     params=params, statistics=statistics)
+    start = time.perf_counter()
+    rounds.coefficients = regressed(rounds.coefficients, sample, sample_constraints,
+                                    target_constraints, projector, noise=noise, params=params)
+    seconds["regression"] = time.perf_counter() - start
     return EnlargementResult(
         coefficients=rounds.coefficients, texture_optimization=to.coefficients,
         statistics=rounds.first_statistics, seconds={**seconds, **rounds.seconds},
@@ -131,6 +141,24 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         residual=projector.residual(rounds.coefficients, target_constraints),
         residual_rms=projector.rms_residual(rounds.coefficients, target_constraints),
         noise=noise, damping=rounds.damping, energy=to.energy, constraint_rank=projector.rank)
+
+
+def regressed(x: np.ndarray, sample: np.ndarray, sample_constraints: np.ndarray,
+              target_constraints: np.ndarray, projector: ConstraintProjector, *, noise: float,
+              params: EnlargementParams) -> np.ndarray:
+    """``x`` moved ``params.regress`` of the way to the photos' local regression, then the QP.
+
+    The regression (:func:`tasks.photo_regression.local_regression`) is fitted on the sample's
+    texels; the QP (:func:`tasks.constrained_blend.blend` of the moved ``x`` alone) meets the
+    constraints again as the rounds left them. ``x`` itself for a share of 0.
+    """
+    if params.regress == 0 or not target_constraints.shape[-1]:
+        return x
+    from tasks.photo_regression import local_regression
+
+    estimate = local_regression(sample, sample_constraints, target_constraints)
+    moved = x + np.float32(params.regress) * (estimate - x)
+    return blend(moved, moved, target_constraints, projector, noise=noise)[0]
 
 
 def qp_projector(rows: np.ndarray, sample: np.ndarray,

@@ -212,7 +212,9 @@ def tiled(inputs):
 
     out = {}
     for name, extra in (("tiled", ["--statistics"]), ("tiled-plain", []),
-                        ("whole-plain", ["--no-statistics"])):
+                        ("whole-plain", ["--no-statistics"]),
+                        ("tiled-regress", ["--regress", "0.5"]),
+                        ("whole-regress", ["--regress", "0.5"])):
         path = inputs["tmp"] / f"{name}.zarr"
         tile = "0" if name.startswith("whole") else "32"
         assert main(["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(path), "--tile",
@@ -227,6 +229,36 @@ def test_tiles_without_statistics_give_what_the_whole_target_gives(tiled):
     # where the EM carried a tile's neighbourhoods differently near its edge, and for the QP's
     # damping, chosen per tile
     assert np.mean(np.abs(tiles - whole)) < 0.02 * np.mean(np.abs(whole))
+
+
+def test_tiles_regress_as_the_whole_target_does(tiled):
+    whole, tiles = _log_abrdfs(tiled["whole-regress"]), _log_abrdfs(tiled["tiled-regress"])
+    assert np.mean(np.abs(tiles - whole)) < 0.02 * np.mean(np.abs(whole))
+    # and the regression moved both, tiles too: each nearer the other than its plain result
+    for regressed, plain in ((whole, _log_abrdfs(tiled["whole-plain"])),
+                             (tiles, _log_abrdfs(tiled["tiled-plain"]))):
+        assert np.mean(np.abs(regressed - plain)) > np.mean(np.abs(tiles - whole))
+    for name, share in (("whole-regress", 0.5), ("whole-plain", 0.0)):  # one photo: off
+        attrs = zarr.open_group(tiled[name], mode="r").attrs["enlargement"]
+        assert attrs["parameters"]["regress"] == share, name
+
+
+def test_the_regression_is_on_by_default_with_photos_of_two_directions():
+    from pipeline.stages.enlarge import AUTO_REGRESS, EnlargeParams, _Constraints
+
+    params = EnlargeParams(sample="s.zarr", constraints="c.zarr", out="o.zarr")
+    assert params.enlargement(1).regress == 0.0 and params.enlargement(2).regress == AUTO_REGRESS
+    chosen = EnlargeParams(sample="s.zarr", constraints="c.zarr", out="o.zarr", regress=0.25)
+    assert chosen.enlargement(1).regress == chosen.enlargement(10).regress == 0.25
+
+    def photo(view, light):
+        return {"kind": "photo", "sample_view": view, "sample_light": light}
+
+    mean = {"kind": "mean colour", "sample_view": 0}
+    for layers, directions in (([mean], 0), ([photo(0, 3)], 1), ([photo(0, 3), mean], 1),
+                               ([photo(0, 3), photo(0, 3)], 1), ([photo(0, 3), photo(1, 3)], 2),
+                               ([photo(0, 1), photo(0, 2), photo(0, 5)], 3)):
+        assert _Constraints(None, np.zeros((0, 1)), layers).photo_lights == directions
 
 
 def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):

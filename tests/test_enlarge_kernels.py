@@ -384,3 +384,96 @@ def test_the_coherence_table_searched_in_parts_is_the_one_search(count):
     assert len(coherence_parts(count)) == max(1, count // 4096)
     np.testing.assert_array_equal(coherence(x, 4), whole)
     assert whole.shape == (count, 4) and not (whole == np.arange(count)[:, None]).any()
+
+
+def _nearest_fit_reference(sample, keys, wanted, count, ridge):
+    """Each wanted texel's fit over its ``count`` nearest sample texels, by brute force."""
+    out = []
+    for b in wanted:
+        near = np.argsort(((keys - b) ** 2).sum(axis=1), kind="stable")[:count]
+        a, y = keys[near].astype(np.float64), sample[near].astype(np.float64)
+        a_mean, y_mean = a.mean(axis=0), y.mean(axis=0)
+        a, y = a - a_mean, y - y_mean
+        gram = a.T @ a
+        gram += ridge * np.trace(gram) / a.shape[1] * np.eye(a.shape[1])
+        step = (b - a_mean) @ np.linalg.solve(gram, a.T @ y)
+        spread = np.sqrt(np.mean(np.sum(y**2, axis=1)))
+        out.append(y_mean + step * min(1.0, 2.0 * spread / np.linalg.norm(step)))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("values", [1, 3, 12])
+def test_local_regression_is_the_ridge_fit_of_the_nearest_sample_texels(values):
+    from tasks.photo_regression import local_regression
+
+    rng = np.random.default_rng(values)
+    keys = rng.standard_normal((23, 19, values)).astype(np.float32)
+    sample = (np.sin(keys @ rng.standard_normal((values, 5)))
+              + 0.1 * rng.standard_normal((23, 19, 5))).astype(np.float32)
+    wanted = rng.standard_normal((7, 11, values)).astype(np.float32)
+    got = local_regression(sample, keys, wanted, neighbours=40, ridge=0.03)
+    count = max(40, 2 * values)
+    expected = _nearest_fit_reference(sample.reshape(-1, 5), keys.reshape(-1, values),
+                                      wanted.reshape(-1, values), count, 0.03)
+    assert got.shape == (7, 11, 5) and got.dtype == np.float32
+    np.testing.assert_allclose(got.reshape(-1, 5), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_local_regression_recovers_a_linear_law_bounds_its_steps_and_takes_a_constant():
+    from tasks.photo_regression import local_regression
+
+    rng = np.random.default_rng(5)
+    keys = rng.standard_normal((30, 30, 6))
+    law, offset = rng.standard_normal((6, 4)), rng.standard_normal(4)
+    wanted = 0.5 * rng.standard_normal((9, 9, 6))  # among the sample's values: no step capped
+    got = local_regression(keys @ law + offset, keys, wanted, ridge=0.0)
+    np.testing.assert_allclose(got, wanted @ law + offset, rtol=1e-3, atol=1e-3)
+    # far outside the sample's values: a step of at most twice the neighbours' spread
+    far = local_regression(keys @ law + offset, keys, np.full((1, 1, 6), 50.0), ridge=0.0)
+    spread = np.sqrt(np.sum(np.var(keys @ law, axis=(0, 1))))
+    assert np.all(np.isfinite(far))
+    assert np.linalg.norm(far - (keys @ law + offset).mean(axis=(0, 1))) < 4 * spread
+    # every sample texel (64, all of them neighbours) with the same photo values: their mean,
+    # not a NaN
+    coefficients = keys[:8, :8] @ law
+    same = local_regression(coefficients, np.ones((8, 8, 6)), wanted)
+    np.testing.assert_allclose(same, np.broadcast_to(coefficients.mean(axis=(0, 1)),
+                                                     same.shape), rtol=1e-4, atol=1e-4)
+
+
+def test_regress_takes_texels_between_the_samples_that_the_photos_determine():
+    # Texels of 5 values drawn from a smooth two-parameter family, seen through 3 photo values:
+    # the target's texels are new draws, which no sample texel equals. Texture Optimization
+    # can only copy (its error is the distance to the nearest sample texel); the regression
+    # interpolates between them.
+    from tasks.enlargement import EnlargementParams, enlarge
+
+    rng = np.random.default_rng(11)
+    mix = rng.standard_normal((2, 5))
+    rows = rng.standard_normal((3, 5)).astype(np.float32)
+
+    def texels(shape):
+        z = rng.uniform(-1, 1, (*shape, 2))
+        return np.tanh(1.5 * z @ mix).astype(np.float32)
+
+    sample, target = texels((32, 32)), texels((40, 40))
+    errors, residuals = {}, {}
+    for share in (0.0, 1.0):
+        params = EnlargementParams(
+            texture=TextureOptimizationParams(levels=1, patch=4, iterations=2), statistics=None,
+            regress=share, exact=True)
+        result = enlarge(sample, sample @ rows.T, target @ rows.T, rows, params=params,
+                         guide_weight=3.0, seed=1)
+        errors[share] = float(np.sqrt(np.mean((result.coefficients - target) ** 2)))
+        residuals[share] = result.residual
+    assert errors[1.0] < 0.5 * errors[0.0], errors
+    assert residuals[1.0] < 1e-4, residuals  # the QP after the move meets the photos again
+
+
+def test_regress_must_be_a_share():
+    from tasks.enlargement import EnlargementParams
+    from tasks.errors import InvalidParameter
+
+    for share in (-0.1, 1.5, float("nan")):
+        with pytest.raises(InvalidParameter, match="regress"):
+            EnlargementParams(regress=share)

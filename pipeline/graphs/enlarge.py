@@ -155,14 +155,15 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
     """Optimise one tile of a level (with its halo) and write its interior to ``name``.
 
     ``finish`` (the finest level): ``(projector, noise, enlargement params, statistics)``:
-    the tile then also runs the rounds of statistics and QP. With ``slot``, the whole grown
+    the tile then also runs the rounds of statistics and QP, and the photos' regression with
+    its QP (:func:`tasks.enlargement.regressed`). With ``slot``, the whole grown
     tile goes to slot ``slot`` of ``name`` instead, for :func:`blend_task`. Returns the EM
     energies and, with ``finish``, the rounds' changes and damping and the tile's squared
     residual.
     """
     import zarr
 
-    from tasks.enlargement import refine
+    from tasks.enlargement import refine, regressed
 
     grown = _grown(region, halo, shape)
     target = guide.region(factor, *grown)
@@ -176,7 +177,8 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
         projector, noise, enlargement, statistics = finish
         rounds = refine(x, target, projector, noise=noise, params=enlargement,
                         statistics=statistics)
-        x = rounds.coefficients
+        x = regressed(rounds.coefficients, source.coefficients, source.guide, target,
+                      projector, noise=noise, params=enlargement)
         report.update(changes=rounds.changes, damping=rounds.damping)
     y0, y1, x0, x1 = region
     inner = x[y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]

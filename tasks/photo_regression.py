@@ -1,0 +1,94 @@
+"""A texel's coefficients predicted from its photo values: local linear regression on the sample.
+
+Texture Optimization (paper 000, section 3.1) composes the result from the sample's texels, so
+at best each texel copies one the photos cannot tell from it, and the M-step averages the
+copies that fit. Where several photos under different lights pin down what varies between
+texels (slope, albedo, a shadow's depth), the expected value of a texel's coefficients given
+its photo values, ``E[x | b]``, is a better estimate of its ABRDF than any one copy: under the
+lights the photos did not see, a copy's errors are those of a draw from the texels that fit,
+the expectation's are not.
+
+:func:`local_regression` estimates ``E[x | b]`` from the sample alone, where both are known:
+for each target texel, the ``neighbours`` sample texels nearest in photo values, and a linear
+fit of their coefficients on their photo values (ridge-regularised relative to the
+neighbourhood's spread), evaluated at the texel's own values. It extends the paper's QP, whose
+sample metric (:func:`tasks.constrained_blend.sample_covariance`) is the same regression fitted
+once to the whole sample and applied as a correction of Texture Optimization's result; here it
+is local and gives the estimate itself. :func:`tasks.enlargement.enlarge` moves each texel of
+the rounds' result a share of the way to it (``--regress``) and applies the QP again.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+NEIGHBOURS = 64  # sample texels each fit uses (at least 2 per photo value)
+RIDGE = 0.03  # ridge, relative to the mean variance of the neighbours' photo values
+TRUST = 2.0  # the most a fit's step may be, in multiples of its neighbours' spread
+SEARCH_ENERGY = 0.999  # share of the sample's photo-value variance the neighbour search keeps
+CHUNK = 512  # target texels per batch: their neighbours' values, a few MB for ten photos
+
+
+def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_values: np.ndarray,
+                     *, neighbours: int = NEIGHBOURS, ridge: float = RIDGE) -> np.ndarray:
+    """Each target texel's coefficients from a linear fit of its photo-value neighbours.
+
+    Parameters
+    ----------
+    sample, sample_values
+        ``(h, w, K)`` coefficients of the sample and ``(h, w, G)`` its photo values (log
+        domain, as :func:`tasks.enlargement.enlarge` takes them).
+    target_values
+        ``(H, W, G)`` photo values of the target.
+    neighbours
+        Sample texels per fit (at least ``2 G``, at most the sample's texel count; found a
+        chunk of target texels at a time, so memory is bounded by :data:`CHUNK`), the
+        nearest in the leading principal components of the sample's photo values (those
+        holding :data:`SEARCH_ENERGY` of their variance).
+    ridge
+        Weight of the ridge term, relative to the mean variance of the neighbours' values.
+
+    Returns ``(H, W, K)`` float32. Deterministic: the same inputs give the same bits.
+    """
+    from scipy.spatial import cKDTree
+
+    k = sample.shape[-1]
+    g = sample_values.shape[-1]
+    coefficients = np.asarray(sample, np.float32).reshape(-1, k)
+    keys = np.asarray(sample_values, np.float32).reshape(-1, g)
+    wanted = np.asarray(target_values, np.float32).reshape(-1, g)
+    count = int(min(max(neighbours, 2 * g), len(keys)))
+    # neighbours found among the leading principal components of the sample's values
+    # (photos of one texture under several lights vary together): the k-d tree's search
+    # in 30 dimensions was most of the time
+    mean = keys.mean(axis=0)
+    _, singular, axes = np.linalg.svd(keys - mean, full_matrices=False)
+    energy = np.cumsum(singular.astype(np.float64) ** 2)
+    kept = int(np.searchsorted(energy, SEARCH_ENERGY * energy[-1]) + 1) if energy[-1] > 0 else 1
+    basis = axes[: min(kept, g)].T
+    tree = cKDTree((keys - mean) @ basis)
+    out = np.empty((len(wanted), k), np.float32)
+    eye = np.eye(g)
+    floor = np.finfo(np.float64).tiny / np.finfo(np.float64).eps
+    for start in range(0, len(wanted), CHUNK):
+        _, index = tree.query((wanted[start : start + CHUNK] - mean) @ basis, k=count)
+        index = index.reshape(-1, count)
+        a, y = keys[index], coefficients[index]  # (n, count, G), (n, count, K)
+        a_mean, y_mean = a.mean(axis=1), y.mean(axis=1)
+        a -= a_mean[:, None]
+        y -= y_mean[:, None]
+        at = a.transpose(0, 2, 1)
+        gram = (at @ a).astype(np.float64)
+        scale = np.trace(gram, axis1=1, axis2=2) / g
+        # the ridge relative to the spread, with a floor for neighbours all of one value
+        gram += (ridge * np.maximum(scale, floor))[:, None, None] * eye
+        slope = np.linalg.solve(gram, (at @ y).astype(np.float64))
+        step = ((wanted[start : start + CHUNK] - a_mean)[:, None] @ slope)[:, 0]
+        # a texel whose values lie far outside its neighbours' would be extrapolated
+        # without bound (a wood's one photo: coefficients of 1e9): its step is kept within
+        # TRUST times the neighbours' own spread
+        spread = np.sqrt(np.mean(np.sum(y.astype(np.float64) ** 2, axis=2), axis=1))
+        length = np.linalg.norm(step, axis=1)
+        step *= np.minimum(1.0, TRUST * spread / np.maximum(length, floor))[:, None]
+        out[start : start + CHUNK] = y_mean + step
+    return out.reshape(*np.shape(target_values)[:-1], k)
