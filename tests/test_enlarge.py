@@ -238,27 +238,9 @@ def test_tiles_regress_as_the_whole_target_does(tiled):
     for regressed, plain in ((whole, _log_abrdfs(tiled["whole-plain"])),
                              (tiles, _log_abrdfs(tiled["tiled-plain"]))):
         assert np.mean(np.abs(regressed - plain)) > np.mean(np.abs(tiles - whole))
-    for name, share in (("whole-regress", 0.5), ("whole-plain", 0.0)):  # one photo: off
+    for name, share in (("whole-regress", 0.5), ("whole-plain", 0.0)):
         attrs = zarr.open_group(tiled[name], mode="r").attrs["enlargement"]
         assert attrs["parameters"]["regress"] == share, name
-
-
-def test_the_regression_is_on_by_default_with_photos_of_two_directions():
-    from pipeline.stages.enlarge import AUTO_REGRESS, EnlargeParams, _Constraints
-
-    params = EnlargeParams(sample="s.zarr", constraints="c.zarr", out="o.zarr")
-    assert params.enlargement(1).regress == 0.0 and params.enlargement(2).regress == AUTO_REGRESS
-    chosen = EnlargeParams(sample="s.zarr", constraints="c.zarr", out="o.zarr", regress=0.25)
-    assert chosen.enlargement(1).regress == chosen.enlargement(10).regress == 0.25
-
-    def photo(view, light):
-        return {"kind": "photo", "sample_view": view, "sample_light": light}
-
-    mean = {"kind": "mean colour", "sample_view": 0}
-    for layers, directions in (([mean], 0), ([photo(0, 3)], 1), ([photo(0, 3), mean], 1),
-                               ([photo(0, 3), photo(0, 3)], 1), ([photo(0, 3), photo(1, 3)], 2),
-                               ([photo(0, 1), photo(0, 2), photo(0, 5)], 3)):
-        assert _Constraints(None, np.zeros((0, 1)), layers).photo_lights == directions
 
 
 def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):

@@ -79,7 +79,6 @@ DEFAULT_TILE = 512  # texels per side of a tile when the target is too large for
 # photo (btf bench enlarge, BENCHMARKS.md): the error outside the sample falls from 1 to 10 to
 # 100 and is flat from 100 to 1000.
 LAMBDA_SCALE = 100.0
-AUTO_REGRESS = 0.5  # --regress with photos of two or more directions (BENCHMARKS.md)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,15 +117,16 @@ class EnlargeParams:
              "sample texels whose photo values are nearest its own) instead of their "
              "weighted mean: 0 is the paper's mean alone, which blurs texels the photos tell "
              "apart (several photos under different lights); see docs/enlargement.md")
-    regress: float | None = option(
-        None, metavar="W",
+    regress: float = option(
+        0.0, metavar="W",
         help="share of each texel moved from the synthesized result to the expected ABRDF "
              "given its photo values (a linear fit of the 64 sample texels, or 2 per photo "
-             "value if more, nearest in photo values), then the QP again (default: 0.5 with "
-             "photos of two or more directions, where it lowered the error on most materials, "
-             "e.g. stone's gap share 0.89-0.99 -> 0.28-0.34 with ten photos; 0 with one photo "
-             "or a mean colour, where it raised it; 0 is the result without it bit for bit; "
-             "see docs/enlargement.md)")
+             "value if more, nearest in photo values), then the QP again: 0 (the default) "
+             "leaves the result as it was. With several photos under different lights it "
+             "can close most of the gap (ten photos of a path-traced stone: gap share "
+             "0.44-0.51 -> 0.03-0.06 at 0.5), but on wood and fabric it raised the error and "
+             "blurred the texture under the lights the photos do not show; with one photo it "
+             "raised the error on every material but one: see docs/enlargement.md")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -181,7 +181,7 @@ class EnlargeParams:
             raise ParamError("lambda", f"must be positive, got {self.lambda_}")
         if not 0 <= self.pick <= 1:
             raise ParamError("pick", f"must be in [0, 1], got {self.pick}")
-        if self.regress is not None and not 0 <= self.regress <= 1:
+        if not 0 <= self.regress <= 1:
             raise ParamError("regress", f"must be in [0, 1], got {self.regress}")
         if not self.max_angle >= 0:
             raise ParamError("max_angle", f"must be non-negative, got {self.max_angle}")
@@ -198,8 +198,8 @@ class EnlargeParams:
             raise ParamError("min_match", f"must be between -1 and 1, got {self.min_match}")
         self.enlargement()  # the kernels' own checks, under the option names
 
-    def enlargement(self, photo_lights: int = 1) -> EnlargementParams:
-        """The kernels' parameters, for photos matching ``photo_lights`` sample directions."""
+    def enlargement(self) -> EnlargementParams:
+        """The kernels' parameters."""
         return EnlargementParams(
             texture=TextureOptimizationParams(levels=self.levels, patch=self.patch,
                                               iterations=self.iterations, search=self.search,
@@ -207,8 +207,7 @@ class EnlargeParams:
             statistics=StatisticsParams() if self.statistics else None,
             rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints,
             statistics_energy=self.statistics_energy, metric=self.qp_metric,
-            regress=self.regress if self.regress is not None
-            else AUTO_REGRESS if photo_lights >= 2 else 0.0)
+            regress=self.regress)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,12 +217,6 @@ class _Constraints:
     guide: Guide
     rows: np.ndarray  # (G, K)
     layers: list[dict]  # what each constraint layer is, for the attrs and messages
-
-    @property
-    def photo_lights(self) -> int:
-        """How many of the sample's directions the photos among the layers match."""
-        return len({(layer["sample_view"], layer["sample_light"]) for layer in self.layers
-                    if layer["kind"] == "photo"})
 
 
 def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
@@ -402,8 +395,7 @@ def _whole(params, session, constraints, coefficients, sample_values, lam):
                        f"{available / 2**30:.1f} GiB available; use --tile N")
     values = constraints.guide.region(1, 0, big_h, 0, big_w)
     result = enlarge(coefficients, sample_values, values, constraints.rows,
-                     params=params.enlargement(constraints.photo_lights),
-                     guide_weight=float(np.sqrt(lam)),
+                     params=params.enlargement(), guide_weight=float(np.sqrt(lam)),
                      seed=params.seed)
     report = {"seconds": result.seconds, "rounds": result.rounds, "changes": result.changes,
               "constraint_residual_rms": result.residual_rms,
@@ -482,7 +474,7 @@ def _enlarge_tiled(params: EnlargeParams, session: Session, out, tmp, constraint
     ``u`` is the sample's ``U`` as ``(rows, rank)``.
     """
     report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
-                        sample_values, params=params.enlargement(constraints.photo_lights),
+                        sample_values, params=params.enlargement(),
                         guide_weight=float(np.sqrt(lam)), seed=params.seed,
                         tile=tile, session=session)
     new_u, new_s = write_factors(out, tmp, u, tile=tile, session=session)
@@ -560,8 +552,7 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
         out.attrs["enlargement"] = {
             "sample": params.sample, "constraints": params.constraints, "sample_shape": [h, w],
             "placement": placement, "constraint_layers": constraints.layers, "lambda": lam,
-            "parameters": dataclasses.asdict(params.enlargement(constraints.photo_lights)),
-            **report}
+            "parameters": dataclasses.asdict(params.enlargement()), **report}
     _log_times(session, report)
     return Path(params.out)
 
