@@ -204,7 +204,8 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
     generated wood, exported: 604 MB); ``quilt``, one periodic texture of 960^2 from a 256^2
     sample of 48 layers (530 MB; the planning on the reference image is part of its time),
     and ``quilt apply``, that plan applied alone; ``roller apply``, a roller's 4 tiles of 6 x 6
-    periods of a generated ``tiles`` material of ``size``^2 and 48 layers applied (340 MB);
+    periods of a generated ``tiles`` material of ``size``^2 and 48 layers applied (340 MB;
+    below a ``size`` of 512, 2 x 2 periods of a 256^2 one);
     ``render``, one layer of 8192^2 over a tile set of 2 x 2 corner types quilted from that
     sample (805 MB).
     """
@@ -233,10 +234,13 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
         rows.append(_apply_row("quilt apply", out, small, tmp, repeat))
         shutil.rmtree(out)
     if "roller" in stages:
-        tiles = generate_store(tmp / "lattice.zarr", "tiles", size, "abtf:12,4")
+        # the material repeats every 64 texels: 256^2 holds the four periods a lattice needs
+        # to be found; 6 x 6 of them make a 384^2 tile, 2 x 2 a 128^2 one
+        tiles = generate_store(tmp / "lattice.zarr", "tiles", max(size, 256), "abtf:12,4")
         plan = tmp / "roller.zarr"
+        periods = 6 if size >= 512 else 2
         assert main([str(v) for v in ["roller", tiles, plan, "--tiles", "4", "--periods",
-                                      "6,6", "--quiet"]]) == 0
+                                      f"{periods},{periods}", "--quiet"]]) == 0
         rows.append(_apply_row("roller apply", plan, tiles, tmp, repeat))
         shutil.rmtree(plan)
         shutil.rmtree(tiles)

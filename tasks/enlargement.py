@@ -12,9 +12,10 @@ sample direction row ``i`` of ``U_S`` is the linear function ``U_S[i] x`` of the
    statistical synthesis (:mod:`tasks.statistical_synthesis`) of ``R`` gives ``R'``, and the
    per-texel QP (:mod:`tasks.constrained_blend`) between ``R`` and ``R'`` under ``A x = b``
    gives the next ``R``;
-3. with ``regress``, each texel of ``R`` is moved that share of the way to the expected
-   coefficients given its constraint values (a local linear regression fitted on the sample,
-   :mod:`tasks.photo_regression`), and the QP applied again;
+3. with ``regress``, each texel of ``R`` is moved toward the expected coefficients given its
+   constraint values (a local linear regression fitted on the sample, by ``regress`` times
+   the share of variation it explains there, :mod:`tasks.photo_regression`), and the QP
+   applied again;
 4. the result is the last ``R``, which meets the constraints to within the sample's own
    compression error of the constraint layers (the QP's damping, chosen by the discrepancy
    principle, see :mod:`tasks.constrained_blend`), or exactly with ``exact`` (the paper's
@@ -146,18 +147,19 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
 def regressed(x: np.ndarray, sample: np.ndarray, sample_constraints: np.ndarray,
               target_constraints: np.ndarray, projector: ConstraintProjector, *, noise: float,
               params: EnlargementParams) -> np.ndarray:
-    """``x`` moved ``params.regress`` of the way to the photos' local regression, then the QP.
+    """``x`` moved toward the photos' local regression, then the QP.
 
     The regression (:func:`tasks.photo_regression.local_regression`) is fitted on the sample's
-    texels; the QP (:func:`tasks.constrained_blend.blend` of the moved ``x`` alone) meets the
-    constraints again as the rounds left them. ``x`` itself for a share of 0.
+    texels; each texel moves ``params.regress`` times the share of its neighbours' variation
+    the fit explains. The QP (:func:`tasks.constrained_blend.blend` of the moved ``x`` alone)
+    meets the constraints again as the rounds left them. ``x`` itself for ``regress`` 0.
     """
     if params.regress == 0 or not target_constraints.shape[-1]:
         return x
     from tasks.photo_regression import local_regression
 
-    estimate = local_regression(sample, sample_constraints, target_constraints)
-    moved = x + np.float32(params.regress) * (estimate - x)
+    estimate, explained = local_regression(sample, sample_constraints, target_constraints)
+    moved = x + (np.float32(params.regress) * explained)[..., None] * (estimate - x)
     return blend(moved, moved, target_constraints, projector, noise=noise)[0]
 
 

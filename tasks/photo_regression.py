@@ -15,7 +15,11 @@ neighbourhood's spread), evaluated at the texel's own values. It extends the pap
 sample metric (:func:`tasks.constrained_blend.sample_covariance`) is the same regression fitted
 once to the whole sample and applied as a correction of Texture Optimization's result; here it
 is local and gives the estimate itself. :func:`tasks.enlargement.enlarge` moves each texel of
-the rounds' result a share of the way to it (``--regress``) and applies the QP again.
+the rounds' result a share of the way to it and applies the QP again; the share is
+``--regress`` times how much of the neighbours' variation the fit explains (its adjusted
+R^2): where the photos tell the texels apart (a stone's slopes under ten lights) the texel
+goes most of the way, where they do not (a wood's grain, which its neighbourhood tells) it
+stays with Texture Optimization's result.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ CHUNK = 512  # target texels per batch: their neighbours' values, a few MB for t
 
 
 def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_values: np.ndarray,
-                     *, neighbours: int = NEIGHBOURS, ridge: float = RIDGE) -> np.ndarray:
+                     *, neighbours: int = NEIGHBOURS, ridge: float = RIDGE
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Each target texel's coefficients from a linear fit of its photo-value neighbours.
 
     Parameters
@@ -48,7 +53,10 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
     ridge
         Weight of the ridge term, relative to the mean variance of the neighbours' values.
 
-    Returns ``(H, W, K)`` float32. Deterministic: the same inputs give the same bits.
+    Returns the estimate ``(H, W, K)`` float32 and how much of its neighbours' variation each
+    fit explains, ``(H, W)`` float32 in [0, 1]: the adjusted R^2, ``1 - (RSS / (n - G - 1)) /
+    (TSS / (n - 1))`` over its ``n`` neighbours' coefficients, clipped (0 where ``n <= G + 1``:
+    too few neighbours to tell). Deterministic: the same inputs give the same bits.
     """
     from scipy.spatial import cKDTree
 
@@ -68,6 +76,7 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
     basis = axes[: min(kept, g)].T
     tree = cKDTree((keys - mean) @ basis)
     out = np.empty((len(wanted), k), np.float32)
+    explained = np.zeros(len(wanted), np.float32)
     eye = np.eye(g)
     floor = np.finfo(np.float64).tiny / np.finfo(np.float64).eps
     for start in range(0, len(wanted), CHUNK):
@@ -91,4 +100,10 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
         length = np.linalg.norm(step, axis=1)
         step *= np.minimum(1.0, TRUST * spread / np.maximum(length, floor))[:, None]
         out[start : start + CHUNK] = y_mean + step
-    return out.reshape(*np.shape(target_values)[:-1], k)
+        if count > g + 1:
+            rss = np.sum((y - a @ slope) ** 2, axis=(1, 2))
+            tss = np.sum(y.astype(np.float64) ** 2, axis=(1, 2))
+            share = 1 - (rss / (count - g - 1)) / np.maximum(tss / (count - 1), floor)
+            explained[start : start + CHUNK] = np.clip(share, 0, 1)
+    shape = np.shape(target_values)[:-1]
+    return out.reshape(*shape, k), explained.reshape(shape)

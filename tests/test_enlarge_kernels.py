@@ -411,7 +411,7 @@ def test_local_regression_is_the_ridge_fit_of_the_nearest_sample_texels(values):
     sample = (np.sin(keys @ rng.standard_normal((values, 5)))
               + 0.1 * rng.standard_normal((23, 19, 5))).astype(np.float32)
     wanted = rng.standard_normal((7, 11, values)).astype(np.float32)
-    got = local_regression(sample, keys, wanted, neighbours=40, ridge=0.03)
+    got, _ = local_regression(sample, keys, wanted, neighbours=40, ridge=0.03)
     count = max(40, 2 * values)
     expected = _nearest_fit_reference(sample.reshape(-1, 5), keys.reshape(-1, values),
                                       wanted.reshape(-1, values), count, 0.03)
@@ -426,19 +426,43 @@ def test_local_regression_recovers_a_linear_law_bounds_its_steps_and_takes_a_con
     keys = rng.standard_normal((30, 30, 6))
     law, offset = rng.standard_normal((6, 4)), rng.standard_normal(4)
     wanted = 0.5 * rng.standard_normal((9, 9, 6))  # among the sample's values: no step capped
-    got = local_regression(keys @ law + offset, keys, wanted, ridge=0.0)
+    got, explained = local_regression(keys @ law + offset, keys, wanted, ridge=0.0)
     np.testing.assert_allclose(got, wanted @ law + offset, rtol=1e-3, atol=1e-3)
+    assert explained.shape == (9, 9) and np.all(explained > 0.999)  # the law explains all
     # far outside the sample's values: a step of at most twice the neighbours' spread
-    far = local_regression(keys @ law + offset, keys, np.full((1, 1, 6), 50.0), ridge=0.0)
+    far, _ = local_regression(keys @ law + offset, keys, np.full((1, 1, 6), 50.0), ridge=0.0)
     spread = np.sqrt(np.sum(np.var(keys @ law, axis=(0, 1))))
     assert np.all(np.isfinite(far))
     assert np.linalg.norm(far - (keys @ law + offset).mean(axis=(0, 1))) < 4 * spread
     # every sample texel (64, all of them neighbours) with the same photo values: their mean,
     # not a NaN
     coefficients = keys[:8, :8] @ law
-    same = local_regression(coefficients, np.ones((8, 8, 6)), wanted)
+    same, explained = local_regression(coefficients, np.ones((8, 8, 6)), wanted)
     np.testing.assert_allclose(same, np.broadcast_to(coefficients.mean(axis=(0, 1)),
                                                      same.shape), rtol=1e-4, atol=1e-4)
+    assert np.all(explained == 0)  # values that tell nothing explain nothing
+
+
+def test_the_share_explained_is_the_adjusted_r2_of_the_fit():
+    from tasks.photo_regression import local_regression
+
+    rng = np.random.default_rng(9)
+    keys = rng.standard_normal((40, 40, 4))
+    signal = keys @ rng.standard_normal((4, 3))
+    wanted = 0.5 * rng.standard_normal((5, 5, 4))
+    # coefficients the values tell up to some noise, and noise alone
+    noise = 0.1 * rng.standard_normal(signal.shape) * signal.std(axis=(0, 1))
+    _, half = local_regression(signal + noise, keys, wanted, ridge=0.0)
+    _, none = local_regression(noise, keys, wanted, ridge=0.0)
+    assert 0.3 < float(np.median(half)) < 0.99, np.median(half)
+    assert float(np.median(none)) < 0.1, np.median(none)
+    # and the definition: 1 - (RSS / (n - G - 1)) / (TSS / (n - 1)) over the 64 nearest
+    near = np.argsort(((keys.reshape(-1, 4) - wanted[0, 0]) ** 2).sum(axis=1))[:64]
+    a, y = keys.reshape(-1, 4)[near], (signal + noise).reshape(-1, 3)[near]
+    a, y = a - a.mean(axis=0), y - y.mean(axis=0)
+    rss = np.sum((y - a @ np.linalg.lstsq(a, y, rcond=None)[0]) ** 2)
+    assert half[0, 0] == pytest.approx(max(0.0, 1 - (rss / 59) / (np.sum(y**2) / 63)),
+                                       abs=1e-4)
 
 
 def test_regress_takes_texels_between_the_samples_that_the_photos_determine():

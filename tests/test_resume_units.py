@@ -270,8 +270,10 @@ def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
     assert "vs floor" in capsys.readouterr().out
     result = json.loads(out.read_text())
     assert [r["stage"] for r in result["rows"]] == ["reconstruct", "crop", "generate", "ingest",
-                                                    "quilt", "render"]
+                                                    "quilt", "quilt apply", "roller apply",
+                                                    "render"]
     sizes = {"ingest": 192 * 128 * 128 * 3 * 4, "quilt": 48 * 240 * 240 * 3 * 4,
+             "quilt apply": 48 * 240 * 240 * 3 * 4, "roller apply": 4 * 48 * 128 * 128 * 3 * 4,
              "render": 2048 * 2048 * 3 * 4}
     for r in result["rows"]:
         assert r["bytes"] == sizes.get(r["stage"], 151 * 151 * 16 * 16 * 3 * 4)
