@@ -205,7 +205,7 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
     sample of 48 layers (530 MB; the planning on the reference image is part of its time),
     and ``quilt apply``, that plan applied alone; ``roller apply``, a roller's 4 tiles of 6 x 6
     periods of a generated ``tiles`` material of ``size``^2 and 48 layers applied (340 MB;
-    below a ``size`` of 512, 2 x 2 periods of a 256^2 one);
+    below a ``size`` of 512, 2 x 2 periods of one of ``max(size, 256)``^2);
     ``render``, one layer of 8192^2 over a tile set of 2 x 2 corner types quilted from that
     sample (805 MB).
     """

@@ -55,8 +55,9 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
 
     Returns the estimate ``(H, W, K)`` float32 and how much of its neighbours' variation each
     fit explains, ``(H, W)`` float32 in [0, 1]: the adjusted R^2, ``1 - (RSS / (n - G - 1)) /
-    (TSS / (n - 1))`` over its ``n`` neighbours' coefficients, clipped (0 where ``n <= G + 1``:
-    too few neighbours to tell). Deterministic: the same inputs give the same bits.
+    (TSS / (n - 1))`` over its ``n`` neighbours' coefficients, clipped (0 where ``n <= G + 1``,
+    too few neighbours to tell, and where the neighbours' coefficients are all the same).
+    Deterministic: the same inputs give the same bits.
     """
     from scipy.spatial import cKDTree
 
@@ -104,6 +105,8 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
             rss = np.sum((y - a @ slope) ** 2, axis=(1, 2))
             tss = np.sum(y.astype(np.float64) ** 2, axis=(1, 2))
             share = 1 - (rss / (count - g - 1)) / np.maximum(tss / (count - 1), floor)
-            explained[start : start + CHUNK] = np.clip(share, 0, 1)
+            # neighbours of one and the same coefficients: nothing to explain (0), whatever
+            # their float32 mean's rounding left in the residual
+            explained[start : start + CHUNK] = np.where(tss > floor, np.clip(share, 0, 1), 0)
     shape = np.shape(target_values)[:-1]
     return out.reshape(*shape, k), explained.reshape(shape)

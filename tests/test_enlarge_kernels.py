@@ -494,6 +494,38 @@ def test_regress_takes_texels_between_the_samples_that_the_photos_determine():
     assert residuals[1.0] < 1e-4, residuals  # the QP after the move meets the photos again
 
 
+def test_a_texel_moves_by_the_share_times_what_its_fit_explains(monkeypatch):
+    import tasks.photo_regression
+    from tasks.enlargement import EnlargementParams, regressed
+
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((6, 7, 5)).astype(np.float32)
+    estimate = rng.standard_normal((6, 7, 5)).astype(np.float32)
+    explained = rng.uniform(0, 1, (6, 7)).astype(np.float32)
+    monkeypatch.setattr(tasks.photo_regression, "local_regression",
+                        lambda *a, **k: (estimate, explained))
+    rows = rng.standard_normal((2, 5))
+    values = rng.standard_normal((6, 7, 2)).astype(np.float32)
+    projector = ConstraintProjector.of(rows)
+    got = regressed(x, x, values, values, projector, noise=0.0,
+                    params=EnlargementParams(regress=0.5))
+    moved = x + (0.5 * explained)[..., None] * (estimate - x)
+    np.testing.assert_array_equal(got, blend(moved, moved, values, projector)[0])
+    assert regressed(x, x, values, values, projector, noise=0.0,
+                     params=EnlargementParams(regress=0.0)) is x
+
+
+def test_neighbours_of_one_coefficient_explain_nothing_whatever_the_rounding():
+    from tasks.photo_regression import local_regression
+
+    rng = np.random.default_rng(6)
+    keys = rng.standard_normal((16, 16, 3))
+    for value in (0.0, 0.1, 1.0, 3.3, 1000.0):
+        _, explained = local_regression(np.full((16, 16, 2), value), keys,
+                                        rng.standard_normal((4, 4, 3)))
+        assert np.all(explained == 0), value
+
+
 def test_regress_must_be_a_share():
     from tasks.enlargement import EnlargementParams
     from tasks.errors import InvalidParameter
