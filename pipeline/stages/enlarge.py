@@ -124,7 +124,7 @@ class EnlargeParams:
              "values) by W times the share of their variation the fit explains, then apply "
              "the QP again: 0 (the default) leaves the result as it was. With several photos "
              "under different lights, 1 lowered the error in 22 of the 23 material and seed "
-             "rows measured, the other 1% higher (ten photos of a path-traced stone: gap share "
+             "rows measured, the other 1%% higher (ten photos of a path-traced stone: gap share "
              "0.44-0.51 -> -0.10 to -0.04), but made "
              "textures whose pattern the photos do not tell smoother under the other lights "
              "(a woven fabric's realism 1.33 -> 3.56); with one photo it raised the error: "
