@@ -131,10 +131,12 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         sample, shape, params=params.statistics, channels=statistics_channels(sample, params))
     rounds = refine(to.coefficients, target_constraints, projector, noise=noise,
                     params=params, statistics=statistics)
-    start = time.perf_counter()
-    rounds.coefficients = regressed(rounds.coefficients, sample, sample_constraints,
-                                    target_constraints, projector, noise=noise, params=params)
-    seconds["regression"] = time.perf_counter() - start
+    if params.regress:
+        start = time.perf_counter()
+        rounds.coefficients = regressed(rounds.coefficients, sample, sample_constraints,
+                                        target_constraints, projector, noise=noise,
+                                        params=params)
+        seconds["regression"] = time.perf_counter() - start
     return EnlargementResult(
         coefficients=rounds.coefficients, texture_optimization=to.coefficients,
         statistics=rounds.first_statistics, seconds={**seconds, **rounds.seconds},
