@@ -40,6 +40,7 @@ import numpy as np
 
 from tasks.constrained_blend import ConstraintProjector, blend, sample_covariance
 from tasks.errors import InvalidParameter
+from tasks.photo_regression import ValueRange
 from tasks.statistical_synthesis import StatisticsParams, impose_statistics, sample_statistics
 from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
 
@@ -102,7 +103,8 @@ class EnlargementResult:
 
 def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
             target_constraints: np.ndarray, rows: np.ndarray, *, params: EnlargementParams,
-            guide_weight: float, seed: int = 0) -> EnlargementResult:
+            guide_weight: float, seed: int = 0,
+            basis: np.ndarray | None = None) -> EnlargementResult:
     """Enlarge a sample's coefficients to the constraint images' size (Algorithm 1).
 
     Parameters
@@ -117,6 +119,9 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
         (``U_S`` rows; :func:`mean_colour_rows` for a mean colour).
     guide_weight
         ``sqrt(lambda)``, the weight of a constraint value in Texture Optimization.
+    basis
+        ``(R, K)``: rows of ``U_S`` (:func:`tasks.photo_regression.range_rows`) in which the
+        regression's move keeps every texel within the sample's range (None: unbounded).
     """
     sample = np.asarray(sample, np.float32)
     target_constraints = np.asarray(target_constraints, np.float32)
@@ -133,9 +138,10 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
                     params=params, statistics=statistics)
     if params.regress:
         start = time.perf_counter()
+        bounds = None if basis is None else ValueRange.of(sample, basis)
         rounds.coefficients = regressed(rounds.coefficients, sample, sample_constraints,
                                         target_constraints, projector, noise=noise,
-                                        params=params)
+                                        params=params, bounds=bounds)
         seconds["regression"] = time.perf_counter() - start
     return EnlargementResult(
         coefficients=rounds.coefficients, texture_optimization=to.coefficients,
@@ -148,20 +154,25 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
 
 def regressed(x: np.ndarray, sample: np.ndarray, sample_constraints: np.ndarray,
               target_constraints: np.ndarray, projector: ConstraintProjector, *, noise: float,
-              params: EnlargementParams) -> np.ndarray:
+              params: EnlargementParams, bounds: ValueRange | None = None) -> np.ndarray:
     """``x`` moved toward the photos' local regression, then the QP.
 
     The regression (:func:`tasks.photo_regression.local_regression`) is fitted on the sample's
     texels; each texel moves ``params.regress`` times the share of its neighbours' variation
-    the fit explains. The QP (:func:`tasks.constrained_blend.blend` of the moved ``x`` alone)
-    meets the constraints again as the rounds left them. ``x`` itself for ``regress`` 0.
+    the fit explains, and with ``bounds`` no further than where one of its values would leave
+    the sample's range (:meth:`~tasks.photo_regression.ValueRange.share`). The QP
+    (:func:`tasks.constrained_blend.blend` of the moved ``x`` alone) meets the constraints
+    again as the rounds left them. ``x`` itself for ``regress`` 0.
     """
     if params.regress == 0 or not target_constraints.shape[-1]:
         return x
     from tasks.photo_regression import local_regression
 
     estimate, explained = local_regression(sample, sample_constraints, target_constraints)
-    moved = x + (np.float32(params.regress) * explained)[..., None] * (estimate - x)
+    move = (np.float32(params.regress) * explained)[..., None] * (estimate - x)
+    if bounds is not None:
+        move *= bounds.share(x, move)[..., None]
+    moved = x + move
     return blend(moved, moved, target_constraints, projector, noise=noise)[0]
 
 

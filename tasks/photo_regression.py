@@ -20,9 +20,19 @@ the rounds' result a share of the way to it and applies the QP again; the share 
 R^2): where the photos tell the texels apart (a stone's slopes under ten lights) the texel
 goes most of the way, where they do not (a wood's grain, which its neighbourhood tells) it
 stays with Texture Optimization's result.
+
+A linear fit extrapolates: where a texel's neighbours differ little in photo values and much in
+coefficients, its estimate can leave what the sample holds, and under a light the photos did
+not see it decodes darker (or brighter) than any texel of the sample. A few such texels, a
+thousandth of a fabric's, are black specks in the result that no texture statistics allow (its
+minimum). :class:`ValueRange` bounds the move: it stops, texel by texel, where any of the
+sample's layers (rows of ``U_S``; :func:`range_rows`) would leave the range the sample's own
+texels span in it.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,6 +41,8 @@ RIDGE = 0.03  # ridge, relative to the mean variance of the neighbours' photo va
 TRUST = 2.0  # the most a fit's step may be, in multiples of its neighbours' spread
 SEARCH_ENERGY = 0.999  # share of the sample's photo-value variance the neighbour search keeps
 CHUNK = 512  # target texels per batch: their neighbours' values, a few MB for ten photos
+RANGE_ROWS = 1536  # most rows of U_S whose values bound the move (512 directions of RGB)
+RANGE_CHUNK = 1024  # texels per product when a move is checked: ~40 MB at 1536 rows
 
 
 def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_values: np.ndarray,
@@ -110,3 +122,62 @@ def local_regression(sample: np.ndarray, sample_values: np.ndarray, target_value
             explained[start : start + CHUNK] = np.where(tss > floor, np.clip(share, 0, 1), 0)
     shape = np.shape(target_values)[:-1]
     return out.reshape(*shape, k), explained.reshape(shape)
+
+
+def range_rows(basis: np.ndarray, channels: int, most: int = RANGE_ROWS) -> np.ndarray:
+    """The rows of ``basis`` (``U_S`` as ``(directions x channels, K)``) that bound the move.
+
+    All of them up to ``most``; beyond, every channel of ``most // channels`` directions evenly
+    spaced over the store's order (a dome of 22,801 directions: every 45th), so that checking a
+    move costs at most ``most`` values per texel whatever the sampling.
+    """
+    basis = np.asarray(basis)
+    if len(basis) <= most:
+        return basis
+    directions = len(basis) // channels
+    picked = np.unique(np.linspace(0, directions - 1, max(1, most // channels)).astype(int))
+    return basis.reshape(directions, channels, -1)[picked].reshape(-1, basis.shape[-1])
+
+
+@dataclass(frozen=True)
+class ValueRange:
+    """Per row of ``U_S`` (log domain), the least and greatest value of the sample's texels."""
+
+    rows: np.ndarray  # (R, K) float32
+    low: np.ndarray  # (R,) float32
+    high: np.ndarray  # (R,) float32
+
+    @classmethod
+    def of(cls, sample: np.ndarray, rows: np.ndarray) -> ValueRange:
+        """The range of ``sample``'s coefficients ``(h, w, K)`` in ``rows`` ``(R, K)``."""
+        rows = np.asarray(rows, np.float32)
+        flat = np.asarray(sample, np.float32).reshape(-1, rows.shape[-1])
+        low = np.full(len(rows), np.inf, np.float32)
+        high = np.full(len(rows), -np.inf, np.float32)
+        for start in range(0, len(flat), RANGE_CHUNK):
+            values = flat[start : start + RANGE_CHUNK] @ rows.T
+            np.minimum(low, values.min(axis=0), out=low)
+            np.maximum(high, values.max(axis=0), out=high)
+        return cls(rows, low, high)
+
+    def share(self, x: np.ndarray, move: np.ndarray) -> np.ndarray:
+        """Per texel, the largest ``t`` in [0, 1] with ``x + t move`` in the range in every row.
+
+        ``x`` and ``move`` are ``(..., K)``; returns ``(...)`` float32. A row where ``x`` itself
+        is outside the range bounds the move by ``x``'s value instead (``t = 0`` always fits:
+        the move never takes a texel further out than it was).
+        """
+        k = self.rows.shape[-1]
+        flat_x = np.asarray(x, np.float32).reshape(-1, k)
+        flat_move = np.asarray(move, np.float32).reshape(-1, k)
+        out = np.ones(len(flat_x), np.float32)
+        for start in range(0, len(flat_x), RANGE_CHUNK):
+            here = flat_x[start : start + RANGE_CHUNK] @ self.rows.T
+            step = flat_move[start : start + RANGE_CHUNK] @ self.rows.T
+            # room to the edge the step goes toward: negative where the texel is already
+            # past it (t < 0, clipped to 0), so it may move back in but not further out
+            room = np.where(step < 0, self.low - here, self.high - here)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                limit = np.where(step != 0, room / step, np.inf)
+            out[start : start + RANGE_CHUNK] = np.clip(limit.min(axis=1), 0, 1)
+        return out.reshape(np.shape(x)[:-1])

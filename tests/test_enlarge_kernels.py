@@ -515,6 +515,78 @@ def test_a_texel_moves_by_the_share_times_what_its_fit_explains(monkeypatch):
                      params=EnlargementParams(regress=0.0)) is x
 
 
+def test_the_value_range_is_the_samples_and_a_move_stops_at_its_edge():
+    from tasks.photo_regression import ValueRange
+
+    rng = np.random.default_rng(12)
+    rows = rng.standard_normal((9, 4)).astype(np.float32)
+    sample = rng.standard_normal((30, 20, 4)).astype(np.float32)
+    bounds = ValueRange.of(sample, rows)
+    values = sample.reshape(-1, 4) @ rows.T
+    np.testing.assert_allclose(bounds.low, values.min(axis=0), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(bounds.high, values.max(axis=0), rtol=1e-5, atol=1e-5)
+    # texels inside the range, moves of every length: x + t move stays within, and t is the
+    # largest that does (1, or a row at its edge: a little further leaves the range)
+    x = 0.3 * rng.standard_normal((500, 4)).astype(np.float32)
+    move = (rng.standard_normal((500, 4)) * rng.uniform(0, 4, (500, 1))).astype(np.float32)
+    t = bounds.share(x, move)
+    assert t.shape == (500,) and np.all((t >= 0) & (t <= 1))
+    moved = (x + t[:, None] * move) @ rows.T
+    assert np.all(moved >= bounds.low - 1e-4) and np.all(moved <= bounds.high + 1e-4)
+    further = (x + (t[:, None] + 1e-3) * move) @ rows.T
+    outside = np.any((further < bounds.low) | (further > bounds.high), axis=1)
+    assert np.all(outside[t < 1]) and 0.1 < np.mean(t < 1) < 0.9
+    # a texel already outside in a row: no further out in it, but free to move back in
+    square = ValueRange.of(np.array([[[-1, -1], [1, 1]]], np.float32), np.eye(2))
+    outside = np.array([[2.0, 0.0]] * 3, np.float32)
+    moves = np.array([[1.0, 0.0], [-1.0, 0.0], [-4.0, 0.0]], np.float32)
+    np.testing.assert_allclose(square.share(outside, moves), [0.0, 1.0, 0.75])
+    # shapes: (..., K) in, (...) out
+    assert bounds.share(x.reshape(20, 25, 4), move.reshape(20, 25, 4)).shape == (20, 25)
+
+
+def test_range_rows_are_all_rows_or_every_channel_of_evenly_spaced_directions():
+    from tasks.photo_regression import range_rows
+
+    basis = np.arange(300 * 3 * 2, dtype=np.float32).reshape(900, 2)
+    assert range_rows(basis, 3, most=900) is basis
+    picked = range_rows(basis, 3, most=90)
+    assert picked.shape == (90, 2)
+    directions = picked.reshape(30, 3, 2)[:, 0, 0] / 6  # each direction's first row
+    assert directions[0] == 0 and directions[-1] == 299 and np.all(np.diff(directions) > 0)
+    np.testing.assert_array_equal(picked.reshape(30, 3, 2)[:, :, 0] % 6, [[0, 2, 4]] * 30)
+
+
+def test_the_bounded_move_keeps_every_texel_within_the_samples_values(monkeypatch):
+    import tasks.photo_regression
+    from tasks.enlargement import EnlargementParams, regressed
+    from tasks.photo_regression import ValueRange
+
+    rng = np.random.default_rng(13)
+    sample = rng.standard_normal((16, 16, 5)).astype(np.float32)
+    x = sample[:6, :7].copy()
+    estimate = 6 * rng.standard_normal((6, 7, 5)).astype(np.float32)  # far outside
+    explained = rng.uniform(0.5, 1, (6, 7)).astype(np.float32)
+    monkeypatch.setattr(tasks.photo_regression, "local_regression",
+                        lambda *a, **k: (estimate, explained))
+    basis = rng.standard_normal((12, 5)).astype(np.float32)
+    rows = basis[:2]
+    values = x @ rows.T
+    projector = ConstraintProjector.of(rows)
+    bounds = ValueRange.of(sample, basis)
+    params = EnlargementParams(regress=1.0)
+    got = regressed(x, sample, sample @ rows.T, values, projector, noise=0.0, params=params,
+                    bounds=bounds)
+    move = explained[..., None] * (estimate - x)
+    moved = x + bounds.share(x, move)[..., None] * move
+    np.testing.assert_array_equal(got, blend(moved, moved, values, projector)[0])
+    decoded = moved.reshape(-1, 5) @ basis.T
+    assert np.all(decoded >= bounds.low - 1e-4) and np.all(decoded <= bounds.high + 1e-4)
+    unbounded = regressed(x, sample, sample @ rows.T, values, projector, noise=0.0,
+                          params=params)
+    assert np.any(unbounded.reshape(-1, 5) @ basis.T < bounds.low - 0.1)  # it would leave
+
+
 def test_neighbours_of_one_coefficient_explain_nothing_whatever_the_rounding():
     from tasks.photo_regression import local_regression
 

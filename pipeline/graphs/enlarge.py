@@ -30,6 +30,7 @@ from pipeline import storage
 from pipeline.errors import BTFError
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import as_float32
+from tasks.photo_regression import ValueRange
 from tasks.svd import BlockCheck, check_block
 from tasks.texture_optimization import (
     coarse_rows,
@@ -154,12 +155,12 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
                slot: int | None = None):
     """Optimise one tile of a level (with its halo) and write its interior to ``name``.
 
-    ``finish`` (the finest level): ``(projector, noise, enlargement params, statistics)``:
-    the tile then also runs the rounds of statistics and QP, and the photos' regression with
-    its QP (:func:`tasks.enlargement.regressed`). With ``slot``, the whole grown
-    tile goes to slot ``slot`` of ``name`` instead, for :func:`blend_task`. Returns the EM
-    energies and, with ``finish``, the rounds' changes and damping and the tile's squared
-    residual.
+    ``finish`` (the finest level): ``(projector, noise, enlargement params, statistics,
+    bounds)``: the tile then also runs the rounds of statistics and QP, and the photos'
+    regression within ``bounds`` with its QP (:func:`tasks.enlargement.regressed`). With
+    ``slot``, the whole grown tile goes to slot ``slot`` of ``name`` instead, for
+    :func:`blend_task`. Returns the EM energies and, with ``finish``, the rounds' changes and
+    damping and the tile's squared residual.
     """
     import zarr
 
@@ -174,11 +175,11 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
     x, energies = optimize(source, x, target, params, final=finish is not None)
     report = {"energy": energies}
     if finish is not None:
-        projector, noise, enlargement, statistics = finish
+        projector, noise, enlargement, statistics, bounds = finish
         rounds = refine(x, target, projector, noise=noise, params=enlargement,
                         statistics=statistics)
         x = regressed(rounds.coefficients, source.coefficients, source.guide, target,
-                      projector, noise=noise, params=enlargement)
+                      projector, noise=noise, params=enlargement, bounds=bounds)
         report.update(changes=rounds.changes, damping=rounds.damping)
     y0, y1, x0, x1 = region
     inner = x[y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]
@@ -267,13 +268,14 @@ def factor_task(out: str, name: str, region, w: np.ndarray, s: np.ndarray) -> No
 
 def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
                sample_values: np.ndarray, *, params, guide_weight: float, seed: int, tile: int,
-               session) -> dict:
+               session, basis: np.ndarray | None = None) -> dict:
     """Synthesize the target level by level into the scratch array ``_coefficients``.
 
     ``out`` is the output group (at ``path``), ``sample`` the sample's coefficients and
     ``sample_values`` its constraint values, ``params`` the
-    :class:`tasks.enlargement.EnlargementParams`. Computes on ``session``, one level at a time;
-    returns the report for the store's attrs. Every tile task is a unit of
+    :class:`tasks.enlargement.EnlargementParams`, ``basis`` the rows of ``U_S`` that bound the
+    regression's move (as :func:`tasks.enlargement.enlarge`'s). Computes on ``session``, one
+    level at a time; returns the report for the store's attrs. Every tile task is a unit of
     :class:`pipeline.resume.Progress`: a rerun after a kill runs only the tiles not finished
     (the client's random state is replayed level by level, so the result is the same).
     """
@@ -292,6 +294,7 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
     big_h, big_w = guide.shape
     halo = HALO * to.patch
     statistics = _tile_statistics(sample, guide.shape, tile, halo, params)
+    bounds = None if basis is None or not params.regress else ValueRange.of(sample, basis)
     report = {"tile": tile, "halo": halo, "levels": [], "seconds": {}}
     coarse, coarse_shape, here = None, None, location(path)
     progress = Progress(path)
@@ -311,7 +314,8 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
             here, name, regions, level=level, blend=blend, shape=shape, factor=factor,
             coarse=coarse, coarse_shape=coarse_shape, source=session.share(source),
             guide=guide, params=to, halo=0 if whole else halo,
-            finish=None if level else (projector, noise, params, statistics))
+            finish=None if level else session.share((projector, noise, params, statistics,
+                                                     bounds)))
         reports = _run_level(tasks, progress, session, factor=factor, shape=shape)
         if blend:
             _blend_level(out, here, name, regions, progress, session, shape=shape, halo=halo)

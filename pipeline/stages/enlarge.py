@@ -61,6 +61,7 @@ from pipeline.stores.base import (
 )
 from pipeline.stores.compressed import create_compressed_store
 from tasks.enlargement import METRICS, EnlargementParams, enlarge, mean_colour_rows
+from tasks.photo_regression import range_rows
 from tasks.registration import AMBIGUITY, Match, locate
 from tasks.sampling import nearest_layer
 from tasks.statistical_synthesis import StatisticsParams
@@ -122,13 +123,16 @@ class EnlargeParams:
         help="move each texel toward the expected ABRDF given its photo values (a linear fit "
              "of the 64 sample texels, or 2 per photo value if more, nearest in photo "
              "values) by W times the share of their variation the fit explains, then apply "
-             "the QP again: 0 (the default) leaves the result as it was. With several photos "
-             "under different lights, 1 lowered the error in 22 of the 23 material and seed "
-             "rows measured, the other 1%% higher (ten photos of a path-traced stone: gap share "
-             "0.44-0.51 -> -0.10 to -0.04), but made "
-             "textures whose pattern the photos do not tell smoother under the other lights "
-             "(a woven fabric's realism 1.33 -> 3.56); with one photo it raised the error: "
-             "see docs/enlargement.md")
+             "the QP again, each texel no further than its values stay within the range "
+             "the sample's texels span in each of its layers (or each channel of 512 evenly "
+             "spaced directions of a larger sampling): 0 (the default) leaves the result as "
+             "it was. With ten photos under different lights, 1 lowered the gap share on "
+             "every material measured with the bound but a fabric's, which it kept (a "
+             "path-traced stone: 0.44 -> -0.04; `btf bench enlarge`: median 0.38 -> 0.28), "
+             "realism within 0.1 on most and at "
+             "most 0.3 worse; with one to seven photos it raised the error on some (a woven "
+             "fabric's, whose neighbourhoods tell more than a few photo values): see "
+             "docs/enlargement.md")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -219,6 +223,7 @@ class _Constraints:
     guide: Guide
     rows: np.ndarray  # (G, K)
     layers: list[dict]  # what each constraint layer is, for the attrs and messages
+    basis: np.ndarray | None  # (R, K): rows of U_S bounding the regression (range_rows)
 
 
 def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
@@ -280,7 +285,11 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
     guide = Guide(location(path), tuple(layers), tuple(offsets), transform,
                   tuple(group[RADIANCE].shape[2:4]),
                   None if scale is None else tuple(float(1.0 / x) for x in scale))
-    return _Constraints(guide, np.concatenate(rows, axis=0), described)
+    basis = None
+    if params.regress:
+        whole = np.asarray(u[...], np.float32)
+        basis = range_rows(whole.reshape(-1, whole.shape[-1]), whole.shape[-2])
+    return _Constraints(guide, np.concatenate(rows, axis=0), described, basis)
 
 
 def _locate(guide: Guide, rendered: np.ndarray) -> tuple[Match, int]:
@@ -398,7 +407,7 @@ def _whole(params, session, constraints, coefficients, sample_values, lam):
     values = constraints.guide.region(1, 0, big_h, 0, big_w)
     result = enlarge(coefficients, sample_values, values, constraints.rows,
                      params=params.enlargement(), guide_weight=float(np.sqrt(lam)),
-                     seed=params.seed)
+                     seed=params.seed, basis=constraints.basis)
     report = {"seconds": result.seconds, "rounds": result.rounds, "changes": result.changes,
               "constraint_residual_rms": result.residual_rms,
               "sample_constraint_residual_rms": result.noise, "damping": result.damping,
@@ -478,7 +487,7 @@ def _enlarge_tiled(params: EnlargeParams, session: Session, out, tmp, constraint
     report = synthesize(out, tmp, constraints.guide, constraints.rows, coefficients,
                         sample_values, params=params.enlargement(),
                         guide_weight=float(np.sqrt(lam)), seed=params.seed,
-                        tile=tile, session=session)
+                        tile=tile, session=session, basis=constraints.basis)
     new_u, new_s = write_factors(out, tmp, u, tile=tile, session=session)
     return report, new_u, new_s
 
