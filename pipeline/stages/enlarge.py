@@ -129,10 +129,9 @@ class EnlargeParams:
              "it was. With ten photos under different lights, 1 lowered the gap share on "
              "every material measured with the bound but a fabric's, which it kept (a "
              "path-traced stone: 0.44 -> -0.04; `btf bench enlarge`: median 0.38 -> 0.28), "
-             "realism within 0.1 on most and at "
-             "most 0.3 worse; with one to seven photos it raised the error on some (a woven "
-             "fabric's, whose neighbourhoods tell more than a few photo values): see "
-             "docs/enlargement.md")
+             "realism within 0.1 on most and at most 0.3 worse; with one to seven photos it "
+             "raised the error on some (a woven fabric's, whose neighbourhoods tell more than "
+             "a few photo values): see docs/enlargement.md")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -227,11 +226,13 @@ class _Constraints:
 
 
 def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients,
-                 transform: Transform) -> _Constraints:
-    """Match every constraint layer to the sample (nothing of the photos' pixels is read)."""
+                 transform: Transform, u: np.ndarray) -> _Constraints:
+    """Match every constraint layer to the sample (nothing of the photos' pixels is read).
+
+    ``u`` is the sample's ``U``, ``(views, lights, channels, rank)``, as read.
+    """
     path = params.constraints
     d, ds = read_directions(group), read_directions(sample_group)
-    u = sample_group["U"]
     nv, nl = d.views, d.lights
     nc = group[RADIANCE].shape[-1]
     if params.mean_colour is not None and transform.name != "log":
@@ -285,10 +286,8 @@ def _constraints(params: EnlargeParams, group, sample_group, sample_coefficients
     guide = Guide(location(path), tuple(layers), tuple(offsets), transform,
                   tuple(group[RADIANCE].shape[2:4]),
                   None if scale is None else tuple(float(1.0 / x) for x in scale))
-    basis = None
-    if params.regress:
-        whole = np.asarray(u[...], np.float32)
-        basis = range_rows(whole.reshape(-1, whole.shape[-1]), whole.shape[-2])
+    basis = (range_rows(u.reshape(-1, u.shape[-1]).astype(np.float32), u.shape[-2])
+             if params.regress else None)
     return _Constraints(guide, np.concatenate(rows, axis=0), described, basis)
 
 
@@ -529,7 +528,7 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     big_h, big_w = group[RADIANCE].shape[2:4]
     _check_inputs(params, group, sample_group, (h, w), (big_h, big_w))
     transform = Transform.from_attrs(sample_group.attrs["transform"])
-    constraints = _constraints(params, group, sample_group, coefficients, transform)
+    constraints = _constraints(params, group, sample_group, coefficients, transform, u)
     raise_on_bad_photos(session.compute(*check_photos(constraints.guide)), params.constraints,
                         constraints.guide)
     y0, x0, placement = _place_sample(params, constraints, coefficients, session)
