@@ -42,3 +42,36 @@ def test_crop_refuses_regions_and_lights_out_of_range(small_abtf, btf, tmp_path)
     assert bad.code == 1 and "--light 99 is out of range" in bad.err
     assert btf("crop", small_abtf, tmp_path / "x.zarr", "--region", "5:2,0:3").code == 2
     assert no_partial_outputs(tmp_path / "x.zarr")
+
+
+def test_a_region_is_read_in_its_output_blocks_and_no_texel_outside_it(small_abtf, btf,
+                                                                       tmp_path, small_tasks,
+                                                                       monkeypatch):
+    """Every read of the source is one output block of the region (task blocks of 16 texels
+    here: the region 5:37 is read as 5:21 and 21:37, not as the source's 0:16, 16:32, 32:48
+    cut and put together); a selection of lights is read as before, with the same values."""
+    from pipeline import chunk_io
+
+    reads = []
+    read = chunk_io.Reader.__getitem__
+
+    def spy(self, region):
+        if self.array.path == "radiance":
+            reads.append(tuple((r.start, r.stop) for r in region[2:4]))
+        return read(self, region)
+
+    monkeypatch.setattr(chunk_io.Reader, "__getitem__", spy)
+    m = zarr.open_group(small_abtf, mode="r")
+    assert btf("crop", small_abtf, tmp_path / "s.zarr", "--region", "5:37,11:30",
+               "--quiet").code == 0
+    s = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    assert np.array_equal(s["radiance"][...], m["radiance"][:, :, 5:37, 11:30])
+    assert np.array_equal(s["height"][...], m["height"][5:37, 11:30])
+    assert set(reads) == {((y, y + 16), (x, x + n)) for y in (5, 21)
+                          for x, n in ((11, 16), (27, 3))}
+    reads.clear()
+    assert btf("crop", small_abtf, tmp_path / "c.zarr", "--region", "5:37,11:30",
+               "--light", "1,4", "--quiet").code == 0
+    c = zarr.open_group(tmp_path / "c.zarr", mode="r")
+    assert np.array_equal(c["radiance"][...], m["radiance"][:, [1, 4], 5:37, 11:30])
+    assert reads and all(r[0][0] % 16 == 0 for r in reads)  # the source's own blocks

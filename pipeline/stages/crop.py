@@ -157,9 +157,38 @@ def crop(params: CropParams, session: Session) -> Path:
         if progress.count():
             session.log(f"crop: resuming: {progress.count()} blocks already written")
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
-        sources = [selected[n].data.rechunk(aligned_chunks(out[n])) for n in names]
+        whole = all(len(index) == rad.sizes[dim] and list(index) == list(range(len(index)))
+                    for dim, index in (("view", views), ("light", lights)))
+        if whole:  # read in the output's blocks, cut where the region starts
+            cut = store.dataset(lambda _, name: _read_blocks(out[name], ds[name].dims,
+                                                             ds.sizes, ys, xs))
+            sources = [cut[n].data[_region(cut[n].dims, ys, xs)] for n in names]
+        else:
+            sources = [selected[n].data for n in names]
+        sources = [data.rechunk(aligned_chunks(out[n])) for data, n in zip(sources, names,
+                                                                           strict=True)]
         session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))
     return Path(params.out)
+
+
+def _read_blocks(target, dims: tuple, sizes, ys: slice, xs: slice) -> dict:
+    """The source's read blocks along ``dims``: ``target``'s task blocks, cut at the region.
+
+    Each block of the region is then read as one piece, exactly the texels of one output
+    block. (In the source's own task blocks, a block that straddled two output blocks was
+    read whole, cut and concatenated: reads of texels outside the region, and one more copy
+    of every value.) For the whole of the view and light axes only.
+    """
+    chunks = {}
+    for dim, blocks in zip(dims, aligned_chunks(target), strict=True):
+        cut = {"y": ys, "x": xs}.get(dim)
+        chunks[dim] = blocks if cut is None else tuple(
+            n for n in (cut.start, *blocks, sizes[dim] - cut.stop) if n)
+    return chunks
+
+
+def _region(dims: tuple, ys: slice, xs: slice) -> tuple[slice, ...]:
+    return tuple({"y": ys, "x": xs}.get(dim, slice(None)) for dim in dims)
 
 
 
