@@ -18,7 +18,7 @@ import numpy as np
 
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, read_chunks, store_aligned, task_side
+from pipeline.graphs.blocks import aligned_chunks, read_chunks, store_aligned, task_side, write_unit
 from pipeline.params import check_region, option, parse_region
 from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
@@ -159,9 +159,10 @@ def crop(params: CropParams, session: Session) -> Path:
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
         whole = all(len(index) == rad.sizes[dim] and list(index) == list(range(len(index)))
                     for dim, index in (("view", views), ("light", lights)))
-        if whole:  # read in the output's blocks, cut where the region starts
-            cut = store.dataset(lambda _, name: _read_blocks(out[name], ds[name].dims,
-                                                             ds.sizes, ys, xs))
+        reads = {n: _read_blocks(group[n], out[n], ds[n].dims, ys, xs) for n in names} \
+            if whole else {}
+        if reads and all(reads.values()):  # read in the output's blocks, cut at the region
+            cut = store.dataset(lambda _, name: reads.get(name))
             sources = [cut[n].data[_region(cut[n].dims, ys, xs)] for n in names]
         else:
             sources = [selected[n].data for n in names]
@@ -171,19 +172,24 @@ def crop(params: CropParams, session: Session) -> Path:
     return Path(params.out)
 
 
-def _read_blocks(target, dims: tuple, sizes, ys: slice, xs: slice) -> dict:
-    """The source's read blocks along ``dims``: ``target``'s task blocks, cut at the region.
+def _read_blocks(source, target, dims: tuple, ys: slice, xs: slice) -> dict | None:
+    """Read blocks of ``source`` along ``dims``: ``target``'s task blocks, cut at the region.
 
     Each block of the region is then read as one piece, exactly the texels of one output
     block. (In the source's own task blocks, a block that straddled two output blocks was
-    read whole, cut and concatenated: reads of texels outside the region, and one more copy
-    of every value.) For the whole of the view and light axes only.
+    read whole, cut and put together: reads of texels outside the region, and one more copy
+    of every value.) None where two output blocks meet inside one of the source's write units
+    (a region off its chunk grid, another ``--chunk``): that unit would be read and decoded
+    by two tasks, so the source is read in its own blocks, as before. For the whole of the
+    view and light axes only.
     """
     chunks = {}
-    for dim, blocks in zip(dims, aligned_chunks(target), strict=True):
-        cut = {"y": ys, "x": xs}.get(dim)
-        chunks[dim] = blocks if cut is None else tuple(
-            n for n in (cut.start, *blocks, sizes[dim] - cut.stop) if n)
+    for dim, blocks, size, unit in zip(dims, aligned_chunks(target), source.shape,
+                                       write_unit(source), strict=True):
+        cut = {"y": ys, "x": xs}.get(dim, slice(0, size))
+        if np.any((cut.start + np.cumsum(blocks)[:-1]) % unit):  # a unit read by two tasks
+            return None
+        chunks[dim] = tuple(n for n in (cut.start, *blocks, size - cut.stop) if n)
     return chunks
 
 
