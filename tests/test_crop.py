@@ -81,3 +81,23 @@ def test_a_region_is_read_in_its_output_blocks_and_no_texel_outside_it(small_abt
             assert set(reads) == read_as
         else:  # within the source's own blocks of 16 (dask may trim them to the region)
             assert reads and all(a // 16 == (b - 1) // 16 for read in reads for a, b in read)
+
+
+def test_a_store_with_some_of_the_truth_is_cropped_without_it(small_abtf, btf, tmp_path):
+    """The truth arrays are written only when all four are there; a store with some of them
+    (or any other variable) is cropped, its radiance read in the output's blocks."""
+    import shutil
+    import warnings
+
+    source = tmp_path / "partial.zarr"
+    shutil.copytree(small_abtf, source)
+    group = zarr.open_group(source, mode="a")
+    del group["specular"]
+    with warnings.catch_warnings():  # zarr's note that consolidated metadata is not in v3
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(source)  # as btf's stores keep theirs
+    assert btf("crop", source, tmp_path / "c.zarr", "--region", "16:48,0:32",
+               "--quiet").code == 0
+    c = zarr.open_group(tmp_path / "c.zarr", mode="r")
+    assert "height" not in c and "specular" not in c
+    assert np.array_equal(c["radiance"][...], group["radiance"][:, :, 16:48, 0:32])

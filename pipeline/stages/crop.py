@@ -162,7 +162,7 @@ def crop(params: CropParams, session: Session) -> Path:
         reads = {n: _read_blocks(group[n], out[n], ds[n].dims, ys, xs) for n in names} \
             if whole else {}
         if reads and all(reads.values()):  # read in the output's blocks, cut at the region
-            cut = store.dataset(lambda _, name: reads.get(name))
+            cut = store.dataset(lambda g, name: reads.get(name) or read_chunks(g, name))
             sources = [cut[n].data[_region(cut[n].dims, ys, xs)] for n in names]
         else:
             sources = [selected[n].data for n in names]
