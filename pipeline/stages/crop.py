@@ -157,13 +157,13 @@ def crop(params: CropParams, session: Session) -> Path:
         if progress.count():
             session.log(f"crop: resuming: {progress.count()} blocks already written")
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
-        whole = all(len(index) == rad.sizes[dim] and list(index) == list(range(len(index)))
+        whole = all(list(index) == list(range(rad.sizes[dim]))
                     for dim, index in (("view", views), ("light", lights)))
         reads = {n: _read_blocks(group[n], out[n], ds[n].dims, ys, xs) for n in names} \
             if whole else {}
         if reads and all(reads.values()):  # read in the output's blocks, cut at the region
             cut = store.dataset(lambda g, name: reads.get(name) or read_chunks(g, name))
-            sources = [cut[n].data[_region(cut[n].dims, ys, xs)] for n in names]
+            sources = [cut[n].isel(y=ys, x=xs).data for n in names]
         else:
             sources = [selected[n].data for n in names]
         sources = [data.rechunk(aligned_chunks(out[n])) for data, n in zip(sources, names,
@@ -191,10 +191,6 @@ def _read_blocks(source, target, dims: tuple, ys: slice, xs: slice) -> dict | No
             return None
         chunks[dim] = tuple(n for n in (cut.start, *blocks, size - cut.stop) if n)
     return chunks
-
-
-def _region(dims: tuple, ys: slice, xs: slice) -> tuple[slice, ...]:
-    return tuple({"y": ys, "x": xs}.get(dim, slice(None)) for dim in dims)
 
 
 
