@@ -434,7 +434,8 @@ def test_radiance_in_any_chunks_is_the_rechunked_lazy_radiance_bit_for_bit(tmp_p
                                                                           small_abtf, cosine):
     """Chunks of whole blocks of the lazy radiance (a U chunk by a V tile each) are rebuilt
     block by block into one array, others are the radiance rechunked: the same bits either
-    way (a product's last bit depends on its shape, so the pieces must be those blocks)."""
+    way (a product's last bit depends on its shape, so the pieces must be those blocks), and
+    with the factors read from the store in the blocks' chunks."""
     from pipeline.stores.compressed import radiance_in
 
     _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
@@ -453,8 +454,13 @@ def test_radiance_in_any_chunks_is_the_rechunked_lazy_radiance_bit_for_bit(tmp_p
         chunks = tuple(normalize_chunks((*chunk, nc), ds[RADIANCE].shape))
         got = radiance_in(ds, chunks)
         assert got.chunks == chunks and ("rebuild_pieces" in got.name) == in_place, chunk
-        expected = ds[RADIANCE].data.rechunk(chunks)
-        assert np.array_equal(got.compute(), expected.compute()), chunk
+        expected = ds[RADIANCE].data.rechunk(chunks).compute()
+        assert np.array_equal(got.compute(), expected), chunk
+        # the factors read from the store in the blocks' chunks: no rechunk, the same bits
+        read = radiance_in(ds, chunks, tmp_path / "c.zarr")
+        rechunked = any(name.startswith("rechunk") for name in read.__dask_graph__().layers)
+        assert rechunked != in_place, chunk
+        assert np.array_equal(read.compute(), expected), chunk
 
 
 @pytest.mark.parametrize(("args", "message"), [

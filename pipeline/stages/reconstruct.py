@@ -132,7 +132,8 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             chunks = aligned_chunks(group[RADIANCE])
             whole = all(getattr(params, n) is None for n in ("light", "view", "region"))
             # the whole store's blocks rebuilt in place; a selection's cut blocks rechunked
-            data = radiance_in(selected, chunks) if whole else sel.data.rechunk(chunks)
+            data = (radiance_in(selected, chunks, params.store) if whole
+                    else sel.data.rechunk(chunks))
             keep = None if needs is None else (lambda r: needs.keeps(
                 r[0].start, range(r[1].start, r[1].stop), r[2], r[3]))
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,
