@@ -10,11 +10,16 @@ its checksum (``redo`` of :meth:`Progress.pending`); the stages whose units writ
 if a chunk fails, start over (:meth:`Progress.distrust_damaged`). A chunk that never reached the
 disk at all reads as its fill value, which no checksum can see: resuming is for killed
 processes, and only mostly for crashed machines.) One run at a time writes a partial output:
-it holds a lock on it. Inside it, :class:`Progress` keeps one empty marker file per finished
-unit of work (a block of a store, a pass of the SVD) in ``.btf-done/``. A marker is written
-only after its unit's data is written, so a unit cut off in the middle is simply done again;
-units are deterministic (seeded per block), so a resumed output is bit-identical to an
-uninterrupted one. The markers are removed before the output is moved into place.
+it holds a lock on it. Inside it, :class:`Progress` keeps a marker per finished unit of work
+(a block of a store, a pass of the SVD) in ``.btf-done/``: a file holding the unit's result,
+or, for a unit whose result is the data it wrote (a block of a store on a local disk), a line
+naming it in a log of the process that did it (``.done-HOST-PID.log``, appended to by one
+``write`` per line; a line a kill cut short names nothing). A file per block cost a file
+created, renamed and at the end deleted per chunk written: on an ext4 disk a reconstruct of
+1,510 chunks of 786 KB took 1.2-2.1 s longer with them (its system time 1.5-2.6 s). A marker
+is written only after its unit's data is written, so a unit cut off in the middle is simply
+done again; units are deterministic (seeded per block), so a resumed output is bit-identical
+to an uninterrupted one. The markers are removed before the output is moved into place.
 
 An interrupt (Ctrl-C) or an error still removes the partial output: resuming is for runs that
 were killed before they could clean up, and for a full disk, which keeps it
@@ -33,6 +38,11 @@ from pipeline import storage
 
 DONE = ".btf-done"
 CREATED = "_created"
+LOG = ".done-{host}-{pid}.log"  # a process's log of the units it finished (one name a line)
+
+
+def _is_log(name: str) -> bool:
+    return name.startswith(".done-") and name.endswith(".log")
 
 
 class Progress:
@@ -45,7 +55,13 @@ class Progress:
         self.dir = storage.join(str(partial), DONE)
 
     def _names(self) -> set[str]:
-        return {n for n in storage.children(self.dir) if not n.endswith(".tmp")}
+        names = set()
+        for name in storage.children(self.dir):
+            if _is_log(name):
+                names.update(_logged(storage.join(self.dir, name)))
+            elif not name.endswith(".tmp"):
+                names.add(name)
+        return names
 
     @property
     def created(self) -> bool:
@@ -112,8 +128,9 @@ class Progress:
         else:
             for array in arrays:  # gone, so that no unit done again reads them to add to them
                 _remove_chunks(root, array, damaged[array.path])
-            for name in self._names() - {CREATED}:
-                storage.remove(storage.join(self.dir, name))
+            for name in storage.children(self.dir):  # marker files and logs
+                if name != CREATED:
+                    storage.remove(storage.join(self.dir, name))
         more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
         say(f"resuming: {bad[0]}{more} of the killed run fails its checksum: "
             + ("starting over" if only is None else "every unit is done again"))
@@ -121,7 +138,8 @@ class Progress:
 
     def done(self, name: str) -> bool:
         """Whether unit ``name`` is finished."""
-        return storage.exists(storage.join(self.dir, _file(name)))
+        return (storage.exists(storage.join(self.dir, _file(name)))
+                or _file(name) in self._names())
 
     def count(self) -> int:
         """Finished units (the skeleton aside)."""
@@ -231,21 +249,57 @@ def _file(name: str) -> str:
     return name.replace("/", "~")
 
 
-def mark_done(result: Any, marker: str) -> Any:
+def mark_done(result: Any, marker: str, *, logged: bool = False) -> Any:
     """:func:`_keep`, looked up when called (tests replace it to stop a run there)."""
-    return _keep(result, marker)
+    return _keep(result, marker, logged=logged)
 
 
-def _keep(result: Any, marker: str) -> Any:
+def _keep(result: Any, marker: str, *, logged: bool = False) -> Any:
     """Store ``result`` as the marker of its unit, written whole.
 
     A file renamed into place, or one object. Runs after the unit it depends on: its data is
-    written, so it is done.
+    written, so it is done. With ``logged`` (a unit whose result is the data it wrote, never
+    read back from its marker), a local marker is a line in this process's log instead.
     """
     # not fsynced: the unit's chunks are not either, so a marker that outlived a power loss
     # would vouch for nothing more (see the module); a killed process loses neither
+    if logged and not storage.is_url(marker):
+        _log(marker)
+        return result
     storage.write(marker, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL), durable=False)
     return result
+
+
+def _log(marker: str) -> None:
+    """Append the name of ``marker`` to this process's log beside it, in one ``write``.
+
+    ``O_APPEND``: the threads of a process each add whole lines. A process killed after the
+    write returned leaves the line in the file (the kernel's page cache holds it); a kill
+    cannot leave part of a line but at the end, without its newline, which reads as nothing.
+    """
+    import socket
+
+    folder, name = os.path.split(marker)
+    path = os.path.join(folder, LOG.format(host=socket.gethostname(), pid=os.getpid()))
+    line = (name + "\n").encode()
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    except FileNotFoundError:  # the folder is made on the first marker
+        os.makedirs(folder, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, line)
+    finally:
+        os.close(fd)
+
+
+def _logged(log: str) -> set[str]:
+    """The units a log names: its whole lines (a last line without its newline is not one)."""
+    try:
+        lines = storage.read(log).split(b"\n")
+    except FileNotFoundError:  # removed since it was listed
+        return set()
+    return {line.decode() for line in lines[:-1] if line}
 
 
 def _load(marker: str) -> Any:

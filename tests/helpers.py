@@ -99,12 +99,12 @@ def killed_before_unit(monkeypatch, unit: int, marker: str = "") -> None:
 
     original, kept = resume._keep, []
 
-    def keep(result, at):
+    def keep(result, at, **how):
         if marker in at:
             if len(kept) == unit:
                 raise Killed("killed")
             kept.append(at)
-        return original(result, at)
+        return original(result, at, **how)
 
     monkeypatch.setattr(resume, "_keep", keep)
 

@@ -19,7 +19,7 @@ import zarr
 
 from benchmarks.harness import run_until
 from helpers import btf_process, generate_store
-from pipeline.resume import CREATED, DONE
+from pipeline.resume import CREATED, DONE, Progress
 
 BIN = Path(sys.executable).parent
 pytestmark = pytest.mark.slow
@@ -43,14 +43,13 @@ def _files(root: Path) -> dict[str, int]:
             if p.is_file() and p.name != "zarr.json" and DONE not in p.parts}
 
 
-def _finished_units(out: Path) -> list[Path]:
-    """The done markers of the partial output of ``out`` (none if there is no partial)."""
+def _finished_units(out: Path) -> list[str]:
+    """The units marked done in the partial output of ``out`` (none if there is no partial):
+    marker files and the lines of the processes' logs."""
     partial = _partial(out)
     if partial is None or not (partial / DONE).is_dir():
         return []
-    # a marker still being written (``.NAME.PID.tmp``, renamed when whole) is not finished
-    return [p for p in (partial / DONE).iterdir()
-            if p.name != CREATED and not p.name.endswith(".tmp")]
+    return sorted(Progress(partial)._names() - {CREATED})
 
 
 def _same(a: Path, b: Path, arrays: tuple[str, ...]) -> None:

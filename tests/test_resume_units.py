@@ -17,7 +17,7 @@ import zarr
 import pipeline.graphs.blocks as blocks
 from helpers import Killed, killed_before_unit
 from pipeline.cli import main
-from pipeline.resume import CREATED, DONE
+from pipeline.resume import CREATED, DONE, Progress
 
 
 class Crash(Exception):
@@ -54,8 +54,8 @@ def _crash_then_resume(tmp_path, monkeypatch, capsys, args, names, crash_after=3
         _writes(m, fail_after=crash_after)
         main([*args(out), "--quiet"])
     (partial,) = tmp_path.glob(".out.resume-*")
-    markers = [p for p in (partial / DONE).iterdir()
-               if p.name != CREATED and not p.name.startswith("image~")]  # ingest's images
+    markers = [n for n in Progress(partial)._names()  # files, and the lines of logs
+               if n != CREATED and not n.startswith("image~")]  # ingest's images
     assert len(markers) == crash_after and not out.exists()
     capsys.readouterr()
     with monkeypatch.context() as m:
@@ -307,3 +307,30 @@ def test_stored_checksums_are_checked_without_decoding_and_catch_a_flipped_bit(t
     array = zarr.open_group(sharded, mode="r")["radiance"]
     assert blocks._stored_sums_match(array, whole) is None  # read back instead
     assert blocks._intact(array, whole)
+
+
+def test_blocks_are_marked_done_by_whole_lines_of_each_process_log(tmp_path):
+    """A store's blocks are marked in a log per process, not a file each: every whole line
+    of every log counts, a last line a kill cut short does not; the results of other units
+    stay files."""
+    from pipeline import resume
+
+    progress = Progress(tmp_path / "partial")
+    progress.mark_created()
+    for name in ("radiance/0.0", "radiance/0.1"):
+        assert resume.mark_done(7, progress.marker(name), logged=True) == 7
+    resume.mark_done({"pass": 1}, progress.marker("pass-1"))  # a result kept: a file
+    folder = tmp_path / "partial" / DONE
+    logs = sorted(p.name for p in folder.iterdir() if p.name.endswith(".log"))
+    assert len(logs) == 1 and logs[0].startswith(".done-")
+    assert sorted(p.name for p in folder.iterdir() if not p.name.endswith(".log")) == \
+        [CREATED, "pass-1"]
+    # another process's log (another host of a cluster), its last line cut short by a kill
+    (folder / ".done-other-12.log").write_bytes(b"radiance~1.0\nradiance~1.")
+    names = ["radiance/0.0", "radiance/0.1", "radiance/1.0", "radiance/1.1", "pass-1"]
+    assert progress.finished(names) == ["radiance/0.0", "radiance/0.1", "radiance/1.0",
+                                        "pass-1"]
+    assert progress.unfinished(names, redo=["radiance/0.1"]) == ["radiance/0.1", "radiance/1.1"]
+    assert progress.count() == 4
+    assert progress.done("radiance/1.0") and not progress.done("radiance/1.1")
+    assert progress.memo("pass-1", lambda: None) == ({"pass": 1}, True)

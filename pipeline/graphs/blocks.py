@@ -235,7 +235,7 @@ def _write_here(block: np.ndarray, *, target, progress=None, block_info=None) ->
         from pipeline import resume
 
         index = ".".join(map(str, block_info[0]["chunk-location"]))
-        resume.mark_done(done, progress.marker(f"{target.path}/{index}"))
+        resume.mark_done(done, progress.marker(f"{target.path}/{index}"), logged=True)
     return done
 
 
