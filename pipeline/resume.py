@@ -13,7 +13,7 @@ processes, and only mostly for crashed machines.) One run at a time writes a par
 it holds a lock on it. Inside it, :class:`Progress` keeps a marker per finished unit of work
 (a block of a store, a pass of the SVD) in ``.btf-done/``: a file holding the unit's result,
 or, for a unit whose result is the data it wrote (a block of a store on a local disk), a line
-naming it in a log of the process that did it (``.done-HOST-PID.log``, appended to by one
+naming it in a log of the process that did it (``.done-HOST-PID-TOKEN.log``, appended by one
 ``write`` per line; a line a kill cut short names nothing). A file per block cost a file
 created, renamed and at the end deleted per chunk written: on an ext4 disk a reconstruct of
 1,510 chunks of 786 KB took 1.2-2.1 s longer with them (its system time 1.5-2.6 s). A marker
@@ -38,7 +38,8 @@ from pipeline import storage
 
 DONE = ".btf-done"
 CREATED = "_created"
-LOG = ".done-{host}-{pid}.log"  # a process's log of the units it finished (one name a line)
+LOG = ".done-{host}-{pid}-{token}.log"  # a process's log of its finished units, a name a line
+_TOKEN: tuple[int, str] = (0, "")  # (pid, random token) of this process's log
 
 
 def _is_log(name: str) -> bool:
@@ -139,7 +140,7 @@ class Progress:
     def done(self, name: str) -> bool:
         """Whether unit ``name`` is finished."""
         return (storage.exists(storage.join(self.dir, _file(name)))
-                or _file(name) in self._names())
+                or (not storage.is_url(self.dir) and _file(name) in self._names()))
 
     def count(self) -> int:
         """Finished units (the skeleton aside)."""
@@ -276,30 +277,37 @@ def _log(marker: str) -> None:
     ``O_APPEND``: the threads of a process each add whole lines. A process killed after the
     write returned leaves the line in the file (the kernel's page cache holds it); a kill
     cannot leave part of a line but at the end, without its newline, which reads as nothing.
+    The log is this process's alone (its host, pid and a random token: a rerun in a container
+    may have the killed run's pid), so no other process appends after a cut line.
     """
     import socket
+    import uuid
 
+    global _TOKEN
+    if _TOKEN[0] != os.getpid():  # a fork has a log of its own
+        _TOKEN = (os.getpid(), uuid.uuid4().hex[:12])
     folder, name = os.path.split(marker)
-    path = os.path.join(folder, LOG.format(host=socket.gethostname(), pid=os.getpid()))
-    line = (name + "\n").encode()
+    path = os.path.join(folder, LOG.format(host=socket.gethostname(), pid=_TOKEN[0],
+                                           token=_TOKEN[1]))
+    line = memoryview((name + "\n").encode())
     try:
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     except FileNotFoundError:  # the folder is made on the first marker
         os.makedirs(folder, exist_ok=True)
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        os.write(fd, line)
+        while line:  # a short write (a full disk raises on the next)
+            line = line[os.write(fd, line):]
     finally:
         os.close(fd)
 
 
 def _logged(log: str) -> set[str]:
     """The units a log names: its whole lines (a last line without its newline is not one)."""
-    try:
-        lines = storage.read(log).split(b"\n")
-    except FileNotFoundError:  # removed since it was listed
+    data = storage.read(log)
+    if data is None:  # removed since it was listed
         return set()
-    return {line.decode() for line in lines[:-1] if line}
+    return {line.decode() for line in data.split(b"\n")[:-1] if line}
 
 
 def _load(marker: str) -> Any:

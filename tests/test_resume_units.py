@@ -313,6 +313,9 @@ def test_blocks_are_marked_done_by_whole_lines_of_each_process_log(tmp_path):
     """A store's blocks are marked in a log per process, not a file each: every whole line
     of every log counts, a last line a kill cut short does not; the results of other units
     stay files."""
+    import os
+    import socket
+
     from pipeline import resume
 
     progress = Progress(tmp_path / "partial")
@@ -325,8 +328,10 @@ def test_blocks_are_marked_done_by_whole_lines_of_each_process_log(tmp_path):
     assert len(logs) == 1 and logs[0].startswith(".done-")
     assert sorted(p.name for p in folder.iterdir() if not p.name.endswith(".log")) == \
         [CREATED, "pass-1"]
-    # another process's log (another host of a cluster), its last line cut short by a kill
-    (folder / ".done-other-12.log").write_bytes(b"radiance~1.0\nradiance~1.")
+    # another process's log (a killed run's, with this pid in a container, or another
+    # host's), its last line cut short by a kill: this process's lines never follow it
+    (folder / f".done-{socket.gethostname()}-{os.getpid()}-0.log").write_bytes(
+        b"radiance~1.0\nradiance~1.")
     names = ["radiance/0.0", "radiance/0.1", "radiance/1.0", "radiance/1.1", "pass-1"]
     assert progress.finished(names) == ["radiance/0.0", "radiance/0.1", "radiance/1.0",
                                         "pass-1"]
@@ -334,3 +339,6 @@ def test_blocks_are_marked_done_by_whole_lines_of_each_process_log(tmp_path):
     assert progress.count() == 4
     assert progress.done("radiance/1.0") and not progress.done("radiance/1.1")
     assert progress.memo("pass-1", lambda: None) == ({"pass": 1}, True)
+    resume.mark_done(None, progress.marker("radiance/1.1"), logged=True)
+    assert (folder / logs[0]).read_bytes() == b"radiance~0.0\nradiance~0.1\nradiance~1.1\n"
+    assert progress.finished(names) == names

@@ -387,7 +387,7 @@ def _level_tasks(here: str, name: str, regions, *, level: int, blend: bool, shap
 
 def _run_level(tasks: list, progress, session, *, factor: int, shape) -> list:
     """Log a level and compute its tasks not finished yet; returns every task's report."""
-    done = sum(progress.done(name) for name, _ in tasks)
+    done = len(progress.finished(name for name, _ in tasks))  # one look at the markers
     session.log(f"enlarge: level 1/{factor} ({shape[0]} x {shape[1]}) in {len(tasks)} "
                 f"task(s)" + (f", {done} finished by the interrupted run" if done else ""))
     return progress.run(session.compute, tasks)
