@@ -157,6 +157,40 @@ def test_rendering_does_not_depend_on_the_tiling(name):
     assert np.array_equal(whole, parts)
 
 
+def test_shadows_kept_for_other_views_give_the_same_bits(monkeypatch):
+    """The shadows a block's lights cast are kept for the blocks of other views (one view a
+    block, in any order, wider and narrower margins): every layer is what rendering it with
+    nothing kept gives, and the cache stays within its limit."""
+    from tasks import shading
+
+    m = Material("stone", seed=3)
+    s = parse_sampling("dome151")
+    model = ShadingModel(relief=m.relief)
+    halo = model.halo(s.theta_view.max(), s.theta_light.max())
+    fields = m.fields(-halo, -halo, 24 + 2 * halo, 20 + 2 * halo)
+    views = np.random.default_rng(4).permutation(len(s.theta_view))[:40]
+    lights = slice(60, 72)
+
+    def blocks(cache):
+        monkeypatch.setattr(shading, "SHADOWS", cache)
+        return [_render(fields, halo, model, s.theta_view[v], s.phi_view[v],
+                        s.theta_light[lights], s.phi_light[lights]) for v in views]
+
+    kept = shading.ShadowCache()
+    with_cache = blocks(kept)
+    assert len(kept.entries) == 12 and 0 < kept.size <= kept.limit
+    small = shading.ShadowCache(limit=kept.size // 2)  # some lights' shadows dropped
+    again = blocks(small)
+    assert 0 < small.size <= small.limit
+    none = shading.ShadowCache(limit=0)
+    fresh = blocks(none)
+    # each light's shadows computed once per wider margin, not once per view
+    assert kept.computed < small.computed < none.computed == 12 * len(views)
+    for a, b, c in zip(with_cache, again, fresh, strict=True):
+        assert np.array_equal(a.view(np.uint32), c.view(np.uint32))
+        assert np.array_equal(b.view(np.uint32), c.view(np.uint32))
+
+
 def test_cast_shadows_darken_low_elevations():
     m = Material("leather", seed=1)
     with_shadows, without = ShadingModel(relief=m.relief), ShadingModel(relief=m.relief,
