@@ -221,12 +221,13 @@ class ShadowCache:
                             max_length=model.max_shadow)
         with self.lock:
             self.computed += 1
+            if values.nbytes > self.limit:  # kept entries stay: they still serve narrower
+                return values
             old = self.entries.pop(key, None)
             if old is not None:
                 self.size -= old[1].nbytes
-            if values.nbytes <= self.limit:
-                self.entries[key] = (margin, values)
-                self.size += values.nbytes
+            self.entries[key] = (margin, values)
+            self.size += values.nbytes
             while self.size > self.limit:
                 self.size -= self.entries.popitem(last=False)[1][1].nbytes
         return values
