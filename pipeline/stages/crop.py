@@ -193,7 +193,6 @@ def _read_blocks(source, target, dims: tuple, ys: slice, xs: slice) -> dict | No
     return chunks
 
 
-
 def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
     src = shapes[params.store]
     nv, nl, ny, nx, nc = src.radiance

@@ -158,7 +158,7 @@ def _factor_in(ds, path, name: str, chunks):
         array = zarr.open_array(storage.store(location(path)), path=name, mode="r")
         if chunk_io.here(array):
             whole = chunk_io.dask_array(array, location(path), chunks)
-            return lazy_float32(whole[..., : int(ds.attrs["rank_used"])])
+            return lazy_float32(whole[..., : ds[name].shape[-1]])  # the rank in use
     return ds[name].data.rechunk(chunks)
 
 
