@@ -140,6 +140,25 @@ def limit_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
+_BLAS: list = [None, -1]  # threadpoolctl's controller, and len(sys.modules) when it was made
+
+
+def _blas_controller():
+    """The BLAS libraries loaded, as threadpoolctl sees them; seen again after any import.
+
+    ``threadpool_limits`` lists every shared library of the process on each call: 2 ms with
+    btf's imports, at every compute (10 s of CPU over a ``make test``). Libraries are loaded
+    by imports, so the list is kept until ``sys.modules`` changes size.
+    """
+    import sys
+
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS[0] is None or _BLAS[1] != len(sys.modules):
+        _BLAS[:] = [ThreadpoolController(), len(sys.modules)]
+    return _BLAS[0]
+
+
 def pin_openmp() -> None:
     """One OpenMP thread (faiss's searches and its OpenMP BLAS) in tasks of this process.
 
@@ -343,9 +362,7 @@ class Session:
         """
         if not (self._pin_blas or self.options.scheduler == "threads"):
             return contextlib.nullcontext()
-        from threadpoolctl import threadpool_limits
-
-        return threadpool_limits(limits=1, user_api="blas")
+        return _blas_controller().limit(limits=1, user_api="blas")
 
     def _local_pool(self, workers: int | None):
         """A pool of our own for the local schedulers, so that we can wait for it to drain."""
