@@ -42,10 +42,10 @@ from tasks.tonemap import exposure
 from tasks.transform import Transform
 from tasks.viewer import (
     ENERGY_KEPT,
+    GRID,
     MIN_DEFAULT_RANK,
     b64_bytes,
     block_means,
-    cell_triangles,
     mesh,
     pack_eigentextures,
     page_bytes,
@@ -55,7 +55,6 @@ from tasks.viewer import (
 
 MIB = 1 << 20
 MAX_RANK = 64
-GRID = 128  # cells per side of the sphere's direction -> triangles grids
 SLACK = 4096  # bytes the page's JSON may grow by between the estimate and the page
 
 
@@ -362,7 +361,7 @@ def _mesh_blobs(meshes) -> dict[str, np.ndarray]:
     """
     blobs = {}
     for side, m in zip(("view", "light"), meshes, strict=True):
-        spans, items = cell_triangles(m, GRID)
+        spans, items = m.cells  # GRID cells a side, computed once a mesh
         if len(m.triangles) >= 1 << 16:
             raise BTFError(f"{len(m.triangles)} {side} triangles: the page lists at most 65535")
         blobs[f"{side}Counts"] = spans[..., 1].astype(np.uint16)
