@@ -110,6 +110,7 @@ class StageEstimate:
     passes: int = 0
     input_reads: int = 0  # reads of the input (a pass may read it twice)
     task_bytes: int = 0
+    process_bytes: int = 0  # kept by each worker process across its tasks (generate's shadows)
     client_bytes: int = 0
     core_seconds: float | None = None  # work that parallelises over the workers' cores
     serial_seconds: float = 0.0  # work on the client alone (quilt planning)
@@ -236,10 +237,11 @@ def check_memory(plans: list[StageEstimate], limit: int, threads: int, source: s
     for p in plans:
         if not p.task_bytes and not p.client_bytes:
             continue
-        worker = BASE_PROCESS + threads * p.task_bytes
+        worker = BASE_PROCESS + p.process_bytes + threads * p.task_bytes
         if worker > limit:
+            kept = f" and {human_bytes(p.process_bytes)} kept" if p.process_bytes else ""
             raise BTFError(f"{p.where}: needs ~{worker / GiB:.1f} GiB per worker ({threads} "
-                           f"task(s) of {p.task_bytes / GiB:.2f} GiB), more than {source} "
+                           f"task(s) of {p.task_bytes / GiB:.2f} GiB{kept}), more than {source} "
                            f"allows ({limit / GiB:.1f} GiB); change {p.option}")
         if p.client_bytes > available:
             raise BTFError(f"{p.where}: the client needs ~{p.client_bytes / GiB:.1f} GiB, more "

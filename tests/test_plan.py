@@ -26,6 +26,14 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     generate, compress, quilt = plans
     rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
     assert generate.bytes_written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
+    from tasks.shading import SHADOWS  # each worker process keeps its shadow cache: counted once
+
+    assert generate.process_bytes == SHADOWS.limit
+    worker = planning.BASE_PROCESS + SHADOWS.limit + 2 * generate.task_bytes
+    planning.check_memory([generate], worker, 2, "x", available=1 << 40)
+    with pytest.raises(BTFError, match=r"needs ~.* GiB per worker \(2 task\(s\) of .* GiB and "
+                                       r"67\.1 MB kept\)"):
+        planning.check_memory([generate], worker - 1, 2, "x", available=1 << 40)
     # the texel side would need 15 GB; the note says how to read less
     assert compress.note == ("sketches on the rows side; 7 reads: a tile's column (4.5 GB) "
                              "exceeds --tile-cache (268.4 MB); --tile-cache 5GiB would keep "

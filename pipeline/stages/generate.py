@@ -45,7 +45,7 @@ from tasks.materials import (
 from tasks.pathtrace import BSDFS, PathTracer, stratified_spp
 from tasks.pathtrace import render_block as trace_block
 from tasks.sampling import SAMPLING_HELP, parse_sampling
-from tasks.shading import ShadingModel, render_block
+from tasks.shading import SHADOWS, ShadingModel, render_block
 
 CHANNELS = ("R", "G", "B")
 RENDERERS = ("shading", "mitsuba")
@@ -392,6 +392,8 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
                          + n * 6 * 4,
                          tasks=nv * light_blocks * spatial + spatial, passes=1, input_reads=0,
                          task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
+                         # the shadow cache of each process (the path tracer keeps none)
+                         process_bytes=0 if params.renderer == "mitsuba" else SHADOWS.limit,
                          client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
                          option="--chunk / --dir-chunk (smaller task blocks)")
     return plan, Shape("btf", (nv, nl, params.size, params.size, nc), layout.chunk,
