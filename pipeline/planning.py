@@ -235,7 +235,7 @@ def check_memory(plans: list[StageEstimate], limit: int, threads: int, source: s
                  available: int) -> None:
     """Refuse a plan whose workers or client would need more memory than they have."""
     for p in plans:
-        if not p.task_bytes and not p.client_bytes:
+        if not (p.task_bytes or p.process_bytes or p.client_bytes):
             continue
         worker = BASE_PROCESS + p.process_bytes + threads * p.task_bytes
         if worker > limit:
@@ -287,9 +287,10 @@ def report(plans: list[StageEstimate], *, cores: int, limit: int, threads: int,
 def _row(p: StageEstimate, name: str, note: str, cores: int) -> str:
     passes = (f"{p.passes} ({p.input_reads} reads)" if p.input_reads > p.passes
               else str(p.passes))
+    kept = f" (+ {human_bytes(p.process_bytes)} a process)" if p.process_bytes else ""
     return (f"| {name} | {human_bytes(p.bytes_read)} | {human_bytes(p.bytes_written)} | "
             f"{p.tasks} | {passes} | "
-            f"{human_bytes(p.task_bytes)} | {human_bytes(p.client_bytes)} | "
+            f"{human_bytes(p.task_bytes)}{kept} | {human_bytes(p.client_bytes)} | "
             f"{_duration(p.serial_seconds + p.core_seconds / cores)} | {note} |")
 
 

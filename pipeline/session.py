@@ -154,8 +154,9 @@ def _blas_controller():
 
     from threadpoolctl import ThreadpoolController
 
-    if _BLAS[0] is None or _BLAS[1] != len(sys.modules):
-        _BLAS[:] = [ThreadpoolController(), len(sys.modules)]
+    modules = len(sys.modules)  # before the scan: an import during it makes the next call scan
+    if _BLAS[0] is None or _BLAS[1] != modules:
+        _BLAS[:] = [ThreadpoolController(), modules]
     return _BLAS[0]
 
 

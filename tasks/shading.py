@@ -232,6 +232,12 @@ class ShadowCache:
                 self.size -= self.entries.popitem(last=False)[1][1].nbytes
         return values
 
+    def clear(self) -> None:
+        """Drop every entry (the counter stays)."""
+        with self.lock:
+            self.entries.clear()
+            self.size = 0
+
 
 SHADOWS = ShadowCache()
 

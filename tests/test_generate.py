@@ -312,3 +312,16 @@ def test_btf_bench_scaling_times_every_stage_under_every_configuration():
     text = suite.report(result)
     for stage in suite.STAGES:
         assert f"| {stage} | " in text and f"- {stage}: `btf {stage} " in text
+
+
+def test_the_shadow_cache_is_emptied_when_generate_ends(tmp_path, btf):
+    """The stages a run config puts after generate, in the same process, do not keep its
+    cached shadows (the plan counts them against generate's workers only)."""
+    from tasks.shading import SHADOWS
+
+    before = SHADOWS.computed
+    result = btf("generate", tmp_path / "g.zarr", "--material", "stone", "--size", "16",
+                 "--sampling", "hemi:3", "--scheduler", "threads", "--quiet")
+    assert result.code == 0, result.err
+    assert SHADOWS.computed > before  # the cache was used ...
+    assert not SHADOWS.entries and SHADOWS.size == 0  # ... and is empty again

@@ -357,7 +357,10 @@ def generate(params: GenerateParams, session: Session) -> Path:
         if progress.count():
             session.log(f"generate: resuming an interrupted run: {progress.count()} blocks "
                         f"already written in {tmp}")
-        session.compute(store_aligned(sources, targets, progress=progress))
+        try:
+            session.compute(store_aligned(sources, targets, progress=progress))
+        finally:  # the stages after it in this process (btf run, threads) do not keep it
+            SHADOWS.clear()
     return Path(params.out)
 
 
