@@ -292,10 +292,11 @@ def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):
     assert attrs["tile"] == 32 and attrs["levels"][-1]["tasks"] == 4
 
 
-# processes (a fresh interpreter per worker, 12 s) in the slow set; a cluster's worker
-# processes are in the default one
+# processes (a fresh interpreter per worker, 12 s) and a cluster's worker processes (5 s) in
+# the slow set; the default set runs compress and generate on a cluster's processes
 @pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES,
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+                                       pytest.param("cluster", marks=[pytest.mark.distributed,
+                                                                      pytest.mark.slow])])
 def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tmp_path,
                                                           scheduler, request):
     if scheduler == "cluster":

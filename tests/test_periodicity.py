@@ -17,10 +17,10 @@ THRESHOLD = 0.5  # btf roller's default --min-confidence
 
 
 # All 200 lattices (the rate of BENCHMARKS.md: 97%, and 90% of every motif) in the slow set;
-# the first 48 of them in the default set, where two misses are already 4% (both are "lines"
-# cases of the 200): a broken detector finds far fewer.
+# the first 32 of them in the default set, where its two misses are already 6% (both are
+# "lines" cases of the 200, 2 of that motif's 8 here): a broken detector finds far fewer.
 @pytest.mark.parametrize(("count", "rate", "motif_rate"),
-                         [(48, 0.9, 0.75), pytest.param(200, 0.97, 0.9, marks=pytest.mark.slow)])
+                         [(32, 0.9, 0.75), pytest.param(200, 0.97, 0.9, marks=pytest.mark.slow)])
 def test_random_lattices_give_their_primitive_cell(count, rate, motif_rate):
     rng = np.random.default_rng(20261123)  # not a seed the detector was developed on
     found, total, failures = Counter(), Counter(), []

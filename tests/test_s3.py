@@ -184,6 +184,9 @@ def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp
     _same(url, whole)
 
 
+# slow (7-9 s): its local twin, test_resume_units.py's kept block whose chunk changed, is in
+# the default set
+@pytest.mark.slow
 def test_a_resume_starts_over_when_a_chunk_the_killed_run_wrote_fails_its_checksum(
         btf, s3, monkeypatch, capsys):
     """Quilting resumes in place on S3; a chunk object of the killed run with a changed byte

@@ -713,8 +713,11 @@ def _bonn_factors(rng, model: int, texels: int):
     return u, sxv
 
 
-@pytest.mark.parametrize("model,cosine", [(3, False), (9, False), (10, False), (11, False),
-                                          (12, False), (12, True)])
+# models 9-11 in the slow set (2 s each in the browser): test_dfmf.py decodes every model in
+# the default one
+@pytest.mark.parametrize("model,cosine", [
+    (3, False), *(pytest.param(m, False, marks=pytest.mark.slow) for m in (9, 10, 11)),
+    (12, False), (12, True)])
 def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model, cosine):
     """Data the viewer was not made on: a DFMF file of each kind of colour model, ingested
     (the YUV models are decoded by the shader), against the decoding of Bonn's own reader;
