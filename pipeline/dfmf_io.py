@@ -40,7 +40,7 @@ from pipeline.errors import BTFError
 from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
-from pipeline.stores.base import Directions
+from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import create_compressed_store
 from tasks.dfmf import (
     ChannelBlock,
@@ -420,6 +420,85 @@ def ingest_dfmf(params, session: Session) -> Path:
         from pipeline.graphs.blocks import store_aligned
 
         session.compute(store_aligned([joint], [group["V"]], progress=progress))
+    return Path(params.out)
+
+
+DECODE_BYTES = 16 << 20  # layers a --radiance ingest task decodes at once, at most
+
+
+def _decoded_block(src: str, header: DfmfHeader, view: int, lights: tuple[int, int],
+                   dtype: str) -> np.ndarray:
+    """Layers ``lights`` of ``view`` decoded, ``(1, lights, height, width, channel)``."""
+    from pipeline.stores.radiance import stored
+
+    images = decode_pairs(src, header, [(view, li) for li in range(*lights)], threads=1)
+    bad = ~np.isfinite(images)
+    if bad.any():
+        i, y, x, c = np.argwhere(bad)[0]
+        raise BTFError(f"{src}: {int(bad.sum())} layer value(s) decode to NaN or Inf, the "
+                       f"first at view={view}, light={lights[0] + i}, y={y}, x={x}, "
+                       f"channel={c}")
+    where = f"{src}: view {view}, lights {lights[0]}-{lights[1] - 1}"
+    return np.ascontiguousarray(stored(images[None], np.dtype(dtype), where))
+
+
+def ingest_dfmf_radiance(params, session: Session) -> Path:
+    """``btf ingest FILE.btf OUT --radiance``: every layer decoded into a radiance store.
+
+    One task per view and block of lights decodes its layers from the mapped file
+    (:func:`decode_pairs`, on the task's thread) and writes them, in the store's layout;
+    memory per task is its block. No SVD: the layers are those Bonn's readers decode, not
+    ``btf ingest`` then ``btf reconstruct`` (whose factors are the file's rotated into one
+    joint basis, the same values to float32 rounding).
+    """
+    import dask
+    import dask.array as da
+    from dask.base import tokenize
+
+    from pipeline.graphs.blocks import aligned_chunks, store_aligned
+    from pipeline.stores.radiance import create_radiance_store
+
+    src = str(Path(params.src).absolute())
+    header = read_header(src)
+    views = len(header.theta_view)
+    _joint_u(params, src, header)  # what the factor ingest refuses, refused here too
+    channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
+    directions = Directions(*degrees(header.theta_view, header.phi_view),
+                            *degrees(header.theta_light, header.phi_light))
+    _log_file(session, header, params.out)
+    layout = params.layout()
+    attrs = {"source": "ingest", "source_btf_kind": directions.kind,
+             "ingest": {"format": "dfmf", "decoded": True,
+                        "colour": dfmf_colour_note(header.colour_model, cosine=header.cosine)},
+             "dfmf": header.metadata(), "provenance": provenance("ingest", params)}
+    with atomic_output(params.out, directory=True, overwrite=params.overwrite,
+                       resume=attrs["provenance"]) as tmp:
+        progress = Progress(tmp)
+        group = progress.skeleton(lambda: create_radiance_store(
+            tmp, directions=directions, ny=header.height, nx=header.width, channels=channels,
+            layout=layout, attrs=attrs))
+        radiance = group[RADIANCE]
+        session.log(f"ingest: decoding every layer into radiance ({layout.dtype})")
+        chunks = aligned_chunks(radiance)
+        name = "dfmf-decode-" + tokenize(src, header.metadata(), radiance.dtype.str)
+        shape = (header.height, header.width, len(channels))
+        # tasks of whole light chunks up to DECODE_BYTES: a decode's fixed cost (mapping the
+        # file, its bands) is paid once for several chunks
+        layer = int(np.prod(shape)) * radiance.dtype.itemsize
+        step = max(1, DECODE_BYTES // max(1, layer * chunks[1][0]))
+        lights = [sum(chunks[1][i:i + step]) for i in range(0, len(chunks[1]), step)]
+        rows = []
+        for v in range(views):
+            blocks, start = [], 0
+            for i, n in enumerate(lights):
+                block = dask.delayed(_decoded_block, pure=True, traverse=False)(
+                    src, header, v, (start, start + n), radiance.dtype.str,
+                    dask_key_name=(name, v, i))
+                blocks.append(da.from_delayed(block, (1, n, *shape), dtype=radiance.dtype))
+                start += n
+            rows.append(da.concatenate(blocks, axis=1))
+        layers = da.concatenate(rows, axis=0).rechunk(chunks)  # whole images: cut into tiles
+        session.compute(store_aligned([layers], [radiance], progress=progress))
     return Path(params.out)
 
 

@@ -94,6 +94,34 @@ def test_a_dfmf_file_becomes_a_compressed_store_that_decodes_like_bonns_reader(
     assert np.allclose(ds["phi_view"].values[2], np.degrees(-2.0) % 360)
 
 
+@pytest.mark.parametrize(("model", "args"), [(11, ()), (12, ("--dtype", "float16")),
+                                           (9, ("--chunk", "8", "--dir-chunk", "3"))])
+def test_radiance_decodes_every_layer_into_a_radiance_store(tmp_path, btf, model, args):
+    """``--radiance``: the layers Bonn's reader decodes, in a radiance store of the layout
+    asked for (tiles and light blocks cut at odd places), the same as the factors' store."""
+    from pipeline.stores.radiance import open_radiance
+
+    rng = np.random.default_rng(40 + model)
+    u, sxv, kw = _write(tmp_path / "m.btf", rng, model, scalar_size=2)
+    r = btf("ingest", tmp_path / "m.btf", tmp_path / "r.zarr", "--radiance", *args, "--quiet")
+    assert r.code == 0, r.err
+    ds = open_radiance(tmp_path / "r.zarr")
+    got = ds[RADIANCE].values.astype(np.float64)
+    expected = _expected(u, sxv, model, kw, 2)
+    scale = np.abs(expected).max()
+    tol = dict(rtol=1e-3, atol=1e-3 * scale) if "float16" in args else dict(rtol=1e-4,
+                                                                             atol=1e-5 * scale)
+    assert got.shape == expected.shape == (3, 4, HEIGHT, WIDTH, 3)
+    assert np.allclose(got, expected, **tol), (model, np.abs(got - expected).max(), scale)
+    stored = zarr.open_group(tmp_path / "r.zarr", mode="r")[RADIANCE]
+    assert stored.dtype == (np.float16 if "float16" in args else np.float32)
+    assert ds.attrs["dfmf"]["colour_model"] == model and ds.attrs["ingest"]["decoded"]
+    assert np.allclose(ds["theta_light"].values, np.degrees([t for t, _ in LIGHTS]))
+    assert btf("ingest", tmp_path / "m.btf", tmp_path / "f.zarr", "--quiet").code == 0
+    factors = open_compressed(tmp_path / "f.zarr")[RADIANCE].values
+    assert np.allclose(got, factors, **tol)
+
+
 def test_the_file_s_metadata_is_kept_and_a_rotations_block_is_skipped(tmp_path, btf):
     rng = np.random.default_rng(4)
     _write(tmp_path / "r.btf", rng, 11, rotations=True, channel_names=("R", "G", "B"))

@@ -269,9 +269,9 @@ def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
                   "--repeat", "1", "--image-size", "128", "--json", str(out)]) == 0
     assert "vs floor" in capsys.readouterr().out
     result = json.loads(out.read_text())
-    assert [r["stage"] for r in result["rows"]] == ["reconstruct", "crop", "generate", "ingest",
-                                                    "quilt", "quilt apply", "roller apply",
-                                                    "render"]
+    assert [r["stage"] for r in result["rows"]] == ["reconstruct", "ingest --radiance", "crop",
+                                                    "generate", "ingest", "quilt",
+                                                    "quilt apply", "roller apply", "render"]
     sizes = {"ingest": 192 * 128 * 128 * 3 * 4, "quilt": 48 * 240 * 240 * 3 * 4,
              "quilt apply": 48 * 240 * 240 * 3 * 4, "roller apply": 4 * 48 * 128 * 128 * 3 * 4,
              "render": 2048 * 2048 * 3 * 4}

@@ -36,10 +36,13 @@ def guess_can_open(path: Path) -> bool:
 
 
 def ingest(params, session) -> Path:
-    """``btf ingest FILE.btf OUT``: the file's factors as a compressed store, no expansion."""
-    from pipeline.dfmf_io import ingest_dfmf
+    """``btf ingest FILE.btf OUT``: the file's factors as a compressed store, no expansion.
 
-    return ingest_dfmf(params, session)
+    With ``--radiance``, every layer decoded into a radiance store instead.
+    """
+    from pipeline.dfmf_io import ingest_dfmf, ingest_dfmf_radiance
+
+    return (ingest_dfmf_radiance if params.radiance else ingest_dfmf)(params, session)
 
 
 def describe(path: Path) -> dict[str, Any]:
@@ -116,7 +119,8 @@ def lines(report: dict[str, Any]) -> list[str]:
 FORMAT = SourceFormat(
     "dfmf",
     "FILE.btf, a Bonn UBO2014 DFMF file: becomes a compressed store without expansion, its "
-    "factors exactly, with its colour model",
+    "factors exactly, with its colour model (--radiance: its layers decoded, a radiance "
+    "store)",
     "a .btf file (Bonn DFMF)",
     suffixes=(".btf",), guess_can_open=guess_can_open,
     describe=describe, lines=lines, ingest=ingest)

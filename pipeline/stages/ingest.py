@@ -78,6 +78,10 @@ class IngestParams(LayoutOptions):
         help="row order of ATRIUM .hdr images, whose header says '+X 256 -Y 256': bottom-up "
              "(their first row is the picture's bottom, as btf-extractor reads them) or "
              "top-down")
+    radiance: bool = option(
+        False, help="a DFMF file decoded into a radiance store, every layer as Bonn's readers "
+                    "decode it (in --dtype), instead of its factors; image formats always "
+                    "give radiance")
     overwrite: bool = option(False, record=False, help="replace OUT if it exists")
 
     def __post_init__(self):
