@@ -122,6 +122,27 @@ def test_radiance_decodes_every_layer_into_a_radiance_store(tmp_path, btf, model
     assert np.allclose(got, factors, **tol)
 
 
+def test_radiance_refuses_a_layer_that_decodes_to_inf_naming_its_place(tmp_path, btf,
+                                                                       monkeypatch):
+    import pipeline.dfmf_io as dfmf_io
+
+    _write(tmp_path / "m.btf", np.random.default_rng(3), 11, scalar_size=2)
+    real = dfmf_io.decode_pairs
+
+    def overflowing(*args, **kwargs):  # as exp(a) of a huge log value would
+        out = real(*args, **kwargs).copy()
+        if args[2][0] == (2, 0):
+            out[3, 4, 5, 1] = np.inf
+        return out
+
+    monkeypatch.setattr(dfmf_io, "decode_pairs", overflowing)
+    r = btf("ingest", tmp_path / "m.btf", tmp_path / "r.zarr", "--radiance", "--quiet")
+    assert r.code == 1
+    assert "1 layer value(s) decode to NaN or Inf, the first at view=2, light=3, y=4, x=5, " \
+           "channel=1" in r.err
+    assert not (tmp_path / "r.zarr").exists()
+
+
 def test_the_file_s_metadata_is_kept_and_a_rotations_block_is_skipped(tmp_path, btf):
     rng = np.random.default_rng(4)
     _write(tmp_path / "r.btf", rng, 11, rotations=True, channel_names=("R", "G", "B"))
