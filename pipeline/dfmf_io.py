@@ -423,7 +423,7 @@ def ingest_dfmf(params, session: Session) -> Path:
     return Path(params.out)
 
 
-DECODE_BYTES = 16 << 20  # layers a --radiance ingest task decodes at once, at most
+DECODE_BYTES = 16 << 20  # float32 layers a --radiance ingest task decodes at once, at most
 
 
 def _decoded_block(src: str, header: DfmfHeader, view: int, lights: tuple[int, int],
@@ -433,7 +433,9 @@ def _decoded_block(src: str, header: DfmfHeader, view: int, lights: tuple[int, i
 
     images = decode_pairs(src, header, [(view, li) for li in range(*lights)], threads=1)
     # one pass, no mask: a float64 sum of finite float32 values is finite
-    if not np.isfinite(np.sum(images, dtype=np.float64)):
+    with np.errstate(invalid="ignore"):  # Inf - Inf: NaN, found below
+        finite = np.isfinite(np.sum(images, dtype=np.float64))
+    if not finite:
         bad = ~np.isfinite(images)
         i, y, x, c = np.argwhere(bad)[0]
         raise BTFError(f"{src}: {int(bad.sum())} layer value(s) decode to NaN or Inf, the "
@@ -480,26 +482,32 @@ def ingest_dfmf_radiance(params, session: Session) -> Path:
             layout=layout, attrs=attrs))
         radiance = group[RADIANCE]
         session.log(f"ingest: decoding every layer into radiance ({layout.dtype})")
+        if progress.count():
+            session.log(f"ingest: resuming: {progress.count()} blocks already written")
         chunks = aligned_chunks(radiance)
-        name = "dfmf-decode-" + tokenize(src, header.metadata(), radiance.dtype.str)
         shape = (header.height, header.width, len(channels))
-        # tasks of whole light chunks up to DECODE_BYTES: a decode's fixed cost (mapping the
-        # file, its bands) is paid once for several chunks
-        layer = int(np.prod(shape)) * radiance.dtype.itemsize
+        # tasks of whole light chunks, of up to DECODE_BYTES of float32 decoded (or one chunk,
+        # if larger): a decode's fixed cost (mapping the file, its bands) is paid once for
+        # several chunks; a task holds its decoded layers and their copy in the store's dtype
+        layer = int(np.prod(shape)) * 4
         step = max(1, DECODE_BYTES // max(1, layer * chunks[1][0]))
         lights = [sum(chunks[1][i:i + step]) for i in range(0, len(chunks[1]), step)]
+        name = "dfmf-decode-" + tokenize(src, header.metadata(), radiance.dtype.str, lights)
+        # no chunk of decoded radiance is all fill value (NaN is refused): zarr's check for
+        # empty chunks skipped, as the image ingest does
+        target = radiance.with_config({"write_empty_chunks": True})
         rows = []
         for v in range(views):
             blocks, start = [], 0
             for i, n in enumerate(lights):
-                block = dask.delayed(_decoded_block, pure=True, traverse=False)(
+                block = dask.delayed(_decoded_block, traverse=False)(
                     src, header, v, (start, start + n), radiance.dtype.str,
                     dask_key_name=(name, v, i))
                 blocks.append(da.from_delayed(block, (1, n, *shape), dtype=radiance.dtype))
                 start += n
             rows.append(da.concatenate(blocks, axis=1))
         layers = da.concatenate(rows, axis=0).rechunk(chunks)  # whole images: cut into tiles
-        session.compute(store_aligned([layers], [radiance], progress=progress))
+        session.compute(store_aligned([layers], [target], progress=progress))
     return Path(params.out)
 
 

@@ -132,13 +132,13 @@ def test_radiance_refuses_a_layer_that_decodes_to_inf_naming_its_place(tmp_path,
     def overflowing(*args, **kwargs):  # as exp(a) of a huge log value would
         out = real(*args, **kwargs).copy()
         if args[2][0] == (2, 0):
-            out[3, 4, 5, 1] = np.inf
+            out[3, 4, 5, 1], out[3, 4, 6, 1] = np.inf, -np.inf  # their sum is NaN
         return out
 
     monkeypatch.setattr(dfmf_io, "decode_pairs", overflowing)
     r = btf("ingest", tmp_path / "m.btf", tmp_path / "r.zarr", "--radiance", "--quiet")
     assert r.code == 1
-    assert "1 layer value(s) decode to NaN or Inf, the first at view=2, light=3, y=4, x=5, " \
+    assert "2 layer value(s) decode to NaN or Inf, the first at view=2, light=3, y=4, x=5, " \
            "channel=1" in r.err
     assert not (tmp_path / "r.zarr").exists()
 
