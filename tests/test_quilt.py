@@ -1037,7 +1037,9 @@ def test_tile_sets_planned_on_photos_keep_the_bound_for_a_random_draw():
     mosaic, as sharp as the bench holds (BENCHMARKS.md, "Quilt plans on photos")."""
     from benchmarks.photoplans import draws, measure
 
-    for case in draws(None, ["brick", "gravel", "grass"], 1):
+    # and a draw whose mosaic stood at 1.307 while its thinned checks passed (THIN_MARGIN)
+    known = {"photo": "brick", "crop": [154, 172], "seed": 2056478575}
+    for case in [*draws(None, ["brick", "gravel", "grass"], 1), known]:
         r = measure(case, threads=2)
         if r["failed"]:  # refused with its message: nothing out of bounds is written
             assert "try another seed" in r["failed"], r
