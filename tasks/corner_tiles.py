@@ -172,16 +172,18 @@ class BorderCheck:
         """Both ratios of the tile's borders (periodic: its wrap, rows then columns).
 
         On a thinned inside (:data:`SPARSE_INSIDE`); a tile that passes by less than
-        :data:`THIN_MARGIN` is measured again on its whole inside, which decides.
+        :data:`THIN_MARGIN` on a thinned inside is measured again on its whole inside, which
+        decides (an inside too small to thin was measured whole already).
         """
         if self.periodic:
             values, borders = tile.value, Borders.periodic()
         else:
             values = self.frame(tile, top, bottom, left, right)
             borders = Borders.framed(tile.shape, self.half)
+        thinned: list[bool] = []
         figures = border_figures(self.exemplar, values, borders, reach=self.reach,
-                                 sparse_inside=SPARSE_INSIDE)
-        if SPARSE_INSIDE > 1 and (1 - THIN_MARGIN) * self.bound < figures.worst <= self.bound:
+                                 sparse_inside=SPARSE_INSIDE, thinned=thinned)
+        if thinned[0] and (1 - THIN_MARGIN) * self.bound < figures.worst <= self.bound:
             figures = border_figures(self.exemplar, values, borders, reach=self.reach,
                                      sparse_inside=1)
         return figures
