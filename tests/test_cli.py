@@ -48,15 +48,35 @@ def test_main_returns_the_status_of_help_and_usage_errors(capsys):
 def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed(tmp_path):
     """Start-up: ``btf generate`` imports its own stage's module alone, and computing on a
     local scheduler does not import dask.distributed (dask does, given a scheduler's name).
+    Neither it nor ``btf inspect`` imports xarray or pandas, which dask.array would import
+    itself (0.4 s; pipeline._imports).
     """
+    g = str(tmp_path / "g.zarr")
     code = ("import sys; from pipeline.cli import main; "
-            f"status = main(['generate', {str(tmp_path / 'g.zarr')!r}, '--material', 'wood', "
+            f"status = main(['generate', {g!r}, '--material', 'wood', "
             "'--size', '16', '--sampling', 'abtf:2,1', '--quiet']); "
             "print(status, sorted(m for m in sys.modules if m.startswith('pipeline.stages.')), "
-            "'distributed' in sys.modules)")
+            "'distributed' in sys.modules, 'xarray' in sys.modules); "
+            f"print(main(['inspect', {g!r}]) == 0, "
+            "sorted(m for m in ('xarray', 'pandas') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
-    assert out.split() == ["0", "['pipeline.stages.generate']", "False"], out
+    lines = out.splitlines()
+    assert lines[0].split() == ["0", "['pipeline.stages.generate']", "False", "False"], out
+    assert lines[-1] == "True []", out
+
+
+def test_dask_array_imported_before_xarray_still_tells_a_data_array():
+    """With xarray imported after dask.array, ``from_array`` of a DataArray of a dask array
+    gives that dask array, as with dask's own import of xarray."""
+    code = ("import sys, pipeline, numpy as np, dask.array as da; "
+            "da.from_array(np.ones(3)); before = 'xarray' in sys.modules; "
+            "import xarray as xr; x = xr.DataArray(da.ones((4, 4), chunks=2)); "
+            "print(before, da.from_array(x) is x.data, "
+            "type(da.from_array(xr.DataArray(np.ones(3)))).__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.split() == ["False", "True", "Array"], out
 
 
 def test_a_rechunk_on_a_local_scheduler_does_not_import_distributed(tmp_path):

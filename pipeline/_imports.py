@@ -1,0 +1,73 @@
+"""``dask.array`` without xarray at start-up.
+
+``dask.array.core`` imports xarray (and pandas with it) when it is itself imported, only to
+tell a DataArray in ``from_array``: 0.4 s of every btf process's start-up, where most stages
+open no Dataset. :func:`defer_xarray` has that one import fail quietly (dask's optional import
+gives ``None``) and puts in its place an object that stands for xarray once it is imported.
+Any ``import xarray`` elsewhere is untouched: a plain import, when it is made.
+"""
+
+from __future__ import annotations
+
+import importlib.abc
+import importlib.machinery
+import sys
+
+_CORE = "dask.array.core"
+
+
+class _NoDataArray:
+    """What ``xarray.DataArray`` is before xarray is imported: nothing is an instance."""
+
+
+class _XarrayOnUse:
+    """Stands for the xarray module in ``dask.array.core``: imports it at first use.
+
+    ``from_array`` asks whether its argument is a DataArray at every call; before xarray is
+    imported nothing can be one, so that question imports nothing.
+    """
+
+    def __getattr__(self, name: str):
+        if name == "DataArray" and "xarray" not in sys.modules:
+            return _NoDataArray
+        import xarray
+
+        return getattr(xarray, name)
+
+
+class _Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Runs ``dask.array.core`` with xarray hidden, unless xarray is already imported."""
+
+    def __init__(self) -> None:
+        self.loader: importlib.abc.Loader | None = None
+
+    def find_spec(self, name, path, target=None):
+        if name != _CORE or "xarray" in sys.modules:
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
+        if spec is None or spec.loader is None:
+            return None
+        self.loader, spec.loader = spec.loader, self
+        return spec
+
+    def create_module(self, spec):
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        sys.modules["xarray"] = None  # dask's optional import: ImportError, so None
+        try:
+            self.loader.exec_module(module)
+        finally:
+            if "xarray" in sys.modules and sys.modules["xarray"] is None:
+                del sys.modules["xarray"]
+        if getattr(module, "xr", False) is None:
+            module.xr = _XarrayOnUse()
+
+    def get_source(self, name):  # tracebacks and inspect read the module through its loader
+        return self.loader.get_source(name)
+
+
+def defer_xarray() -> None:
+    """Have ``dask.array``, when next imported, leave xarray to be imported at first use."""
+    if _CORE not in sys.modules and not any(isinstance(f, _Finder) for f in sys.meta_path):
+        sys.meta_path.insert(0, _Finder())
