@@ -370,6 +370,15 @@ def _svd_attrs(u: np.ndarray, g: np.ndarray, s: np.ndarray, ks: list[int]) -> di
                           max(total - float(np.sum(s**2)), 0.0) / max(total, 1e-300)))}}
 
 
+def _directions_channels(header: DfmfHeader) -> tuple[Directions, tuple[str, ...]]:
+    """The store's directions (degrees) and channel names for a file's header."""
+    directions = Directions(*degrees(header.theta_view, header.phi_view),
+                            *degrees(header.theta_light, header.phi_light))
+    # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
+    channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
+    return directions, tuple(channels)
+
+
 def ingest_dfmf(params, session: Session) -> Path:
     """``btf ingest FILE.btf OUT``: a DFMF file as a compressed store, without expansion."""
     import dask.array as da
@@ -384,11 +393,8 @@ def ingest_dfmf(params, session: Session) -> Path:
     header = read_header(src)
     views, lights = len(header.theta_view), len(header.theta_light)
     nc = len(header.channels)
-    directions = Directions(*degrees(header.theta_view, header.phi_view),
-                            *degrees(header.theta_light, header.phi_light))
+    directions, channels = _directions_channels(header)
     u, ones = _joint_u(params, src, header)
-    # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
-    channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
     _log_file(session, header, params.out)
     layout = params.layout()  # V in --dtype: float32 unless asked
     chunk = min(layout.chunk, header.height, header.width)
@@ -465,9 +471,7 @@ def ingest_dfmf_radiance(params, session: Session) -> Path:
     header = read_header(src)
     views = len(header.theta_view)
     _joint_u(params, src, header)  # what the factor ingest refuses, refused here too
-    channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
-    directions = Directions(*degrees(header.theta_view, header.phi_view),
-                            *degrees(header.theta_light, header.phi_light))
+    directions, channels = _directions_channels(header)
     _log_file(session, header, params.out)
     layout = params.layout()
     attrs = {"source": "ingest", "source_btf_kind": directions.kind,
