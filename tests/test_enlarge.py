@@ -243,6 +243,23 @@ def test_tiles_regress_as_the_whole_target_does(tiled):
         assert attrs["parameters"]["regress"] == share, name
 
 
+def test_the_regression_is_on_by_default_from_ten_photos(inputs, enlarged, btf, tmp_path):
+    from pipeline.stages.enlarge import REGRESS_PHOTOS, EnlargeParams
+
+    params = EnlargeParams(sample="s", constraints="c", out="o")
+    assert params.regress is None  # decided by the photos
+    assert params.resolved(REGRESS_PHOTOS).regress == 1.0
+    assert params.resolved(REGRESS_PHOTOS - 1).regress == 0.0
+    given = EnlargeParams(sample="s", constraints="c", out="o", regress=0.25)
+    assert given.resolved(1).regress == given.resolved(REGRESS_PHOTOS).regress == 0.25
+    # the ground truth's twelve layers as photos, and the one photo of `enlarged`
+    out = tmp_path / "twelve.zarr"
+    assert btf("enlarge", inputs["S_svd"], inputs["M"], out, "--quiet").code == 0
+    for path, share in ((out, 1.0), (enlarged, 0.0)):
+        info = zarr.open_group(path, mode="r").attrs["enlargement"]
+        assert info["parameters"]["regress"] == share, (path, info["constraint_layers"])
+
+
 def test_the_regression_is_bounded_by_every_layer_of_the_sample(inputs, monkeypatch):
     from pipeline.cli import main
     from tasks.photo_regression import ValueRange

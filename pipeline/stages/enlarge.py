@@ -80,6 +80,11 @@ DEFAULT_TILE = 512  # texels per side of a tile when the target is too large for
 # photo (btf bench enlarge, BENCHMARKS.md): the error outside the sample falls from 1 to 10 to
 # 100 and is flat from 100 to 1000.
 LAMBDA_SCALE = 100.0
+# --regress is 1 by default from this many photos: with ten, the bounded regression lowered the
+# error or kept it on every material and seed measured (36 path-traced and shaded rows, four
+# generated materials); with three, five and seven a woven fabric's rose (BENCHMARKS.md,
+# "The regression's move bounded by the sample's values")
+REGRESS_PHOTOS = 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,20 +123,21 @@ class EnlargeParams:
              "sample texels whose photo values are nearest its own) instead of their "
              "weighted mean: 0 is the paper's mean alone, which blurs texels the photos tell "
              "apart (several photos under different lights); see docs/enlargement.md")
-    regress: float = option(
-        0.0, metavar="W",
+    regress: float | None = option(
+        None, metavar="W",
         help="move each texel toward the expected ABRDF given its photo values (a linear fit "
              "of the 64 sample texels, or 2 per photo value if more, nearest in photo "
              "values) by W times the share of their variation the fit explains, then apply "
              "the QP again, each texel no further than its values stay within the range "
              "the sample's texels span in each of its layers (or each channel of 512 evenly "
-             "spaced directions of a larger sampling): 0 (the default) leaves the result as "
-             "it was. With ten photos under different lights, 1 lowered the gap share on "
-             "every material measured with the bound but a fabric's, which it kept (a "
-             "path-traced stone: 0.44 -> -0.04; `btf bench enlarge`: median 0.38 -> 0.28), "
-             "realism within 0.1 on most and at most 0.3 worse; with one to seven photos it "
-             "raised the error on some (a woven fabric's, whose neighbourhoods tell more than "
-             "a few photo values): see docs/enlargement.md")
+             "spaced directions of a larger sampling); 0 leaves the result as it was. "
+             f"Default: 1 with {REGRESS_PHOTOS} photos or more, else 0. With ten photos "
+             "under different lights, 1 lowered the gap share on every material measured "
+             "but a fabric's, which it kept (a path-traced stone: 0.44 -> -0.04; `btf bench "
+             "enlarge`: median 0.38 -> 0.28), realism within 0.1 on most and at most 0.3 "
+             "worse; with one to seven photos it raised the error on some (a woven "
+             "fabric's, whose neighbourhoods tell more than a few photo values): see "
+             "docs/enlargement.md")
     statistics: bool = option(False, help="run the paper's statistical synthesis and QP "
                                           "rounds after Texture Optimization (measured: no "
                                           "more realistic, up to 20%% higher error; see "
@@ -186,7 +192,7 @@ class EnlargeParams:
             raise ParamError("lambda", f"must be positive, got {self.lambda_}")
         if not 0 <= self.pick <= 1:
             raise ParamError("pick", f"must be in [0, 1], got {self.pick}")
-        if not 0 <= self.regress <= 1:
+        if self.regress is not None and not 0 <= self.regress <= 1:
             raise ParamError("regress", f"must be in [0, 1], got {self.regress}")
         if not self.max_angle >= 0:
             raise ParamError("max_angle", f"must be non-negative, got {self.max_angle}")
@@ -212,7 +218,13 @@ class EnlargeParams:
             statistics=StatisticsParams() if self.statistics else None,
             rounds=self.rounds, tol=self.tol, beta=self.beta, exact=self.exact_constraints,
             statistics_energy=self.statistics_energy, metric=self.qp_metric,
-            regress=self.regress)
+            regress=self.regress or 0.0)
+
+    def resolved(self, photos: int) -> EnlargeParams:
+        """These parameters with ``--regress``'s default decided by the number of photos."""
+        if self.regress is not None:
+            return self
+        return dataclasses.replace(self, regress=1.0 if photos >= REGRESS_PHOTOS else 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -520,6 +532,13 @@ def _log_times(session: Session, report: dict) -> None:
 def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     """Enlarge the sample under the constraint photos; write a compressed store."""
     sample_group, group = _open_inputs(params)
+    photos = int(np.prod(group[RADIANCE].shape[:2])) - (params.mean_colour is not None)
+    asked = params  # the provenance: a rerun's parameters as given are the same again
+    if params.regress is None:
+        params = params.resolved(photos)
+        session.log(f"enlarge: {photos} photo(s): the photos' regression "
+                    + ("on (--regress 1; --regress 0 turns it off)" if params.regress else
+                       f"off (on by default from {REGRESS_PHOTOS} photos; --regress W sets it)"))
     u = np.asarray(sample_group["U"][...], np.float64)
     nv, nl, nc, rank = u.shape
     s = np.asarray(sample_group["S"][...], np.float64)
@@ -541,7 +560,7 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                 f"{len(constraints.layers)} constraint layer(s) ({g} values per texel, lambda "
                 f"{lam:g}){f' in tiles of {tile}' if tile else ''} -> {params.out}")
     start = time.perf_counter()
-    attrs = _output_attrs(params, sample_group, [nv, nl, big_h, big_w, nc], rank)
+    attrs = _output_attrs(asked, sample_group, [nv, nl, big_h, big_w, nc], rank)
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
                        resume=attrs["provenance"] if tile else None) as tmp, \
             session.blas_pinned_in_tasks():
