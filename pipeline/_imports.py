@@ -54,7 +54,9 @@ class _Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         return self.loader.create_module(spec)
 
     def exec_module(self, module) -> None:
-        sys.modules["xarray"] = None  # dask's optional import: ImportError, so None
+        # dask's optional import: ImportError, so None. For the import of this one module
+        # (once a process, at start-up): a thread importing xarray in that moment would fail
+        sys.modules["xarray"] = None
         try:
             self.loader.exec_module(module)
         finally:
