@@ -32,7 +32,6 @@ QUIET_CLUSTERS = {
     "distributed.admin.system-monitor.interval": "5s",
     "distributed.worker.memory.monitor-interval": "1s",
     "distributed.worker.profile.enabled": False,
-    "distributed.scheduler.work-stealing-interval": "1s",
 }
 for _key, _value in QUIET_CLUSTERS.items():
     os.environ.setdefault("DASK_" + _key.upper().replace(".", "__").replace("-", "_"),
