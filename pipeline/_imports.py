@@ -82,6 +82,11 @@ class _Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     def get_source(self, name):  # tracebacks and inspect read the module through its loader
         return self.loader.get_source(name)
 
+    def __getattr__(self, name: str):  # the rest of the file loader's (get_code, path, ...)
+        if name == "loader":
+            raise AttributeError(name)
+        return getattr(self.loader, name)
+
 
 def defer_xarray() -> None:
     """Have ``dask.array``, when next imported, leave xarray to be imported at first use."""
