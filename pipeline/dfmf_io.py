@@ -376,7 +376,7 @@ def _directions_channels(header: DfmfHeader) -> tuple[Directions, tuple[str, ...
                             *degrees(header.theta_light, header.phi_light))
     # models 0 and 12 keep the file's channels (any number: multispectral); the others are RGB
     channels = header.channel_names if header.colour_model in (0, 12) else ("R", "G", "B")
-    return directions, tuple(channels)
+    return directions, channels
 
 
 def ingest_dfmf(params, session: Session) -> Path:

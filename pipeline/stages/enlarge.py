@@ -533,9 +533,9 @@ def _log_times(session: Session, report: dict) -> None:
 def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     """Enlarge the sample under the constraint photos; write a compressed store."""
     sample_group, group = _open_inputs(params)
-    photos = int(np.prod(group[RADIANCE].shape[:2])) - (params.mean_colour is not None)
     asked = params  # the provenance: a rerun's parameters as given are the same again
     if params.regress is None:
+        photos = int(np.prod(group[RADIANCE].shape[:2])) - (params.mean_colour is not None)
         params = params.resolved(photos)
         session.log(f"enlarge: {photos} photo(s): the photos' regression "
                     + ("on (--regress 1; --regress 0 turns it off)" if params.regress else
