@@ -149,8 +149,8 @@ def _application(plan, layers: np.ndarray, args) -> dict:
     nbytes = out.nbytes
     half = layers.shape[0] // 2
     halves = [slice(0, half), slice(half, None)]  # slices: views, not fancy-indexed copies
-    def prescribed(ls):
-        apply(matrix, layers[ls], output=shape, out=out[ls])
+    def prescribed(ls):  # the compiled loop, whatever the work (not compiled_pays' choice)
+        apply(matrix, layers[ls], output=shape, out=out[ls], compiled=True)
 
     def scipy_product(ls):  # the previous implementation: one scipy CSR product per layer
         for i in range(*ls.indices(layers.shape[0])):

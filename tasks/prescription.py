@@ -6,12 +6,15 @@ A plan made on the reference image (quilting, the roller) compiles to ``P``, a
 layer, which is what makes the transfer identical for all light and view directions; being
 linear, it applies just as well to the eigentextures of a compressed store. Stored as padded
 rows (an ELL matrix: ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1
-for unused terms) and applied as a scipy CSR matrix, by a compiled row loop over whole layers
-(:func:`apply`, the loop in :mod:`tasks.csr_kernel`, imported on first use: numba takes a
-quarter of a second and ~100 MB to load).
+for unused terms) and applied as a scipy CSR matrix to whole layers (:func:`apply`): by a
+compiled row loop (:mod:`tasks.csr_kernel`, imported on first use) where there is enough work
+to pay for loading numba, 0.6-1 s of a process's time and ~100 MB, else by scipy's own row
+loop; both give the same bits.
 """
 
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
@@ -43,19 +46,35 @@ def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
     return problems
 
 
+COMPILED_VALUES = 2_000_000_000  # output values from which the compiled loop pays for numba
+
+
+def compiled_pays(values: int) -> bool:
+    """Whether to apply prescriptions making ``values`` output values with the compiled loop.
+
+    It takes 5.2 ms a 960^2 RGB layer where scipy's loop takes 8.0 ms (1 ns less a value of
+    a core), and loading numba and the loop takes a process 0.6-1 s, during which it holds
+    the GIL (BENCHMARKS.md, "Prescriptions without numba on small work"). On two threads the
+    load is paid back from about :data:`COMPILED_VALUES` values (720 such layers), so the
+    compiled loop is used from there, or where numba is loaded already (a quilting plan's
+    kernels). The two give the same bits, so the choice changes no result.
+    """
+    return values >= COMPILED_VALUES or "numba" in sys.modules
+
+
 def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int],
-          out: np.ndarray | None = None) -> np.ndarray:
+          out: np.ndarray | None = None, compiled: bool | None = None) -> np.ndarray:
     """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
 
     ``output`` is the ``(y, x)`` shape of a result layer; ``out``, if given, a C-contiguous
     float32 array of the result's shape to write into (reusing one saves the page faults of a
-    fresh allocation, which cost as much as the product here). A compiled loop over the output
-    texels of each layer (:func:`tasks.csr_kernel.csr_product`), which releases the GIL: the
+    fresh allocation, which cost as much as the product here). ``compiled``: a compiled loop
+    over the output texels of each layer (:func:`tasks.csr_kernel.csr_product`), or scipy's
+    own (``csr_matvecs``, 1.5x slower, and nothing to load); by default as
+    :func:`compiled_pays` says for this call's values. Both release the GIL, so the
     pipeline's threads apply prescriptions in parallel. The weights are taken as float32 (as
     stored); the result equals scipy's ``P @ layer`` for that float32 CSR matrix bit for bit.
     """
-    from tasks.csr_kernel import csr_product
-
     matrix = scipy.sparse.csr_matrix(matrix, dtype=np.float32)
     layers = np.ascontiguousarray(layers, np.float32)
     *lead, ny, nx, nc = layers.shape
@@ -70,6 +89,32 @@ def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[
                          f"not {out.dtype} {out.shape}")
     elif np.shares_memory(out, layers):
         raise ValueError("out must not overlap the layers it is computed from")
-    csr_product(matrix.indptr, matrix.indices, matrix.data, layers.reshape(-1, ny * nx, nc),
-             out.reshape(-1, output[0] * output[1], nc))
+    source, target = layers.reshape(-1, ny * nx, nc), out.reshape(-1, output[0] * output[1], nc)
+    if compiled if compiled is not None else compiled_pays(out.size):
+        from tasks.csr_kernel import csr_product
+
+        csr_product(matrix.indptr, matrix.indices, matrix.data, source, target)
+    else:
+        _scipy_product(matrix, source, target)
     return out
+
+
+def _scipy_product(matrix: scipy.sparse.csr_matrix, source: np.ndarray, target: np.ndarray
+                   ) -> None:
+    """``target[l] = P @ source[l]`` by scipy's row loop, into ``target`` (no copy).
+
+    ``csr_matvecs`` is what ``P @ x`` runs for a dense ``x`` of several columns, after
+    allocating its result: called on ``target`` itself it saves that allocation's page faults
+    and a copy (11.3 -> 8.0 ms a 960^2 RGB layer). Where a scipy lacks it, ``P @ x``.
+    """
+    try:
+        from scipy.sparse._sparsetools import csr_matvecs
+    except ImportError:  # pragma: no cover - a scipy that moved it
+        for layer in range(source.shape[0]):
+            target[layer] = matrix @ source[layer]
+        return
+    target[...] = 0  # the loop adds every term into its output value
+    rows, columns = matrix.shape
+    for layer in range(source.shape[0]):
+        csr_matvecs(rows, columns, source.shape[2], matrix.indptr, matrix.indices, matrix.data,
+                    source[layer].ravel(), target[layer].ravel())

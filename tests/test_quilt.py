@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import re
+import sys
 
 import numpy as np
 import pytest
@@ -18,9 +20,10 @@ from pipeline.graphs.surface import lazy_layer
 from pipeline.stores import open_store
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
+from tasks import prescription
 from tasks.canvas import TERMS, Canvas
 from tasks.corner_tiles import INTERIOR_ATTEMPTS, BorderCheck, SeamError, plan_tiles
-from tasks.prescription import apply, check, to_csr
+from tasks.prescription import COMPILED_VALUES, check, compiled_pays, to_csr
 from tasks.quilt_layout import overlap_for
 from tasks.quilting import CandidateSearch, QuiltParams, boundary_cut
 from tasks.seams import PatchExemplar
@@ -366,8 +369,18 @@ def test_application_tasks_keep_only_the_lights_a_scene_needs():
     assert light_blocks(2, 48, 16, tasks=8, needs=Needs()) == [(1, 20, 22)]
 
 
+def test_numba_is_loaded_for_prescriptions_only_where_the_work_pays_for_it(monkeypatch):
+    monkeypatch.delitem(sys.modules, "numba", raising=False)
+    assert not compiled_pays(COMPILED_VALUES - 1) and compiled_pays(COMPILED_VALUES)
+    monkeypatch.setitem(sys.modules, "numba", object())  # loaded already: nothing to pay
+    assert compiled_pays(1)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("channels", [1, 3, 4])
-def test_apply_equals_scipys_sparse_product_bit_for_bit(channels):
+def test_apply_equals_scipys_sparse_product_bit_for_bit(channels, compiled):
+    # numba's loop and scipy's own (chosen by the work, compiled_pays) give the same bits
+    apply = functools.partial(prescription.apply, compiled=compiled)
     rng = np.random.default_rng(channels)
     sample, output = (9, 7), (8, 9)  # 72 output texels: more than the kernel prefetches ahead
     index = rng.integers(-1, 63, (72, TERMS))  # -1: unused terms

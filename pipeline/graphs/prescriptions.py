@@ -24,7 +24,7 @@ TASKS_PER_WORKER = 4  # blocks of lights are split until there are this many tas
 
 
 def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matrices,
-                 tile_shape) -> None:
+                 tile_shape, compiled: bool = True) -> None:
     """Apply every tile's prescription to a block of lights, a few whole layers at a time.
 
     When fewer layers than a stored chunk holds fit in the budget, that chunk is read (and
@@ -32,6 +32,7 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
     time into one buffer, written as soon as they are made: a buffer of the whole group (110
     MB for ten 960^2 layers) was mapped afresh for every group (see
     :func:`pipeline.session.steady_memory`), and its page faults cost six times the products.
+    ``compiled``: by numba's loop or scipy's (:func:`tasks.prescription.compiled_pays`).
     """
     import zarr
 
@@ -51,8 +52,8 @@ def _apply_block(store: str, out: str, view: int, light0: int, light1: int, matr
             made = result[:len(pair)]
             for t, matrix in enumerate(matrices):
                 chunk_io.write(target, (t, view, slice(l0 + p0, l0 + p0 + len(pair))),
-                               stored(apply(matrix, pair, output=tile_shape, out=made),
-                                      target.dtype, out))
+                               stored(apply(matrix, pair, output=tile_shape, out=made,
+                                            compiled=compiled), target.dtype, out))
 
 
 def _copy_band(store: str, out: str, y0: int, y1: int) -> None:
@@ -104,17 +105,23 @@ def light_blocks(nv: int, nl: int, dir_chunk: int, *, tasks: int = 1,
 
 
 def layer_writes(store: str, out: str, matrices, *, shape: tuple[int, ...], dir_chunk: int,
-                 tile_shape: tuple[int, int], needs=None, tasks: int = 1) -> list:
+                 tile_shape: tuple[int, int], tiles: int, needs=None, tasks: int = 1) -> list:
     """Delayed tasks writing every tile's layers of a radiance source of ``shape``.
 
-    ``matrices`` is a handle of the tiles' CSR prescriptions (:meth:`Session.share`); the
-    tasks' lights are :func:`light_blocks`'s.
+    ``matrices`` is a handle of the ``tiles`` tiles' CSR prescriptions
+    (:meth:`Session.share`); the tasks' lights are :func:`light_blocks`'s. The product is
+    numba's or scipy's as the values written say (:func:`tasks.prescription.compiled_pays`).
     """
     import dask
 
+    from tasks.prescription import compiled_pays
+
+    blocks = light_blocks(*shape[:2], dir_chunk, tasks=tasks, needs=needs)
+    values = tiles * sum(l1 - l0 for _, l0, l1 in blocks) * tile_shape[0] * tile_shape[1]
+    compiled = compiled_pays(values * shape[-1])
     return [dask.delayed(_apply_block)(location(store), location(out), v, l0, l1, matrices,
-                                       tile_shape)
-            for v, l0, l1 in light_blocks(*shape[:2], dir_chunk, tasks=tasks, needs=needs)]
+                                       tile_shape, compiled)
+            for v, l0, l1 in blocks]
 
 
 def apply_tileset(source, out, tiles, *, share, needs=None, parallelism: int = 1
@@ -138,7 +145,7 @@ def apply_tileset(source, out, tiles, *, share, needs=None, parallelism: int = 1
     radiance = source[RADIANCE]
     writes = layer_writes(source.location, out, handle, shape=radiance.shape,
                           dir_chunk=radiance.chunks[1], tile_shape=tiles.tile_shape,
-                          needs=needs, tasks=TASKS_PER_WORKER * parallelism)
+                          tiles=len(matrices), needs=needs, tasks=TASKS_PER_WORKER * parallelism)
     return writes, f"{len(matrices)} prescription(s) to {len(writes)} blocks of layers"
 
 
