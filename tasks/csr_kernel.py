@@ -1,12 +1,13 @@
 """The compiled sparse row loop (numba) that applies prescriptions, ``P @ layer``.
 
-Kept apart from :mod:`tasks.prescription`, which imports it on first use, so that importing
-that does not load numba (a quarter of a second and ~100 MB). Every loop releases the GIL
+Kept apart from :mod:`tasks.prescription`, which imports it on first use and only where the
+work pays for loading numba (0.3-0.5 s to import and ~100 MB, and as long again for the first
+call's set-up: :func:`tasks.prescription.compiled_pays`). Every loop releases the GIL
 (``nogil``), so the pipeline's threads run them in parallel, and none uses numba's own threads
 (they must not be entered from several dask threads at once). Compiled code is kept in numba's
 on-disk cache (``__pycache__`` beside this file, or the user's cache folder where that is not
 writable; keyed by the source and the CPU): compiling takes about 3 s, which every ``btf quilt``
-and every new worker process paid before, and loading it some 50 ms.
+and every new worker process paid before; loading it takes 30 ms once numba is set up.
 """
 
 from __future__ import annotations

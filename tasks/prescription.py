@@ -8,12 +8,13 @@ linear, it applies just as well to the eigentextures of a compressed store. Stor
 rows (an ELL matrix: ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1
 for unused terms) and applied as a scipy CSR matrix to whole layers (:func:`apply`): by a
 compiled row loop (:mod:`tasks.csr_kernel`, imported on first use) where there is enough work
-to pay for loading numba, 0.6-1 s of a process's time and ~100 MB, else by scipy's own row
-loop; both give the same bits.
+to pay for loading numba, 0.6-1.2 s of a process's time and ~100 MB, else by scipy's own row
+loop; both give the same bits (:func:`compiled_pays`).
 """
 
 from __future__ import annotations
 
+import platform
 import sys
 
 import numpy as np
@@ -47,18 +48,25 @@ def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
 
 
 COMPILED_VALUES = 2_000_000_000  # output values from which the compiled loop pays for numba
+SAME_BITS = ("x86_64", "AMD64")  # where scipy's loop is known to give numba's bits (no FMA)
 
 
 def compiled_pays(values: int) -> bool:
     """Whether to apply prescriptions making ``values`` output values with the compiled loop.
 
     It takes 5.2 ms a 960^2 RGB layer where scipy's loop takes 8.0 ms (1 ns less a value of
-    a core), and loading numba and the loop takes a process 0.6-1 s, during which it holds
-    the GIL (BENCHMARKS.md, "Prescriptions without numba on small work"). On two threads the
-    load is paid back from about :data:`COMPILED_VALUES` values (720 such layers), so the
-    compiled loop is used from there, or where numba is loaded already (a quilting plan's
-    kernels). The two give the same bits, so the choice changes no result.
+    a core), and loading numba and the loop takes a process 0.6-1.2 s, during which it holds
+    the GIL (BENCHMARKS.md, "Prescriptions without numba on small work"). In one process on
+    two threads the load is paid back from about :data:`COMPILED_VALUES` values (720 such
+    layers; each worker process of a cluster pays its own load), so the compiled loop is used
+    from there, or where numba is loaded already: it is imported only by the kernel modules,
+    as they are first used (a quilting plan's), and after that the loop loads in 30 ms. The
+    two loops give the same bits on x86-64, whose scipy wheels do not fuse multiply-adds (the
+    tests check it); elsewhere scipy's C++ may, so the compiled loop is always used there and
+    the bits never depend on the work or on what a process has loaded.
     """
+    if platform.machine() not in SAME_BITS:
+        return True
     return values >= COMPILED_VALUES or "numba" in sys.modules
 
 
@@ -103,9 +111,10 @@ def _scipy_product(matrix: scipy.sparse.csr_matrix, source: np.ndarray, target: 
                    ) -> None:
     """``target[l] = P @ source[l]`` by scipy's row loop, into ``target`` (no copy).
 
-    ``csr_matvecs`` is what ``P @ x`` runs for a dense ``x`` of several columns, after
-    allocating its result: called on ``target`` itself it saves that allocation's page faults
-    and a copy (11.3 -> 8.0 ms a 960^2 RGB layer). Where a scipy lacks it, ``P @ x``.
+    ``csr_matvecs`` is what ``P @ x`` runs for a dense ``x`` of several columns (one column:
+    ``csr_matvec``, the same sums in the same order), after allocating its result: called on
+    ``target`` itself it saves that allocation's page faults and a copy (11.3 -> 8.0 ms a
+    960^2 RGB layer). Where a scipy lacks it, ``P @ x``.
     """
     try:
         from scipy.sparse._sparsetools import csr_matvecs
@@ -113,8 +122,13 @@ def _scipy_product(matrix: scipy.sparse.csr_matrix, source: np.ndarray, target: 
         for layer in range(source.shape[0]):
             target[layer] = matrix @ source[layer]
         return
-    target[...] = 0  # the loop adds every term into its output value
+    # flat views of each layer: the loop writes into them, so they must not be copies
+    sources = source.reshape(len(source), source.shape[1] * source.shape[2])
+    targets = target.reshape(len(target), target.shape[1] * target.shape[2])
+    if targets.size and not np.shares_memory(targets, target):
+        raise ValueError("the output must be C-contiguous")
     rows, columns = matrix.shape
-    for layer in range(source.shape[0]):
+    for layer in range(len(source)):
+        targets[layer] = 0  # the loop adds every term into its output value
         csr_matvecs(rows, columns, source.shape[2], matrix.indptr, matrix.indices, matrix.data,
-                    source[layer].ravel(), target[layer].ravel())
+                    sources[layer], targets[layer])
