@@ -98,7 +98,9 @@ def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[
     elif np.shares_memory(out, layers):
         raise ValueError("out must not overlap the layers it is computed from")
     source, target = layers.reshape(-1, ny * nx, nc), out.reshape(-1, output[0] * output[1], nc)
-    if compiled if compiled is not None else compiled_pays(out.size):
+    if compiled is None:
+        compiled = compiled_pays(out.size)
+    if compiled:
         from tasks.csr_kernel import csr_product
 
         csr_product(matrix.indptr, matrix.indices, matrix.data, source, target)
