@@ -226,6 +226,41 @@ def nearest_ssd(sample, queries, sy, sx):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def grouped_patches(queries, group, scale):  # pragma: no cover - compiled
+    """Patches over channel groups, and what the groups leave out of their squared distances.
+
+    ``queries`` ``(q, p, p, c)`` float32; ``group`` ``(c,)`` each channel's group and
+    ``scale`` ``(g,)`` the square root of each group's count (:class:`tasks.seams.
+    PatchExemplar`). Returns ``(q, p, p, g)`` float32 patches, each group's channels summed
+    (in channel order) over its scale, and per query ``sum (Q_c - mean_g)^2`` over every
+    channel (float64): a patch whose channels are alike within each group has 0. Against a
+    sample whose channels are alike within each group, scaled the same, :func:`nearest_ssd`
+    plus that is the squared distance over every channel.
+    """
+    count, p, _, channels = queries.shape
+    groups = scale.shape[0]
+    out = np.zeros((count, p, p, groups), np.float32)
+    rest = np.zeros(count)
+    total = np.empty(groups, np.float32)
+    counts = np.zeros(groups, np.float32)
+    for c in range(channels):
+        counts[group[c]] += 1
+    for n in range(count):
+        for i in range(p):
+            for j in range(p):
+                total[:] = 0.0
+                for c in range(channels):
+                    total[group[c]] += queries[n, i, j, c]
+                for g in range(groups):
+                    out[n, i, j, g] = total[g] / scale[g]
+                for c in range(channels):
+                    mean = total[group[c]] / counts[group[c]]
+                    d = queries[n, i, j, c] - mean
+                    rest[n] += d * d
+    return out, rest
+
+
+@numba.njit(nogil=True, cache=True)
 def smallest(err, allowed, use_allowed, k):  # pragma: no cover - compiled
     """Flat indices of the ``k`` smallest of ``err`` (2-D), ordered by value, then index.
 
@@ -256,17 +291,20 @@ def smallest(err, allowed, use_allowed, k):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def search_kernels(target, mask):  # pragma: no cover - compiled
+def search_kernels(target, mask, group, groups):  # pragma: no cover - compiled
     """The candidate search's kernels of a target and the target's masked squared norm.
 
-    ``target`` ``(b, b, c)`` and ``mask`` ``(b, b)`` (any real type); returns the
-    ``(1 + c, b, b)`` float32 kernels ``[M, M T_0, ..., M T_c-1]`` flipped in both axes (a
-    correlation as a convolution) and ``sum M |T|^2``: float32 products, summed in float64.
-    One pass instead of six numpy calls holding the GIL
+    ``target`` ``(b, b, c)`` and ``mask`` ``(b, b)`` (any real type); ``group`` ``(c,)`` the
+    channel group of each channel, ``0 .. groups - 1`` (channels the sample holds bit for
+    bit alike share one: :class:`tasks.quilting.CandidateSearch`). Returns the
+    ``(1 + groups, b, b)`` float32 kernels ``[M, M T_g0, ...]`` flipped in both axes (a
+    correlation as a convolution), ``T_g`` the sum of group ``g``'s target channels in channel
+    order, and ``sum M |T|^2`` over every channel: float32 products, summed in float64. One
+    pass instead of six numpy calls holding the GIL
     (:meth:`tasks.quilting.CandidateSearch.errors`).
     """
     b, _, channels = target.shape
-    out = np.empty((1 + channels, b, b), np.float32)
+    out = np.zeros((1 + groups, b, b), np.float32)
     norm = 0.0
     for i in range(b):
         for j in range(b):
@@ -274,7 +312,7 @@ def search_kernels(target, mask):  # pragma: no cover - compiled
             out[0, b - 1 - i, b - 1 - j] = m
             for c in range(channels):
                 t = np.float32(target[i, j, c])
-                out[1 + c, b - 1 - i, b - 1 - j] = m * t
+                out[1 + group[c], b - 1 - i, b - 1 - j] += m * t
                 norm += m * (t * t)
     return out, norm
 

@@ -52,6 +52,7 @@ import scipy  # submodules load on first use, not at every btf command (test_lay
 
 from tasks.canvas import TERMS, Canvas
 from tasks.errors import InvalidParameter
+from tasks.seams import channel_groups
 
 SIDES = ("left", "top", "right", "bottom")
 FEATHER = 4.0  # the blend mask is blurred with sigma = overlap / FEATHER
@@ -167,6 +168,12 @@ class CandidateSearch:
     The first term depends on the mask alone, and a plan's masks are few (the overlap bands
     of the neighbours placed before: 9 in four 240^2 tiles' 324 windows), so its spectrum
     is kept per mask (:data:`MASKS_KEPT` of them); the error image is the same, bit for bit.
+
+    Channels the sample holds bit for bit alike (a grey photo's BTF: its reference repeats
+    one channel three times) share one term: ``sum_c corr(S_c, M T_c) = corr(S_g, M sum_c
+    T_c)`` over a group's channels, exact for any target. A grey sample's error image then
+    transforms one kernel instead of three (0.72 -> 0.40 ms on a 256^2 photo, block 32, one
+    thread).
     """
 
     MASKS_KEPT = 16
@@ -180,8 +187,10 @@ class CandidateSearch:
         self.shape = (scipy.fft.next_fast_len(h, real=True),
                       scipy.fft.next_fast_len(w, real=True))
         self.valid = (h - block + 1, w - block + 1)
+        self.group = channel_groups(self.sample)  # channels held alike share a term
+        firsts = [int(np.argmax(self.group == g)) for g in range(self.group.max() + 1)]
         planes = [np.sum(self.sample**2, axis=-1)]
-        planes += [-2.0 * self.sample[..., c] for c in range(self.sample.shape[-1])]
+        planes += [-2.0 * self.sample[..., f] for f in firsts]
         self.spectra = scipy.fft.rfft2(np.stack(planes), self.shape)
         # the first term's spectrum per mask, oldest first (shared by the planners' threads:
         # each of its calls is atomic, and a race only computes one twice)
@@ -201,7 +210,8 @@ class CandidateSearch:
         """SSD of ``target`` over ``mask`` at every sample position ``(sy, sx)``."""
         from tasks.quilt_kernels import clipped_errors, search_kernels  # numba
 
-        kernels, norm = search_kernels(target, mask)  # flipped: the correlation's kernels
+        # flipped: the correlation's kernels
+        kernels, norm = search_kernels(target, mask, self.group, len(self.spectra) - 1)
         key = (mask.shape, mask.dtype.str, mask.tobytes())
         first = self._masks.get(key)
         if first is None:

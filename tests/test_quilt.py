@@ -103,13 +103,39 @@ def test_the_fft_candidate_search_equals_the_masked_ssd_at_every_position(shape)
     np.testing.assert_allclose(errors, brute, rtol=0, atol=1e-5 * brute.max())
 
 
+@pytest.mark.parametrize("layout", [(0, 0, 0), (0, 1, 0, 0), (0, 1, 2, 1)])
+def test_channels_held_alike_share_a_term_and_still_give_the_masked_ssd(layout):
+    """A grey photo's reference repeats one channel: such channels share one transform,
+    and the error image is still the masked SSD over every channel, for targets whose
+    channels differ too (the group's target channels are summed, not assumed alike)."""
+    rng = np.random.default_rng(7)
+    h, w, b = 31, 26, 6
+    planes = rng.random((max(layout) + 1, h, w)).astype(np.float32)
+    sample = np.stack([planes[k] for k in layout], axis=-1)
+    search = CandidateSearch(sample, b)
+    assert search.group.tolist() == list(layout)
+    assert len(search.spectra) == 2 + max(layout)
+    for target in (rng.random((b, b, len(layout))),  # channels unlike the sample's
+                   np.repeat(rng.random((b, b, 1)), len(layout), axis=-1)):  # or alike
+        mask = rng.random((b, b)) > 0.3
+        brute = np.array([[np.sum(mask[..., None] * (sample[y : y + b, x : x + b] - target)
+                                  ** 2) for x in range(w - b + 1)] for y in range(h - b + 1)])
+        np.testing.assert_allclose(search.errors(target, mask), brute, rtol=0,
+                                   atol=1e-5 * brute.max())
+    # the last channel changed by one step at one texel leaves its group
+    near = sample.copy()
+    near[3, 4, -1] = np.nextafter(near[3, 4, -1], np.float32(2))
+    assert len(set(CandidateSearch(near, b).group.tolist())) == len(set(layout)) + (
+        layout.count(layout[-1]) > 1)
+
+
 def _errors_afresh(search: CandidateSearch, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """The error image as the search computed it before it kept masks' spectra."""
     import scipy
 
     from tasks.quilt_kernels import clipped_errors, search_kernels
 
-    kernels, norm = search_kernels(target, mask)
+    kernels, norm = search_kernels(target, mask, search.group, len(search.spectra) - 1)
     rows = scipy.fft.rfft(kernels, n=search.shape[1], axis=-1)
     spectrum = scipy.fft.fft(rows, n=search.shape[0], axis=-2)
     spectrum *= search.spectra
@@ -535,6 +561,27 @@ def test_the_block_size_follows_the_detected_period():
         assert block % 2 == 0 and 2 <= overlap < block // 2 and "period" in why
     block, overlap, why = choose_block(stochastic_texture(rng, "fbm"))
     assert (block, overlap) == (32, 8) and "no clear lattice" in why
+
+
+def test_a_sample_without_a_clear_lattice_is_searched_for_one_once(monkeypatch):
+    """The quilt stage asks for the lattice, and choose_block again for its confidence: one
+    detection per sample; a sample differing in one texel is detected afresh."""
+    import tasks.periodicity
+    from benchmarks.lattices import stochastic_texture
+    from tasks.quilt_layout import choose_block, sample_lattice
+
+    calls = []
+    detect = tasks.periodicity.detect_lattice
+    monkeypatch.setattr(tasks.periodicity, "detect_lattice",
+                        lambda gray: calls.append(gray.shape) or detect(gray))
+    image = stochastic_texture(np.random.default_rng(8), "fbm")
+    assert sample_lattice(image) is None
+    block, _, why = choose_block(image, lattice=None)
+    assert (block, len(calls)) == (32, 1) and "no clear lattice (confidence" in why
+    changed = image.copy()
+    changed[5, 7] += 1e-3
+    assert sample_lattice(changed) is None and len(calls) == 2
+    assert sample_lattice(image, 0.0) == detect(image) and len(calls) == 2  # kept, as found
 
 
 @pytest.mark.parametrize("period", [39.8, 40.0, 38.3])

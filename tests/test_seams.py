@@ -94,6 +94,38 @@ def test_nearest_patch_distances_are_never_below_and_mostly_equal_a_brute_force_
     assert np.median(excess) < 0.05 and excess.max() < 0.4, (np.median(excess), excess.max())
 
 
+
+@pytest.mark.parametrize("layout", [(0, 0, 0), (0, 1, 1, 0)])
+def test_channels_held_alike_are_searched_once_at_the_same_distances(layout):
+    """A grey sample's repeated channels are searched as one, scaled by sqrt(count): the
+    re-ranking's distances are those over every channel, for query channels unlike each
+    other too, and the PCA spans the same patches' space as over every channel."""
+    from scipy.linalg import eigh
+
+    from tasks.quilt_kernels import nearest_ssd
+    from tasks.seams import channel_groups
+
+    rng = np.random.default_rng(12)
+    planes = rng.random((max(layout) + 1, 37, 33)).astype(np.float32)
+    planes = (planes + np.roll(planes, 1, 1)) / 2
+    sample = np.stack([planes[k] for k in layout], axis=-1)
+    assert channel_groups(sample).tolist() == list(layout)
+    exemplar = PatchExemplar(sample, patch=6, dims=5)
+    assert exemplar._searched.shape[-1] == max(layout) + 1
+    for queries in (rng.random((40, 6, 6, len(layout))).astype(np.float32),  # unlike
+                    np.repeat(rng.random((40, 6, 6, 1)), len(layout), -1).astype(np.float32)):
+        sy, sx = rng.integers(0, 32, (40, 7)), rng.integers(0, 28, (40, 7))
+        np.testing.assert_allclose(exemplar._nearest_ssd(queries, sy, sx),
+                                   nearest_ssd(sample, queries, sy, sx), rtol=2e-5, atol=1e-6)
+    # the basis: the leading eigenvectors over every channel, up to sign and rounding
+    flat = sliding_window_view(sample, (6, 6), axis=(0, 1))[::1, ::1].reshape(-1, 36 * len(
+        layout)).astype(np.float64)
+    flat -= flat.mean(axis=0)
+    _, full = eigh(flat.T @ flat)
+    full = full[:, ::-1][:, :5]
+    np.testing.assert_allclose(np.abs(np.sum(full * exemplar.basis, axis=0)), 1, atol=1e-3)
+    assert np.allclose(exemplar.basis.T @ exemplar.basis, np.eye(5), atol=1e-5)
+
 def test_a_judged_part_needs_an_inside():
     exemplar = PatchExemplar(stripes(32, 32, 8))
     with pytest.raises(ValueError, match="nothing to compare"):
