@@ -29,7 +29,8 @@ bits on every thread and run. Compiled code is kept in numba's on-disk cache, as
   on two threads 1.49 -> 0.92 s), the same regions and weights as scipy's.
 - :func:`nearest_ssd`, the border check's re-ranking (:meth:`tasks.seams.PatchExemplar.
   distances`): each query patch's squared distance to the nearest of its candidates, read
-  from the sample in place instead of gathering every candidate's patch (19 MB a check).
+  from the sample in place instead of gathering every candidate's patch (19 MB a check);
+  :func:`grouped_patches`, its queries over the channels a grey sample repeats.
 """
 
 from __future__ import annotations
@@ -233,9 +234,10 @@ def grouped_patches(queries, group, scale):  # pragma: no cover - compiled
     ``scale`` ``(g,)`` the square root of each group's count (:class:`tasks.seams.
     PatchExemplar`). Returns ``(q, p, p, g)`` float32 patches, each group's channels summed
     (in channel order) over its scale, and per query ``sum (Q_c - mean_g)^2`` over every
-    channel (float64): a patch whose channels are alike within each group has 0. Against a
-    sample whose channels are alike within each group, scaled the same, :func:`nearest_ssd`
-    plus that is the squared distance over every channel.
+    channel (float64): a patch whose channels are alike within each group has 0, up to the
+    rounding of the group's mean (about 1e-14 for a grey patch). Against a sample whose
+    channels are alike within each group, scaled the same, :func:`nearest_ssd` plus that is
+    the squared distance over every channel, up to float32 rounding.
     """
     count, p, _, channels = queries.shape
     groups = scale.shape[0]

@@ -22,6 +22,8 @@ central 512 x 512 texels at most.
 from __future__ import annotations
 
 import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -61,16 +63,19 @@ def sample_lattice(reference: np.ndarray, min_confidence: float = MIN_CONFIDENCE
     # the quilt stage asks twice of a sample without a clear lattice (for the lattice, then
     # for the confidence that choose_block reports): 0.1 s of a 2 s plan on a 256^2 photo
     key = (gray.shape, hashlib.blake2b(gray.data, digest_size=16).digest())
-    lattice = _DETECTED.get(key)
+    with _DETECTED_LOCK:
+        lattice = _DETECTED.get(key)
     if lattice is None:
         lattice = detect_lattice(gray)
-        while len(_DETECTED) >= 4:
-            _DETECTED.pop(next(iter(_DETECTED)), None)
-        _DETECTED[key] = lattice
+        with _DETECTED_LOCK:
+            while len(_DETECTED) >= 4:
+                _DETECTED.popitem(last=False)
+            _DETECTED[key] = lattice
     return lattice if lattice.confidence >= min_confidence else None
 
 
-_DETECTED: dict[tuple, Lattice] = {}  # the last samples' lattices, by their crop's bytes
+_DETECTED: OrderedDict[tuple, Lattice] = OrderedDict()  # the last samples', by their crop
+_DETECTED_LOCK = threading.Lock()
 
 
 def lattice_mismatch(vectors, lattice: Lattice) -> np.ndarray | float:

@@ -157,8 +157,9 @@ class CandidateSearch:
 
     ``SSD(s) = sum_u M(u) |S(s + u) - T(u)|^2 = corr(|S|^2, M) - 2 corr(S, M T) + sum M |T|^2``;
     the spectra of the sample and of its squared norm are computed once. Per target the
-    ``1 + channels`` kernel spectra are summed in the frequency domain, so one inverse FFT gives
-    the whole error image, and the kernels' transforms skip their all-zero rows.
+    ``1 + groups`` kernel spectra (channel groups: see below) are summed in the frequency
+    domain, so one inverse FFT gives the whole error image, and the kernels' transforms skip
+    their all-zero rows.
 
     In float32 (complex64 spectra): an error is off by about 3e-7 of the masked target's
     squared norm (1e-4 on brick's 32 x 32 blocks, whose best candidates lie at about 4),

@@ -567,9 +567,11 @@ def test_a_sample_without_a_clear_lattice_is_searched_for_one_once(monkeypatch):
     """The quilt stage asks for the lattice, and choose_block again for its confidence: one
     detection per sample; a sample differing in one texel is detected afresh."""
     import tasks.periodicity
+    import tasks.quilt_layout
     from benchmarks.lattices import stochastic_texture
     from tasks.quilt_layout import choose_block, sample_lattice
 
+    monkeypatch.setattr(tasks.quilt_layout, "_DETECTED", type(tasks.quilt_layout._DETECTED)())
     calls = []
     detect = tasks.periodicity.detect_lattice
     monkeypatch.setattr(tasks.periodicity, "detect_lattice",
