@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import tempfile
 import warnings
@@ -199,6 +200,77 @@ def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, lo
     with Client(local_cluster) as client:
         client.compute(store_aligned([data], [group[RADIANCE]])).result()
     assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], _values(shape))
+
+
+@settings(deadline=None, max_examples=60)
+@given(st.lists(st.integers(0, 300), min_size=1, max_size=5), st.data())
+def test_aligned_chunks_are_dasks_normal_chunks_of_the_task_blocks(shape, data):
+    """aligned_chunks covers an array as dask's normalize_chunks does (without dask.array)."""
+    from dask.array.core import normalize_chunks
+
+    import pipeline.graphs.blocks as blocks
+
+    class Array:  # the attributes task_block reads
+        def __init__(self, shape, block):
+            self.shape, self.ndim, self.shards = tuple(shape), len(shape), None
+            self.chunks = block
+            self.metadata = type("M", (), {"dimension_names": None})()
+
+    block = tuple(data.draw(st.integers(1, 400)) for _ in shape)
+    array = Array(shape, block)
+    assert blocks.aligned_chunks(array) == normalize_chunks(blocks.task_block(array), array.shape)
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "sync"])
+def test_blocks_made_by_plain_tasks_are_written_whole(tmp_path, scheduler, shard_sized_tasks):
+    """store_blocks: every block made by its own task and written where it lies; blocks that
+    split a write unit or do not cover the array are refused."""
+    from pipeline.graphs.blocks import store_blocks
+
+    group = _create(tmp_path / "s.zarr", ny=70, nx=52)
+    target = group[RADIANCE]
+    values = _values(target.shape)
+    chunks = aligned_chunks(target)
+    starts = [np.cumsum((0, *c)) for c in chunks]
+    made = []
+
+    def make(index):
+        region = tuple(slice(s[i], s[i + 1]) for s, i in zip(starts, index, strict=True))
+        return lambda: made.append(index) or values[region]
+
+    with dask.config.set(scheduler=scheduler, num_workers=2):
+        (count,) = dask.compute(store_blocks(target, chunks, make))
+    assert count == len(made) == len(set(made)) == np.prod([len(c) for c in chunks]) > 4
+    assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:], values)
+    split = (chunks[0], chunks[1], (8, *chunks[2][1:-1], chunks[2][-1] + chunks[2][0] - 8),
+             *chunks[3:])
+    with pytest.raises(ValueError, match="split write units"):
+        store_blocks(target, split, make)
+    with pytest.raises(ValueError, match="do not cover"):
+        store_blocks(target, (*chunks[:-1], (2,)), make)
+
+
+@pytest.mark.distributed
+def test_blocks_made_by_plain_tasks_are_written_from_a_local_cluster(tmp_path, local_cluster,
+                                                                     shard_sized_tasks):
+    from distributed import Client
+
+    from pipeline.graphs.blocks import store_blocks
+
+    group = _create(tmp_path / "s.zarr", ny=70, nx=52)
+    target = group[RADIANCE]
+    chunks = aligned_chunks(target)
+    starts = [np.cumsum((0, *c)) for c in chunks]
+    with Client(local_cluster) as client:
+        client.compute(store_blocks(target, chunks, lambda index: functools.partial(
+            _block_of, target.shape, tuple((int(s[i]), int(s[i + 1])) for s, i in zip(
+                starts, index, strict=True))))).result()
+    assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:],
+                          _values(target.shape))
+
+
+def _block_of(shape, bounds):
+    return _values(shape)[tuple(slice(a, b) for a, b in bounds)]
 
 
 def _break(path, how):

@@ -24,6 +24,7 @@ Both resume after a kill (:mod:`pipeline.resume`): finished blocks and images ar
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from pipeline import storage
 from pipeline.atomic import atomic_output
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import aligned_chunks, store_aligned
+from pipeline.graphs.blocks import aligned_chunks, store_aligned, store_blocks
 from pipeline.images import ImageInfo
 from pipeline.layer_sources import XYZ_MODES, LayerSource, ReadOptions
 from pipeline.params import ParamError, option
@@ -148,24 +149,22 @@ def _whole_images(radiance) -> bool:
 
 
 def _image_blocks(source: LayerSource, radiance):
-    """The layers as a dask array in ``radiance``'s task blocks: each reads its images."""
-    import dask
-    import dask.array as da
+    """``radiance``'s task blocks and the reading of each: ``make(index)`` for its images.
 
+    For :func:`~pipeline.graphs.blocks.store_blocks`: block ``(v, b, 0, 0, 0)`` holds view
+    ``v``'s lights of light block ``b``, read by :func:`_read_block`.
+    """
     info, first = source.info, source.first.name
-    shape = (info.height, info.width, len(info.channels))
-    rows = []
-    for row in source.grid:
-        blocks, start = [], 0
-        for n in aligned_chunks(radiance)[1]:
-            keys = [_task_key(e.key) for e in row[start:start + n]]
-            # traverse=False: the key list holds no dask collections (saves 1.4 s per 6561)
-            block = dask.delayed(_read_block, pure=True, traverse=False)(
-                source.reader, keys, info=info, first=first, dtype=str(radiance.dtype))
-            blocks.append(da.from_delayed(block, (1, n, *shape), dtype=radiance.dtype))
-            start += n
-        rows.append(da.concatenate(blocks, axis=1))
-    return da.concatenate(rows, axis=0)
+    chunks = aligned_chunks(radiance)
+    starts = np.cumsum((0, *chunks[1]))
+
+    def make(index):
+        view, block = index[0], index[1]
+        keys = [_task_key(e.key) for e in source.grid[view][starts[block]:starts[block + 1]]]
+        return functools.partial(_read_block, source.reader, keys, info=info, first=first,
+                                 dtype=str(radiance.dtype))
+
+    return chunks, make
 
 
 def _staged(source: LayerSource, group, tmp, progress: Progress, session: Session) -> None:
@@ -231,8 +230,8 @@ def ingest(params: IngestParams, session: Session) -> Path:
             # no chunk of measured radiance is all fill value (NaN is refused), so zarr's check
             # for empty chunks is skipped: measured 20% faster writes of 256^2 layers
             target = radiance.with_config({"write_empty_chunks": True})
-            session.compute(store_aligned([_image_blocks(source, radiance)], [target],
-                                          progress=progress))
+            session.compute(store_blocks(target, *_image_blocks(source, radiance),
+                                         progress=progress))
         elif STAGING in group:  # else a killed run had finished with it
             _staged(source, group, tmp, progress, session)
     return Path(params.out)
