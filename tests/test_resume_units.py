@@ -103,6 +103,19 @@ def test_ingest_resumes_with_the_images_and_blocks_left(tmp_path, monkeypatch, c
                                     "--scheduler", "synchronous"], ("radiance",))
 
 
+def test_ingest_of_whole_images_resumes_with_the_blocks_left(tmp_path, monkeypatch, capsys,
+                                                             small_abtf):
+    """Images that fit a task block (48^2 here) are read and written by one task per block
+    (pipeline.graphs.blocks.store_blocks): a block whose write failed is not marked done."""
+    layers = tmp_path / "layers"
+    assert main(["export", str(small_abtf), str(layers), "--quiet"]) == 0
+    (tmp_path / "i").mkdir()
+    _crash_then_resume(tmp_path / "i", monkeypatch, capsys,
+                       lambda out: ["ingest", str(layers), str(out), "--chunk", "8",
+                                    "--dir-chunk", "2", "--scheduler", "synchronous"],
+                       ("radiance",))
+
+
 def test_a_staged_image_whose_chunk_changed_is_staged_again(tmp_path, monkeypatch, capsys,
                                                             small_abtf, small_tasks):
     """Ingest stages images too large for a task block, then copies them in blocks; a staged

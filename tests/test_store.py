@@ -216,9 +216,13 @@ def test_aligned_chunks_are_dasks_normal_chunks_of_the_task_blocks(shape, data):
             self.chunks = block
             self.metadata = type("M", (), {"dimension_names": None})()
 
-    block = tuple(data.draw(st.integers(1, 400)) for _ in shape)
+    block = tuple(data.draw(st.integers(1 if n else 0, 400)) for n in shape)
     array = Array(shape, block)
     assert blocks.aligned_chunks(array) == normalize_chunks(blocks.task_block(array), array.shape)
+    if len(shape) == 5:  # a radiance array's axes, grouped: an empty one's block may be 0
+        array.metadata.dimension_names = ("view", "light", "y", "x", "channel")
+        grouped = blocks.task_block(array, grouped=True)
+        assert blocks.aligned_chunks(array, grouped=True) == normalize_chunks(grouped, shape)
 
 
 @pytest.mark.parametrize("scheduler", ["threads", "sync"])
@@ -250,6 +254,33 @@ def test_blocks_made_by_plain_tasks_are_written_whole(tmp_path, scheduler, shard
         store_blocks(target, (*chunks[:-1], (2,)), make)
 
 
+def test_blocks_made_by_plain_tasks_resume_as_store_aligneds_units(tmp_path, shard_sized_tasks):
+    """store_blocks marks the units store_aligned marks (a run killed under one resumes under
+    the other), and refuses a block of another type or shape than its place."""
+    from pipeline.graphs.blocks import store_blocks
+    from pipeline.resume import Progress
+
+    names = []
+    for how in ("aligned", "blocks"):
+        group = _create(tmp_path / f"{how}.zarr", ny=70, nx=52)
+        target, progress = group[RADIANCE], Progress(tmp_path / f"{how}.zarr")
+        chunks = aligned_chunks(target)
+        values = _values(target.shape)
+        write = (store_aligned([da.from_array(values, chunks=chunks)], [target],
+                               progress=progress) if how == "aligned" else
+                 store_blocks(target, chunks, _cut(values, chunks), progress=progress))
+        dask.compute(write, scheduler="sync")
+        names.append(sorted(progress._names()))
+        assert np.array_equal(target[...], values)
+    assert names[0] == names[1] and len(names[0]) > 4
+    group = _create(tmp_path / "bad.zarr", ny=70, nx=52)
+    chunks = aligned_chunks(group[RADIANCE])
+    for bad in (np.zeros((1, 2, 16, 16, 3), np.float64), np.zeros((1, 1, 16, 16, 3), np.float32)):
+        with pytest.raises(ValueError, match="a block of"):
+            dask.compute(store_blocks(group[RADIANCE], chunks, lambda index, bad=bad: lambda: bad),
+                         scheduler="sync")
+
+
 @pytest.mark.distributed
 def test_blocks_made_by_plain_tasks_are_written_from_a_local_cluster(tmp_path, local_cluster,
                                                                      shard_sized_tasks):
@@ -267,6 +298,13 @@ def test_blocks_made_by_plain_tasks_are_written_from_a_local_cluster(tmp_path, l
                 starts, index, strict=True))))).result()
     assert np.array_equal(zarr.open_array(tmp_path / "s.zarr", path=RADIANCE)[:],
                           _values(target.shape))
+
+
+def _cut(values, chunks):
+    """``make`` of store_blocks: block ``index`` of ``values`` cut by ``chunks``."""
+    starts = [np.cumsum((0, *c)) for c in chunks]
+    return lambda index: lambda: values[tuple(slice(s[i], s[i + 1]) for s, i in zip(
+        starts, index, strict=True))]
 
 
 def _block_of(shape, bounds):

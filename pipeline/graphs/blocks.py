@@ -25,9 +25,10 @@ def write_unit(array) -> tuple[int, ...]:
 def task_side(unit: int) -> int:
     """Texels per side of a task block over write units of ``unit`` texels a side.
 
-    Whole units, about :data:`TASK_TEXELS` (one unit when a unit is larger).
+    Whole units, about :data:`TASK_TEXELS` (one unit when a unit is larger; 0 for zarr's
+    chunk 0 of an empty axis).
     """
-    return unit * max(1, TASK_TEXELS // unit)
+    return unit * max(1, TASK_TEXELS // unit) if unit else 0
 
 
 def task_block(array, *, grouped: bool = False) -> tuple[int, ...]:
@@ -49,7 +50,7 @@ def task_block(array, *, grouped: bool = False) -> tuple[int, ...]:
             others = int(np.prod([min(b, n) for i, (b, n) in enumerate(zip(
                 block, array.shape, strict=True)) if i != axis]))
             unit, size = block[axis], array.shape[axis]
-            whole = -(-size // unit) * unit  # the axis in whole units
+            whole = -(-size // unit) * unit if unit else 0  # the axis in whole units
             block[axis] = whole if others * size <= TASK_VALUES else \
                 min(whole, unit * max(1, TASK_VALUES // (others * unit)))
     return tuple(block)
@@ -62,8 +63,10 @@ def aligned_chunks(array, *, grouped: bool = False) -> tuple[tuple[int, ...], ..
     along an empty axis), without importing ``dask.array`` (0.44 s of a ``btf ingest``).
     """
     def cover(size: int, block: int) -> tuple[int, ...]:
+        if not size:  # an empty axis (its block may be 0: a grouped one, zarr's chunk)
+            return (0,)
         whole, rest = divmod(size, block)
-        return (block,) * whole + ((rest,) if rest or not size else ())
+        return (block,) * whole + ((rest,) if rest else ())
 
     return tuple(cover(int(n), int(b)) for n, b in zip(array.shape, task_block(
         array, grouped=grouped), strict=True))
@@ -160,8 +163,18 @@ def store_blocks(target, chunks: tuple[tuple[int, ...], ...], make, *, progress=
 
 
 def _make_here(make, target, region: tuple[slice, ...], unit: str | None, progress) -> int:
-    """A block of :func:`store_blocks` made, written and marked done (its unit's marker)."""
-    _write_block(make(), target, region)
+    """A block of :func:`store_blocks` made, written and marked done (its unit's marker).
+
+    A block of another type or shape than its place is refused: a cast would let values
+    overflow a float16 store unseen (:func:`pipeline.stores.radiance.stored` refuses them),
+    and a smaller block would be broadcast over its place.
+    """
+    block = make()
+    shape = tuple(r.stop - r.start for r in region)
+    if block.dtype != target.dtype or block.shape != shape:
+        raise ValueError(f"a block of {block.dtype} {block.shape} for {shape} of "
+                         f"{target.path!r} ({target.dtype})")
+    _write_block(block, target, region)
     if unit is not None:
         from pipeline import resume
 
