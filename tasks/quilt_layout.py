@@ -21,9 +21,7 @@ central 512 x 512 texels at most.
 
 from __future__ import annotations
 
-import hashlib
-import threading
-from collections import OrderedDict
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -50,7 +48,6 @@ def overlap_for(block: int) -> int:
 def sample_lattice(reference: np.ndarray, min_confidence: float = MIN_CONFIDENCE
                    ) -> Lattice | None:
     """The sample's lattice, or ``None`` without a clear one (or below 32 texels)."""
-    from tasks.periodicity import detect_lattice
     from tasks.reference import luminance
 
     reference = np.asarray(reference, np.float64)
@@ -59,23 +56,21 @@ def sample_lattice(reference: np.ndarray, min_confidence: float = MIN_CONFIDENCE
     if min(gray.shape) < 32:
         return None
     crop = tuple(slice(max(0, (n - 512) // 2), max(0, (n - 512) // 2) + 512) for n in gray.shape)
-    gray = np.ascontiguousarray(gray[crop])
-    # the quilt stage asks twice of a sample without a clear lattice (for the lattice, then
-    # for the confidence that choose_block reports): 0.1 s of a 2 s plan on a 256^2 photo
-    key = (gray.shape, hashlib.blake2b(gray.data, digest_size=16).digest())
-    with _DETECTED_LOCK:
-        lattice = _DETECTED.get(key)
-    if lattice is None:
-        lattice = detect_lattice(gray)
-        with _DETECTED_LOCK:
-            while len(_DETECTED) >= 4:
-                _DETECTED.popitem(last=False)
-            _DETECTED[key] = lattice
+    gray = gray[crop]
+    lattice = _detected(gray.shape, np.ascontiguousarray(gray, np.float64).tobytes())
     return lattice if lattice.confidence >= min_confidence else None
 
 
-_DETECTED: OrderedDict[tuple, Lattice] = OrderedDict()  # the last samples', by their crop
-_DETECTED_LOCK = threading.Lock()
+@functools.lru_cache(maxsize=4)
+def _detected(shape: tuple[int, int], gray: bytes) -> Lattice:
+    """The lattice of a float64 grey image given by its bytes, for the last few images.
+
+    The quilt stage asks twice of a sample without a clear lattice (for the lattice, then for
+    the confidence that choose_block reports): 0.1 s of a 2 s plan on a 256^2 photo.
+    """
+    from tasks.periodicity import detect_lattice
+
+    return detect_lattice(np.frombuffer(gray, np.float64).reshape(shape))
 
 
 def lattice_mismatch(vectors, lattice: Lattice) -> np.ndarray | float:

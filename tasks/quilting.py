@@ -189,7 +189,7 @@ class CandidateSearch:
                       scipy.fft.next_fast_len(w, real=True))
         self.valid = (h - block + 1, w - block + 1)
         self.group = channel_groups(self.sample)  # channels held alike share a term
-        firsts = [int(np.argmax(self.group == g)) for g in range(self.group.max() + 1)]
+        firsts = np.unique(self.group, return_index=True)[1]  # each group's first channel
         planes = [np.sum(self.sample**2, axis=-1)]
         planes += [-2.0 * self.sample[..., f] for f in firsts]
         self.spectra = scipy.fft.rfft2(np.stack(planes), self.shape)

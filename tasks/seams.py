@@ -234,14 +234,13 @@ class PatchExemplar:
         # channels held alike count once, weighted by how many they are: distances over the
         # groups' first channels scaled by sqrt(count) are those over every channel
         self.group = channel_groups(sample)
-        firsts = [int(np.argmax(self.group == g)) for g in range(self.group.max() + 1)]
+        firsts = np.unique(self.group, return_index=True)[1]  # each group's first channel
         self._scale = np.sqrt(np.bincount(self.group)).astype(np.float32)
         self._searched = (sample if len(firsts) == channels else
                           np.ascontiguousarray(sample[..., firsts] * self._scale))
         # the PCA basis from an evenly spread subset (deterministic: no random state)
         step = max(1, int(np.sqrt(ny * nx / 4096)))
-        subset = self.windows[::step, ::step].reshape(len(range(0, ny, step)) *
-                                                      len(range(0, nx, step)), channels, -1)
+        subset = self.windows[::step, ::step].reshape(-1, channels, patch * patch)
         self.mean = subset.mean(axis=0).reshape(-1)
         grouped = (subset[:, firsts] * self._scale[:, None]).reshape(len(subset), -1)
         centred = grouped - grouped.mean(axis=0)

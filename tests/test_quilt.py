@@ -571,7 +571,7 @@ def test_a_sample_without_a_clear_lattice_is_searched_for_one_once(monkeypatch):
     from benchmarks.lattices import stochastic_texture
     from tasks.quilt_layout import choose_block, sample_lattice
 
-    monkeypatch.setattr(tasks.quilt_layout, "_DETECTED", type(tasks.quilt_layout._DETECTED)())
+    tasks.quilt_layout._detected.cache_clear()
     calls = []
     detect = tasks.periodicity.detect_lattice
     monkeypatch.setattr(tasks.periodicity, "detect_lattice",

@@ -92,13 +92,7 @@ def store_aligned(sources: list, targets: list, *, progress=None, keep=None):
     from dask.base import tokenize
 
     for source, target in zip(sources, targets, strict=True):
-        for dim, (chunks, unit) in enumerate(zip(source.chunks, write_unit(target), strict=True)):
-            edges = np.cumsum(chunks)[:-1]
-            if np.any(edges % unit):
-                raise ValueError(
-                    f"dask chunks {chunks} of axis {dim} split write units of {unit} in "
-                    f"{target.path!r}: concurrent writes would lose data"
-                )
+        _refuse_split(source.chunks, target, "dask chunks")
     sources = [_in_type_of(source, target) for source, target in zip(sources, targets,
                                                                       strict=True)]
     units, regions = [], {}
@@ -140,10 +134,7 @@ def store_blocks(target, chunks: tuple[tuple[int, ...], ...], make, *, progress=
     """
     import uuid
 
-    for dim, (sizes, unit) in enumerate(zip(chunks, write_unit(target), strict=True)):
-        if np.any(np.cumsum(sizes)[:-1] % unit):
-            raise ValueError(f"blocks {sizes} of axis {dim} split write units of {unit} in "
-                             f"{target.path!r}: concurrent writes would lose data")
+    _refuse_split(chunks, target, "blocks")
     if tuple(map(sum, chunks)) != tuple(target.shape):
         raise ValueError(f"blocks {chunks} do not cover {target.path!r} of {target.shape}")
     token = uuid.uuid4().hex
@@ -160,6 +151,14 @@ def store_blocks(target, chunks: tuple[tuple[int, ...], ...], make, *, progress=
         regions[unit] = (target, region)
         units.append((unit, key))
     return _pending(graph, token, units, regions, progress)
+
+
+def _refuse_split(chunks: tuple[tuple[int, ...], ...], target, what: str) -> None:
+    """Refuse blocks of ``chunks`` that split a write unit of ``target`` (see the module)."""
+    for dim, (sizes, unit) in enumerate(zip(chunks, write_unit(target), strict=True)):
+        if np.any(np.cumsum(sizes)[:-1] % unit):
+            raise ValueError(f"{what} {sizes} of axis {dim} split write units of {unit} in "
+                             f"{target.path!r}: concurrent writes would lose data")
 
 
 def _make_here(make, target, region: tuple[slice, ...], unit: str | None, progress) -> int:
