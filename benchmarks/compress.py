@@ -337,7 +337,7 @@ def ours_and_bound(store: Path, args, tmp: Path) -> tuple[dict, dict]:
                              "--quiet", "--overwrite"]))
         done = subprocess.run(_py(f"from benchmarks.compress import bound_parts; bound_parts("
                                   f"{str(store)!r}, {k}, {p}, 1)"),
-                              capture_output=True, text=True, check=True)
+                              stdout=subprocess.PIPE, text=True, check=True)
         parts.append(json.loads(done.stdout.strip().splitlines()[-1]))
     best = {key: min(part[key] for part in parts) for key in parts[0]}
     start = best_of(args.repeat, _py("import pipeline.cli, dask.array, zarr"))

@@ -102,7 +102,7 @@ def _floor(store: Path | str, tmp: Path | str, repeat: int) -> float:
     for _ in range(repeat):
         done = subprocess.run([sys.executable, "-c", "from benchmarks.writes import zarr_floor; "
                                f"zarr_floor({str(store)!r}, {out!r}, "
-                               f"{os.cpu_count() or 1})"], capture_output=True, text=True,
+                               f"{os.cpu_count() or 1})"], stdout=subprocess.PIPE, text=True,
                               check=True)
         seconds = json.loads(done.stdout.strip().splitlines()[-1])["seconds"]
         best = seconds if best is None else min(best, seconds)

@@ -239,11 +239,47 @@ def _guard(url: str):
     return guard()
 
 
+def _foreign_threads_in_python() -> set[int]:
+    """Threads inside a Python call that :mod:`threading` did not start (obstore's, say)."""
+    import sys
+
+    known = {t.ident for t in threading.enumerate()
+             if not isinstance(t, getattr(threading, "_DummyThread", ()))}
+    return set(sys._current_frames()) - known - {threading.get_ident()}
+
+
+def _settle_at_exit(timeout: float = 5.0) -> None:
+    """At exit, wait until no foreign thread is inside a Python call (at most ``timeout`` s).
+
+    obstore answers zarr's requests from tokio's threads, which call into Python (the event
+    loop's ``call_soon_threadsafe``). The answer may already have been taken, and the process
+    be exiting, while such a thread waits to take the GIL back from a socket write in that
+    call. A thread still waiting once the interpreter finalizes is ended with ``pthread_exit``,
+    which aborts a Rust thread: the process died with SIGABRT after its work was done (5 exits
+    in 150 of a short writer to S3 on a loaded machine, and once in CI). Registered with
+    :mod:`atexit` when this process first makes an obstore store; the wait is one look when
+    nothing is in flight.
+    """
+    import time
+
+    end = time.monotonic() + timeout
+    while _foreign_threads_in_python() and time.monotonic() < end:
+        time.sleep(0.001)
+
+
+@functools.cache
+def _settle_registered() -> None:
+    import atexit
+
+    atexit.register(_settle_at_exit)
+
+
 @functools.lru_cache(maxsize=64)
 def _object_store(url: str, hidden_root: bool, environment: tuple):
     from obstore.store import from_url
     from zarr.storage import ObjectStore
 
+    _settle_registered()
     base = ObjectStore(from_url(url, **_options()))
     return RootKeptAside(base) if hidden_root else base
 
