@@ -94,31 +94,40 @@ def zarr_floor(store: str, out: str, threads: int) -> None:
     print(json.dumps({"seconds": time.perf_counter() - start}))
 
 
-def _floor(store: Path | str, tmp: Path | str, repeat: int) -> float:
+def _floor(store: Path | str, tmp: Path | str) -> float:
+    """One run of :func:`zarr_floor` in a new process, beside ``store``, in seconds."""
     from pipeline import storage
 
-    best = None
     out = storage.join(str(tmp), "floor.zarr")
-    for _ in range(repeat):
-        done = subprocess.run([sys.executable, "-c", "from benchmarks.writes import zarr_floor; "
-                               f"zarr_floor({str(store)!r}, {out!r}, "
-                               f"{os.cpu_count() or 1})"], stdout=subprocess.PIPE, text=True,
-                              check=True)
-        seconds = json.loads(done.stdout.strip().splitlines()[-1])["seconds"]
-        best = seconds if best is None else min(best, seconds)
-        storage.remove(out)
-    return best
+    done = subprocess.run([sys.executable, "-c", "from benchmarks.writes import zarr_floor; "
+                           f"zarr_floor({str(store)!r}, {out!r}, {os.cpu_count() or 1})"],
+                          stdout=subprocess.PIPE, text=True, check=True)
+    storage.remove(out)
+    return json.loads(done.stdout.strip().splitlines()[-1])["seconds"]
 
 
-def _best(repeat: int, argv: list[str], out: Path | str):
+def _side_by_side(repeat: int, argv: list[str], out: Path | str, tmp: Path | str,
+                  floors: int = 1):
+    """The stage's fastest run and zarr's fastest floor, taken in turns; ``(run, seconds)``.
+
+    Each of ``repeat`` runs of ``argv`` (writing ``out``) is followed by ``floors`` runs of
+    the floor, and every run starts after ``sync``, so that none pays for writing back the
+    dirty pages of the one before (up to a gigabyte here), and the stage and its floor meet
+    the machine's slow and fast stretches alike.
+    """
     from pipeline import storage
 
-    best = None
+    best = floor = None
     for _ in range(repeat):
         storage.remove(str(out))
+        os.sync()
         m = measure(argv)
         best = m if best is None or m.seconds < best.seconds else best
-    return best
+        for _ in range(floors):
+            os.sync()
+            seconds = _floor(out, tmp)
+            floor = seconds if floor is None else min(floor, seconds)
+    return best, floor
 
 
 def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int) -> list[dict]:
@@ -131,12 +140,13 @@ def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int
     with serving(tmp / "s3") as server:
         root = server.url("bench")
         out = storage.join(root, "r16.zarr")
-        m = _best(repeat, [btf, "reconstruct", str(factors), out, "-q"], out)
-        rows.append(_row("reconstruct (S3)", out, m, _floor(out, root, repeat)))
+        m, floor = _side_by_side(repeat, [btf, "reconstruct", str(factors), out, "-q"], out,
+                                 root)
+        rows.append(_row("reconstruct (S3)", out, m, floor))
         if local is not None:
             out = storage.join(root, "crop.zarr")
-            m = _best(repeat, [btf, "crop", str(local), out, "-q"], out)
-            rows.append(_row("crop (S3)", out, m, _floor(out, root, repeat)))
+            m, floor = _side_by_side(repeat, [btf, "crop", str(local), out, "-q"], out, root)
+            rows.append(_row("crop (S3)", out, m, floor))
     return rows
 
 
@@ -172,26 +182,29 @@ def run(args: argparse.Namespace) -> dict:
         for dir_chunk in (int(c) for c in args.dir_chunks.split(",")):
             out = tmp / f"r{dir_chunk}.zarr"
             if "reconstruct" in stages:
-                m = _best(args.repeat, [btf, "reconstruct", str(factors), str(out),
-                                        "--dir-chunk", str(dir_chunk), "-q"], out)
-                rows.append(_row("reconstruct", out, m, _floor(out, tmp, args.repeat)))
+                m, floor = _side_by_side(args.repeat, [btf, "reconstruct", str(factors),
+                                                       str(out), "--dir-chunk", str(dir_chunk),
+                                                       "-q"], out, tmp)
+                rows.append(_row("reconstruct", out, m, floor))
             if first is None and out.exists():
                 first = out
         if "reconstruct" in stages:  # the same radiance in one command, no factors between
             out = tmp / "decoded.zarr"
-            m = _best(args.repeat, [btf, "ingest", str(dfmf), str(out), "--radiance", "-q"],
-                      out)
-            rows.append(_row("ingest --radiance", out, m, _floor(out, tmp, args.repeat)))
+            m, floor = _side_by_side(args.repeat, [btf, "ingest", str(dfmf), str(out),
+                                                   "--radiance", "-q"], out, tmp)
+            rows.append(_row("ingest --radiance", out, m, floor))
             shutil.rmtree(out)
         if "crop" in stages and first is not None:
             out = tmp / "crop.zarr"
-            m = _best(args.repeat, [btf, "crop", str(first), str(out), "-q"], out)
-            rows.append(_row("crop", out, m, _floor(out, tmp, args.repeat)))
+            m, floor = _side_by_side(args.repeat, [btf, "crop", str(first), str(out), "-q"],
+                                     out, tmp)
+            rows.append(_row("crop", out, m, floor))
         if "generate" in stages:
             out = tmp / "g.zarr"
-            m = _best(1, [btf, "generate", str(out), "--material", "leather", "--size",
-                          str(args.texels), "--sampling", "dome151", "-q"], out)
-            rows.append(_row("generate", out, m, _floor(out, tmp, args.repeat)))
+            m, floor = _side_by_side(1, [btf, "generate", str(out), "--material", "leather",
+                                         "--size", str(args.texels), "--sampling", "dome151",
+                                         "-q"], out, tmp, floors=args.repeat)
+            rows.append(_row("generate", out, m, floor))
         if args.s3:
             rows += _s3_rows(btf, tmp, factors, first, args.repeat)
         rows += _more_stages(btf, tmp, stages, args.repeat, args.image_size)
@@ -227,8 +240,9 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
         assert main([str(v) for v in ["export", layers, tmp / "exr", "--quiet"]]) == 0
         shutil.rmtree(layers)
         out = tmp / "ingest.zarr"
-        m = _best(repeat, [btf, "ingest", str(tmp / "exr"), str(out), "-q"], out)
-        rows.append(_row("ingest", out, m, _floor(out, tmp, repeat)))
+        m, floor = _side_by_side(repeat, [btf, "ingest", str(tmp / "exr"), str(out), "-q"],
+                                 out, tmp)
+        rows.append(_row("ingest", out, m, floor))
         shutil.rmtree(tmp / "exr")
         shutil.rmtree(out)
     if "quilt" in stages or "render" in stages:
@@ -236,9 +250,10 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
     if "quilt" in stages:
         out = tmp / "quilt.zarr"
         block = size // 16  # 32 at the default size
-        m = _best(repeat, [btf, "quilt", str(small), str(out), "--block", str(block),
-                           "--overlap", str(block // 4), "--size", f"{side},{side}", "-q"], out)
-        rows.append(_row("quilt", out, m, _floor(out, tmp, repeat)))
+        m, floor = _side_by_side(repeat, [btf, "quilt", str(small), str(out), "--block",
+                                          str(block), "--overlap", str(block // 4), "--size",
+                                          f"{side},{side}", "-q"], out, tmp)
+        rows.append(_row("quilt", out, m, floor))
         rows.append(_apply_row("quilt apply", out, small, tmp, repeat))
         shutil.rmtree(out)
     if "roller" in stages:
@@ -257,9 +272,9 @@ def _more_stages(btf: str, tmp: Path, stages: list[str], repeat: int, size: int)
         assert main([str(v) for v in ["quilt", small, tiles, "--corners", "2",
                                       "--quiet"]]) == 0
         out = tmp / "render.zarr"
-        m = _best(repeat, [btf, "render", str(tiles), str(out), "--light", "0", "--size",
-                           f"{16 * size},{16 * size}", "-q"], out)
-        rows.append(_row("render", out, m, _floor(out, tmp, repeat)))
+        m, floor = _side_by_side(repeat, [btf, "render", str(tiles), str(out), "--light", "0",
+                                          "--size", f"{16 * size},{16 * size}", "-q"], out, tmp)
+        rows.append(_row("render", out, m, floor))
     return rows
 
 
@@ -283,9 +298,10 @@ def apply_stored_plan(tileset: str, sample: str, out: str) -> None:
 def _apply_row(stage: str, plan: Path, sample: Path, tmp: Path, repeat: int) -> dict:
     """The row of a tile set's application alone: its stored plan applied in a new process."""
     out = tmp / "applied.zarr"
-    m = _best(repeat, [sys.executable, "-c", "from benchmarks.writes import apply_stored_plan; "
-                       f"apply_stored_plan({str(plan)!r}, {str(sample)!r}, {str(out)!r})"], out)
-    row = _row(stage, out, m, _floor(out, tmp, repeat))
+    m, floor = _side_by_side(repeat, [sys.executable, "-c", "from benchmarks.writes import "
+                                      f"apply_stored_plan; apply_stored_plan({str(plan)!r}, "
+                                      f"{str(sample)!r}, {str(out)!r})"], out, tmp)
+    row = _row(stage, out, m, floor)
     shutil.rmtree(out)
     return row
 
@@ -311,7 +327,8 @@ def report(result: dict) -> str:
     lines = [f"A DFMF file of Bonn's 151 x 151 dome at {result['texels']}^2 "
              f"({result['components']} components per channel); best of {result['repeat']} "
              "runs each. Floor: zarr writing the same array (shape, chunks, codecs) from "
-             "memory on every core, in this run.", "",
+             "memory on every core, in this run, a floor after each run of the stage, every "
+             "run after sync.", "",
              "| stage | chunk | MiB | wall s | MB/s | floor MB/s | vs floor | peak RSS |",
              "|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
