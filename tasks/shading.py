@@ -21,6 +21,7 @@ import hashlib
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 import numpy as np
@@ -242,9 +243,103 @@ class ShadowCache:
 SHADOWS = ShadowCache()
 
 
+class ViewCache:
+    """What an oblique view sees of a strip, kept for the view's other blocks of lights.
+
+    An entry is the :class:`Surface` and the parallax offsets of a view.
+
+    A store's task blocks hold one view and a block of lights each: a 151 x 151 dome at
+    ``--dir-chunk 16`` traced each oblique view's parallax and resampled its surface for each
+    of its 10 blocks of lights. Entries are keyed by the strip's fields (their bytes' hash),
+    the view and the model; a hit gives the arrays computed before, so the same bits. At most
+    ``limit`` bytes, the least recently used dropped first; shared by the process's threads.
+    ``computed`` counts the misses. Nothing writes to an entry's arrays once it is kept.
+    """
+
+    def __init__(self, limit: int = 64 << 20) -> None:
+        self.limit, self.size, self.computed = limit, 0, 0
+        self.entries: OrderedDict[tuple, tuple[int, tuple]] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple) -> tuple | None:
+        """The entry kept for ``key``, or None."""
+        with self.lock:
+            found = self.entries.get(key)
+            if found is None:
+                return None
+            self.entries.move_to_end(key)
+            return found[1]
+
+    def put(self, key: tuple, value: tuple, nbytes: int) -> None:
+        """Keep ``value`` (``nbytes`` of arrays) for ``key``, dropping the oldest past the limit."""
+        with self.lock:
+            self.computed += 1
+            if nbytes > self.limit:
+                return
+            old = self.entries.pop(key, None)
+            if old is not None:
+                self.size -= old[0]
+            self.entries[key] = (nbytes, value)
+            self.size += nbytes
+            while self.size > self.limit:
+                self.size -= self.entries.popitem(last=False)[1][0]
+
+    def clear(self) -> None:
+        """Drop every entry (the counter stays)."""
+        with self.lock:
+            self.entries.clear()
+            self.size = 0
+
+
+VIEWS = ViewCache()
+
+
+def _fields_digest(fields: Fields) -> bytes:
+    """A hash of every field's bytes, shape and type."""
+    digest = hashlib.blake2b(digest_size=16)
+    for a in (fields.height, fields.albedo, fields.roughness, fields.specular):
+        a = np.ascontiguousarray(a)
+        digest.update(repr((a.shape, a.dtype.str)).encode())
+        digest.update(a.data)
+    return digest.digest()
+
+
+def _view(fields: Fields, halo: int, n: Callable[[], tuple], layers: Callable[[], np.ndarray],
+          theta: float, phi: float, view: np.ndarray, model: ShadingModel
+          ) -> tuple[Surface, tuple[np.ndarray, np.ndarray] | None]:
+    """The :class:`Surface` a view sees of a strip, and its parallax offsets (None: none)."""
+    h = fields.height
+    ny, nx = h.shape[0] - 2 * halo, h.shape[1] - 2 * halo
+    inner = (slice(halo, halo + ny), slice(halo, halo + nx))
+    if parallax_length(theta, relief=model.relief, reference=model.reference) == 0.0:
+        # A top view sees each texel straight below it: plain slices, no resampling.
+        normal = tuple(c[inner] for c in n())
+        return Surface.seen_from(normal, fields.albedo[inner], fields.roughness[inner],
+                                 fields.specular[inner], view), None
+    oy, ox = parallax_hits(h, halo, halo, ny, nx, theta=theta, phi=phi,
+                           relief=model.relief, reference=model.reference)
+    gx, gy, gz, alpha, f0, *rgb = bilinear_layers(layers(), halo, halo, oy, ox)
+    inv = 1.0 / np.sqrt(gx * gx + gy * gy + gz * gz)
+    normal = (gx * inv, gy * inv, gz * inv)
+    # f0 copied out of the resampled stack, so that a kept surface holds only its own arrays
+    return Surface.seen_from(normal, np.stack(rgb, axis=-1), alpha, f0.copy(), view), (oy, ox)
+
+
+def _nbytes(value) -> int:
+    """Bytes of the arrays in a nest of tuples and :class:`Surface` objects."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, Surface):
+        value = (value.normal, value.albedo, value.a2, value.f0, value.masking)
+    if isinstance(value, tuple):
+        return sum(_nbytes(v) for v in value)
+    return 0
+
+
 def render_block(
     fields: Fields, *, halo: int, theta_view: np.ndarray, phi_view: np.ndarray,
     theta_light: np.ndarray, phi_light: np.ndarray, model: ShadingModel,
+    key: Hashable | None = None,
 ) -> np.ndarray:
     """Render every (view, light) layer of one tile.
 
@@ -259,6 +354,11 @@ def render_block(
         Directions in degrees.
     model
         Renderer parameters.
+    key
+        What the fields are, where the caller knows it (a stage: its material and the block's
+        place): equal keys promise equal fields for as long as :data:`SHADOWS` and
+        :data:`VIEWS` keep them (the stage empties both when it ends). The caches then need
+        not hash the fields; None: they hash them.
 
     Returns
     -------
@@ -275,15 +375,19 @@ def render_block(
         strip = fields.crop(slice(r0, r0 + rows + 2 * halo), slice(None))
         _render_strip(strip, halo=halo, theta_view=theta_view, phi_view=phi_view,
                       theta_light=theta_light, phi_light=phi_light, model=model,
-                      out=out[:, :, r0 : r0 + rows])
+                      out=out[:, :, r0 : r0 + rows], key=None if key is None else (key, r0))
     return out
 
 
 def _render_strip(
     fields: Fields, *, halo: int, theta_view: np.ndarray, phi_view: np.ndarray,
     theta_light: np.ndarray, phi_light: np.ndarray, model: ShadingModel, out: np.ndarray,
+    key: Hashable | None = None,
 ) -> None:
-    """Render every (view, light) layer of a strip into ``out`` (see :func:`render_block`)."""
+    """Render every (view, light) layer of a strip into ``out`` (see :func:`render_block`).
+
+    ``key``: what the strip's fields are (see :func:`render_block`), or None.
+    """
     h = fields.height
     ny, nx = h.shape[0] - 2 * halo, h.shape[1] - 2 * halo
     # Shadows are needed wherever a view ray of this block can land.
@@ -292,33 +396,43 @@ def _render_strip(
     size_y, size_x = ny + 2 * margin, nx + 2 * margin
     vis = np.ones((len(theta_light), size_y, size_x), np.float32)
     if model.shadows:
-        window = (hashlib.blake2b(np.ascontiguousarray(h).tobytes(), digest_size=16).digest(),
-                  h.shape, h.dtype.str, halo, ny, nx)
+        window = (hashlib.blake2b(np.ascontiguousarray(h).tobytes(), digest_size=16).digest()
+                  if key is None else key, h.shape, h.dtype.str, halo, ny, nx)
         for i, (t, p) in enumerate(zip(theta_light, phi_light, strict=True)):
             vis[i] = SHADOWS.visibility(window, h, halo, margin, ny, nx, float(t), float(p),
                                         model)
-    n = normals(h)
     lights = direction_vectors(theta_light, phi_light)
     views = direction_vectors(theta_view, phi_view)
-    inner = (slice(halo, halo + ny), slice(halo, halo + nx))
-    layers = None
+    strip = None
+    if VIEWS.limit:
+        strip = (_fields_digest(fields) if key is None else key, fields.height.shape, halo,
+                 model.relief, model.reference)
+    n = layers = None
+
+    def normals_once() -> tuple:
+        nonlocal n
+        if n is None:
+            n = normals(h)
+        return n
+
+    def layers_once() -> np.ndarray:  # the fields every oblique view resamples, as one stack
+        nonlocal layers
+        if layers is None:
+            layers = np.stack([*normals_once(), fields.roughness, fields.specular,
+                               *np.moveaxis(fields.albedo, -1, 0)])
+        return layers
+
     for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
-        if parallax_length(float(t), relief=model.relief, reference=model.reference) == 0.0:
-            # A top view sees each texel straight below it: plain slices, no resampling.
-            normal = tuple(c[inner] for c in n)
-            albedo, alpha, f0 = (fields.albedo[inner], fields.roughness[inner],
-                                 fields.specular[inner])
+        key = None if strip is None else (strip, float(t), float(p))
+        seen = None if key is None else VIEWS.get(key)
+        if seen is None:
+            seen = _view(fields, halo, normals_once, layers_once, float(t), float(p),
+                         views[iv], model)
+            if key is not None and seen[1] is not None:  # a top view is a few slices
+                VIEWS.put(key, seen, _nbytes(seen))
+        surface, offsets = seen
+        if offsets is None:
             seen_vis = vis[:, margin : margin + ny, margin : margin + nx]
         else:
-            oy, ox = parallax_hits(h, halo, halo, ny, nx, theta=float(t), phi=float(p),
-                                   relief=model.relief, reference=model.reference)
-            if layers is None:  # the fields every oblique view resamples, as one stack
-                layers = np.stack([*n, fields.roughness, fields.specular,
-                                   *np.moveaxis(fields.albedo, -1, 0)])
-            gx, gy, gz, alpha, f0, *rgb = bilinear_layers(layers, halo, halo, oy, ox)
-            inv = 1.0 / np.sqrt(gx * gx + gy * gy + gz * gz)
-            normal = (gx * inv, gy * inv, gz * inv)
-            albedo = np.stack(rgb, axis=-1)
-            seen_vis = bilinear_layers(vis, margin, margin, oy, ox)
-        surface = Surface.seen_from(normal, albedo, alpha, f0, views[iv])
+            seen_vis = bilinear_layers(vis, margin, margin, *offsets)
         shade_all(surface, seen_vis, lights, ambient=model.ambient, out=out[iv])

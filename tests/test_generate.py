@@ -314,14 +314,15 @@ def test_btf_bench_scaling_times_every_stage_under_every_configuration():
         assert f"| {stage} | " in text and f"- {stage}: `btf {stage} " in text
 
 
-def test_the_shadow_cache_is_emptied_when_generate_ends(tmp_path, btf):
+def test_the_shadow_and_view_caches_are_emptied_when_generate_ends(tmp_path, btf):
     """The stages a run config puts after generate, in the same process, do not keep its
     cached shadows (the plan counts them against generate's workers only)."""
-    from tasks.shading import SHADOWS
+    from tasks.shading import SHADOWS, VIEWS
 
-    before = SHADOWS.computed
+    before, seen = SHADOWS.computed, VIEWS.computed
     result = btf("generate", tmp_path / "g.zarr", "--material", "stone", "--size", "16",
                  "--sampling", "hemi:3", "--scheduler", "threads", "--quiet")
     assert result.code == 0, result.err
-    assert SHADOWS.computed > before  # the cache was used ...
-    assert not SHADOWS.entries and SHADOWS.size == 0  # ... and is empty again
+    assert SHADOWS.computed > before and VIEWS.computed > seen  # the caches were used ...
+    for cache in (SHADOWS, VIEWS):
+        assert not cache.entries and cache.size == 0  # ... and are empty again

@@ -26,13 +26,14 @@ def test_the_terabyte_plan_is_what_the_arithmetic_says(tmp_path, btf, monkeypatc
     generate, compress, quilt = plans
     rows, texels = 151 * 151 * 3, 2048 * 2048  # dome151 x RGB, 2048^2
     assert generate.bytes_written == rows * texels * 4 + texels * 6 * 4  # radiance and the truth
-    from tasks.shading import SHADOWS  # each worker process keeps its shadow cache: counted once
+    # each worker process keeps its shadow and view caches: counted once
+    from tasks.shading import SHADOWS, VIEWS
 
-    assert generate.process_bytes == SHADOWS.limit
-    worker = planning.BASE_PROCESS + SHADOWS.limit + 2 * generate.task_bytes
+    assert generate.process_bytes == SHADOWS.limit + VIEWS.limit
+    worker = planning.BASE_PROCESS + SHADOWS.limit + VIEWS.limit + 2 * generate.task_bytes
     planning.check_memory([generate], worker, 2, "x", available=1 << 40)
     with pytest.raises(BTFError, match=r"needs ~.* GiB per worker \(2 task\(s\) of .* GiB and "
-                                       r"67\.1 MB kept\)"):
+                                       r"134\.2 MB kept\)"):
         planning.check_memory([generate], worker - 1, 2, "x", available=1 << 40)
     # the texel side would need 15 GB; the note says how to read less
     assert compress.note == ("sketches on the rows side; 7 reads: a tile's column (4.5 GB) "

@@ -191,6 +191,56 @@ def test_shadows_kept_for_other_views_give_the_same_bits(monkeypatch):
         assert np.array_equal(b.view(np.uint32), c.view(np.uint32))
 
 
+def test_a_view_kept_for_its_other_lights_gives_the_same_bits(monkeypatch):
+    """What a view sees of a strip is kept for the view's other blocks of lights (blocks of
+    views and of lights in a shuffled order, two materials in one cache): every layer is what
+    rendering it with nothing kept gives, and the cache stays within its limit."""
+    from tasks import shading
+
+    s = parse_sampling("dome151")
+    cases = []
+    for name, seed in (("stone", 3), ("leather", 1)):
+        m = Material(name, seed=seed)
+        model = ShadingModel(relief=m.relief)
+        halo = model.halo(s.theta_view.max(), s.theta_light.max())
+        cases.append((m.fields(-halo, -halo, 24 + 2 * halo, 20 + 2 * halo), halo, model))
+    views = np.random.default_rng(5).permutation(len(s.theta_view))[:6]
+    views[0] = int(np.argmin(s.theta_view))  # the top view, which is not kept
+    lights = [slice(a, a + 8) for a in (0, 40, 80, 120)]
+    order = [(c, v, lt) for c in range(2) for v in views for lt in range(4)]
+    order = [order[i] for i in np.random.default_rng(6).permutation(len(order))]
+
+    def blocks(cache, keyed=False):
+        monkeypatch.setattr(shading, "VIEWS", cache)
+        out = []
+        for c, v, lt in order:
+            fields, halo, model = cases[c]
+            # keyed: the caller says what the fields are (a stage), so they are not hashed
+            out.append(render_block(fields, halo=halo, theta_view=s.theta_view[v:v + 1],
+                                    phi_view=s.phi_view[v:v + 1],
+                                    theta_light=s.theta_light[lights[lt]],
+                                    phi_light=s.phi_light[lights[lt]], model=model,
+                                    key=("case", c) if keyed else None))
+        return out
+
+    kept = shading.ViewCache()
+    with_cache = blocks(kept)
+    oblique = 2 * (len(views) - 1)
+    assert len(kept.entries) == kept.computed == oblique and 0 < kept.size <= kept.limit
+    small = shading.ViewCache(limit=kept.size // 3)  # some views dropped and made again
+    again = blocks(small)
+    assert 0 < small.size <= small.limit and oblique < small.computed < 4 * oblique
+    by_key = shading.ViewCache()
+    keyed = blocks(by_key, keyed=True)
+    assert by_key.computed == oblique
+    none = shading.ViewCache(limit=0)  # VIEWS.limit 0: nothing hashed, nothing kept
+    fresh = blocks(none)
+    assert none.computed == 0 and not none.entries
+    for a, b, k, c in zip(with_cache, again, keyed, fresh, strict=True):
+        for x in (a, b, k):
+            assert np.array_equal(x.view(np.uint32), c.view(np.uint32))
+
+
 def test_cast_shadows_darken_low_elevations():
     m = Material("leather", seed=1)
     with_shadows, without = ShadingModel(relief=m.relief), ShadingModel(relief=m.relief,

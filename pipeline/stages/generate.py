@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import uuid
+from collections.abc import Hashable
 from functools import partial
 from pathlib import Path
 
@@ -45,7 +47,7 @@ from tasks.materials import (
 from tasks.pathtrace import BSDFS, PathTracer, stratified_spp
 from tasks.pathtrace import render_block as trace_block
 from tasks.sampling import SAMPLING_HELP, parse_sampling
-from tasks.shading import SHADOWS, ShadingModel, render_block
+from tasks.shading import SHADOWS, VIEWS, ShadingModel, render_block
 
 CHANNELS = ("R", "G", "B")
 RENDERERS = ("shading", "mitsuba")
@@ -184,12 +186,18 @@ def _crop(window: np.ndarray, halo: int) -> np.ndarray:
 
 
 def _render(window, views, lights, origin, *, halo: int, model: ShadingModel,
-            tracer: PathTracer | None) -> np.ndarray:
-    """One block's layers: ``views``/``lights`` rows are (theta, phi, index in the store)."""
+            tracer: PathTracer | None, source: Hashable) -> np.ndarray:
+    """One block's layers: ``views``/``lights`` rows are (theta, phi, index in the store).
+
+    ``source``: what the fields are (the material, or a photo's store and run): with the
+    block's place and size, what its window is (the shading caches' key).
+    """
     if tracer is None:
+        place = (int(origin[0, 0, 0]), int(origin[0, 0, 1]))
         return render_block(Fields.unpack(window), halo=halo, theta_view=views[:, 0],
                             phi_view=views[:, 1], theta_light=lights[:, 0],
-                            phi_light=lights[:, 1], model=model)
+                            phi_light=lights[:, 1], model=model,
+                            key=(source, place, window.shape))
     return trace_block(Fields.unpack(window), halo=halo, theta_view=views[:, 0],
                        phi_view=views[:, 1], theta_light=lights[:, 0], phi_light=lights[:, 1],
                        view_index=views[:, 2].astype(int), light_index=lights[:, 2].astype(int),
@@ -295,10 +303,11 @@ def _graph(group, tmp, sampling, source: Material | None, *, halo: int,
 
     truth = [group[name] for name in TRUTH_DIMS]
     vch, lch, ych, xch, _ = aligned_chunks(group[RADIANCE])
-    if source is None:  # read back per block
-        windows = field_windows(location(tmp), ych, xch, halo)
-    else:
-        windows = field_windows(source, ych, xch, halo)
+    where = location(tmp) if source is None else source  # a photo is read back per block
+    windows = field_windows(where, ych, xch, halo)
+    # what the windows are, for the shading caches: a material's are its own; a photo's are
+    # this run's (a cluster's workers keep their caches from run to run)
+    identity = source if source is not None else (where, uuid.uuid4().hex)
     views = da.from_array(np.stack([sampling.theta_view, sampling.phi_view,
                                     np.arange(len(sampling.theta_view))], -1), chunks=(vch, 3))
     lights = da.from_array(np.stack([sampling.theta_light, sampling.phi_light,
@@ -312,6 +321,7 @@ def _graph(group, tmp, sampling, source: Material | None, *, halo: int,
         new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
         concatenate=True, align_arrays=False, dtype=np.float32,
         meta=np.empty((0,) * 5, np.float32), halo=halo, model=model, tracer=tracer,
+        source=identity,
     )
     sources, targets = [radiance], [group[RADIANCE]]
     if source is not None:
@@ -359,8 +369,9 @@ def generate(params: GenerateParams, session: Session) -> Path:
                         f"already written in {tmp}")
         try:
             session.compute(store_aligned(sources, targets, progress=progress))
-        finally:  # the stages after it in this process (btf run, threads) do not keep it
+        finally:  # the stages after it in this process (btf run, threads) do not keep them
             SHADOWS.clear()
+            VIEWS.clear()
     return Path(params.out)
 
 
@@ -395,8 +406,10 @@ def _estimate(params, shapes: dict) -> tuple[StageEstimate, Shape]:
                          + n * 6 * 4,
                          tasks=nv * light_blocks * spatial + spatial, passes=1, input_reads=0,
                          task_bytes=4 * block + (side + 64) ** 2 * 6 * 4,
-                         # the shadow cache of each process (the path tracer keeps none)
-                         process_bytes=0 if params.renderer == "mitsuba" else SHADOWS.limit,
+                         # the shadow and view caches of each process (the path tracer
+                         # keeps none)
+                         process_bytes=0 if params.renderer == "mitsuba"
+                         else SHADOWS.limit + VIEWS.limit,
                          client_bytes=0, core_seconds=nv * nl * n / per_core, rate_source=source,
                          option="--chunk / --dir-chunk (smaller task blocks)")
     return plan, Shape("btf", (nv, nl, params.size, params.size, nc), layout.chunk,
