@@ -683,3 +683,40 @@ def test_btf_bench_compress_disk_part_times_both_modes_against_one_read(tmp_path
     text = suite.report(result)
     assert f"A store that fits memory: {d['rows']} x 2304" in text
     assert "| one pass | 1 | " in text and "x (" in text
+
+
+@pytest.mark.parametrize("k_chunks", [6, 4])
+def test_blockwise_takes_a_lone_block_uncopied_and_joins_several_as_dask_does(k_chunks):
+    import dask
+    import dask.array as da
+
+    from pipeline.blockwise import whole_blocks
+
+    x = np.arange(4 * 6, dtype=np.float32).reshape(4, 6)
+    s = np.arange(6, dtype=np.float32)
+    made, shared = [], []
+
+    def kept(block):  # the blocks dask holds, to tell a copy from the block itself
+        made.append(block)
+        return block
+
+    def product(a, w):
+        shared.append(any(np.shares_memory(a, b) for b in made))
+        return a @ w[:, None]
+
+    def graph(func, concatenate):
+        return da.blockwise(func, "ij", da.from_array(x, chunks=(2, k_chunks)).map_blocks(kept),
+                            "ik", da.from_array(s, chunks=k_chunks), "k", new_axes={"j": 1},
+                            concatenate=concatenate, dtype=np.float32,
+                            meta=np.empty((0, 0), np.float32))
+
+    with dask.config.set(scheduler="synchronous"):
+        ours = graph(whole_blocks(product), False).compute()
+        passed = shared[:]
+        shared.clear()
+        theirs = graph(product, True).compute()
+    np.testing.assert_array_equal(ours, theirs)
+    np.testing.assert_array_equal(ours, x @ s[:, None])
+    assert passed == [k_chunks == 6] * 2  # a lone block as it is; several joined (a copy)
+    assert shared == [False] * 2  # dask's concatenate copies even a lone block
+    assert "product" in graph(whole_blocks(product), False).name

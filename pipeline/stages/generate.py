@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_output
+from pipeline.blockwise import whole_blocks
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
 from pipeline.params import ParamError, check_seed, option
@@ -317,9 +318,9 @@ def _graph(group, tmp, sampling, source: Material | None, *, halo: int,
                                   indexing="ij"), -1)
     origins = da.from_array(starts, chunks=(1, 1, 2))  # each block's first texel
     radiance = da.blockwise(
-        _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld", origins, "yxo",
-        new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
-        concatenate=True, align_arrays=False, dtype=np.float32,
+        whole_blocks(_render), "vlyxc", windows, "yxf", views, "vd", lights, "ld", origins,
+        "yxo", new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
+        concatenate=False, align_arrays=False, dtype=np.float32,
         meta=np.empty((0,) * 5, np.float32), halo=halo, model=model, tracer=tracer,
         source=identity,
     )

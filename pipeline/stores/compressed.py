@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import storage
+from pipeline.blockwise import whole_blocks
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -98,9 +99,9 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
 
     extra = _layer_scale(u, transform, theta_light)
     return da.blockwise(
-        _rebuild, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra, concatenate=True,
-        align_arrays=False, dtype=np.float32, meta=np.empty((0,) * 5, np.float32),
-        transform=transform)
+        whole_blocks(_rebuild), "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
+        concatenate=False, align_arrays=False, dtype=np.float32,
+        meta=np.empty((0,) * 5, np.float32), transform=transform)
 
 
 def radiance_in(ds, chunks, path: str | Path | None = None):
@@ -138,8 +139,8 @@ def radiance_in(ds, chunks, path: str | Path | None = None):
     u = _factor_in(ds, path, "U", (*chunks[:2], chunks[4], -1))
     v = _factor_in(ds, path, "V", (*chunks[2:4], -1))
     extra = _layer_scale(u, transform, theta)
-    return da.blockwise(_rebuild_pieces, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
-                        concatenate=True, align_arrays=False, dtype=np.float32,
+    return da.blockwise(whole_blocks(_rebuild_pieces), "vlyxc", u, "vlck", s, "k", v, "yxk",
+                        *extra, concatenate=False, align_arrays=False, dtype=np.float32,
                         meta=np.empty((0,) * 5, np.float32), transform=transform,
                         sizes=tuple(int(p[0]) for p in pieces))
 
