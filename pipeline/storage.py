@@ -257,8 +257,10 @@ def _settle_at_exit(timeout: float = 5.0) -> None:
     call. A thread still waiting once the interpreter finalizes is ended with ``pthread_exit``,
     which aborts a Rust thread: the process died with SIGABRT after its work was done (5 exits
     in 150 of a short writer to S3 on a loaded machine, and once in CI). Registered with
-    :mod:`atexit` when this process first makes an obstore store; the wait is one look when
-    nothing is in flight.
+    :mod:`atexit` when this process first makes or unpickles an obstore store; the wait is
+    one look when nothing is in flight. A thread not yet inside its call (a request still in
+    flight when a process exits on an error) has no frame to see: this covers exits after
+    the work is done.
     """
     import time
 
@@ -371,6 +373,8 @@ def _strict_class() -> type:
             super().__init__(store)
             self.location = location
             self._sealed: bool | None = None
+            if is_url(location):  # made here or unpickled in a worker: obstore's threads
+                _settle_registered()
 
         def _with_store(self, store):
             return type(self)(store, self.location)

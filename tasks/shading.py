@@ -357,8 +357,9 @@ def render_block(
     key
         What the fields are, where the caller knows it (a stage: its material and the block's
         place): equal keys promise equal fields for as long as :data:`SHADOWS` and
-        :data:`VIEWS` keep them (the stage empties both when it ends). The caches then need
-        not hash the fields; None: they hash them.
+        :data:`VIEWS` keep them, which is the life of the process (a cluster's workers keep
+        them from run to run; the stage empties its own process's when it ends). The caches
+        then need not hash the fields; None: they hash them.
 
     Returns
     -------
@@ -423,13 +424,13 @@ def _render_strip(
         return layers
 
     for iv, (t, p) in enumerate(zip(theta_view, phi_view, strict=True)):
-        key = None if strip is None else (strip, float(t), float(p))
-        seen = None if key is None else VIEWS.get(key)
+        entry = None if strip is None else (strip, float(t), float(p))
+        seen = None if entry is None else VIEWS.get(entry)
         if seen is None:
             seen = _view(fields, halo, normals_once, layers_once, float(t), float(p),
                          views[iv], model)
-            if key is not None and seen[1] is not None:  # a top view is a few slices
-                VIEWS.put(key, seen, _nbytes(seen))
+            if entry is not None and seen[1] is not None:  # a top view is a few slices
+                VIEWS.put(entry, seen, _nbytes(seen))
         surface, offsets = seen
         if offsets is None:
             seen_vis = vis[:, margin : margin + ny, margin : margin + nx]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import numpy as np
 import pytest
@@ -685,12 +686,14 @@ def test_btf_bench_compress_disk_part_times_both_modes_against_one_read(tmp_path
     assert "| one pass | 1 | " in text and "x (" in text
 
 
-@pytest.mark.parametrize("k_chunks", [6, 4])
+@pytest.mark.parametrize("k_chunks", [(6, 6), (4, 4), (3, 6), (6, 2)])
 def test_blockwise_takes_a_lone_block_uncopied_and_joins_several_as_dask_does(k_chunks):
+    # (3, 6), (6, 2): one argument split along the contracted index and the other not
+    # (dask then repeats the lone block in its lists: they must not be joined)
     import dask
     import dask.array as da
 
-    from pipeline.blockwise import whole_blocks
+    from pipeline.blockwise import blockwise
 
     x = np.arange(4 * 6, dtype=np.float32).reshape(4, 6)
     s = np.arange(6, dtype=np.float32)
@@ -704,19 +707,37 @@ def test_blockwise_takes_a_lone_block_uncopied_and_joins_several_as_dask_does(k_
         shared.append(any(np.shares_memory(a, b) for b in made))
         return a @ w[:, None]
 
-    def graph(func, concatenate):
-        return da.blockwise(func, "ij", da.from_array(x, chunks=(2, k_chunks)).map_blocks(kept),
-                            "ik", da.from_array(s, chunks=k_chunks), "k", new_axes={"j": 1},
-                            concatenate=concatenate, dtype=np.float32,
-                            meta=np.empty((0, 0), np.float32))
+    def graph(make):
+        return make(product, "ij", da.from_array(x, chunks=(2, k_chunks[0])).map_blocks(kept),
+                    "ik", da.from_array(s, chunks=k_chunks[1]), "k", new_axes={"j": 1},
+                    dtype=np.float32, meta=np.empty((0, 0), np.float32))
 
     with dask.config.set(scheduler="synchronous"):
-        ours = graph(whole_blocks(product), False).compute()
+        ours = graph(blockwise).compute()
         passed = shared[:]
         shared.clear()
-        theirs = graph(product, True).compute()
+        theirs = graph(partial(da.blockwise, concatenate=True)).compute()
     np.testing.assert_array_equal(ours, theirs)
     np.testing.assert_array_equal(ours, x @ s[:, None])
-    assert passed == [k_chunks == 6] * 2  # a lone block as it is; several joined (a copy)
+    lone = k_chunks == (6, 6)
+    assert passed == [lone] * 2  # a lone block as it is; several joined (a copy)
     assert shared == [False] * 2  # dask's concatenate copies even a lone block
-    assert "product" in graph(whole_blocks(product), False).name
+    assert "product" in graph(blockwise).name
+
+
+def test_a_blockwise_function_without_the_copy_has_one_token_in_every_process():
+    import subprocess
+    import sys
+
+    from dask.base import tokenize
+
+    from pipeline.blockwise import _WholeBlocks
+    from pipeline.stores.compressed import _rebuild
+
+    code = ("from dask.base import tokenize; from pipeline.blockwise import _WholeBlocks; "
+            "from pipeline.stores.compressed import _rebuild; "
+            "print(tokenize(_WholeBlocks(_rebuild)))")
+    other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True).stdout.strip()
+    assert tokenize(_WholeBlocks(_rebuild)) == other  # the graph's keys, run to run
+    assert tokenize(_WholeBlocks(_rebuild)) != tokenize(_rebuild)

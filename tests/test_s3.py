@@ -493,26 +493,32 @@ def test_a_server_that_exits_at_once_is_started_again_then_named_with_its_log(tm
     assert len(starts) == 3
 
 
-@pytest.mark.parametrize("opened", [False, True])
+@pytest.mark.parametrize("opened", ["no", "made", "unpickled"])
 def test_a_process_that_opened_object_storage_lets_foreign_threads_leave_python_at_exit(
-        tmp_path, opened):
+        tmp_path, monkeypatch, opened):
     # obstore answers from tokio's threads, which call into Python; one still in such a call
     # when the interpreter finalizes is ended by pthread_exit, which aborts a Rust thread
     # (SIGABRT after the work was done). A thread not started by threading stands in for it:
-    # it is inside a Python call (a sleep) when the main thread exits
+    # it is inside a Python call (a sleep) when the main thread exits. "unpickled": the store
+    # reached the process as a task's argument does (a worker of the processes scheduler)
+    import pickle
+
+    monkeypatch.setenv("AWS_REGION", "us-east-1")
+    pickled = tmp_path / "store.pickle"
+    pickled.write_bytes(pickle.dumps(storage.store("s3://bucket/a.zarr")))
     out = tmp_path / "left python"
-    script = ("import _thread, sys, time\n"
+    script = ("import _thread, pickle, sys, time\n"
               "from pathlib import Path\n"
               "from pipeline import storage\n"
-              f"if {opened}: storage.store('s3://bucket/a.zarr')\n"
+              f"if {opened!r} == 'made': storage.store('s3://bucket/a.zarr')\n"
+              f"if {opened!r} == 'unpickled': pickle.loads(Path({str(pickled)!r}).read_bytes())\n"
               "started = _thread.allocate_lock()\n"
               "started.acquire()\n"
               "def late():\n"
               "    started.release()\n"
-              "    time.sleep(0.5)\n"
+              "    time.sleep(2)\n"
               f"    Path({str(out)!r}).write_text('yes')\n"
               "_thread.start_new_thread(late, ())\n"
               "started.acquire()\n")
-    subprocess.run([sys.executable, "-c", script], check=True, timeout=60,
-                   env={**os.environ, "AWS_REGION": "us-east-1"})
-    assert out.exists() == opened
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=60)
+    assert out.exists() == (opened != "no")

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_output
-from pipeline.blockwise import whole_blocks
+from pipeline.blockwise import blockwise
 from pipeline.errors import BTFError
 from pipeline.graphs.blocks import aligned_chunks, store_aligned, task_side
 from pipeline.params import ParamError, check_seed, option
@@ -317,10 +317,10 @@ def _graph(group, tmp, sampling, source: Material | None, *, halo: int,
     starts = np.stack(np.meshgrid(np.cumsum((0, *ych[:-1])), np.cumsum((0, *xch[:-1])),
                                   indexing="ij"), -1)
     origins = da.from_array(starts, chunks=(1, 1, 2))  # each block's first texel
-    radiance = da.blockwise(
-        whole_blocks(_render), "vlyxc", windows, "yxf", views, "vd", lights, "ld", origins,
-        "yxo", new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
-        concatenate=False, align_arrays=False, dtype=np.float32,
+    radiance = blockwise(
+        _render, "vlyxc", windows, "yxf", views, "vd", lights, "ld", origins, "yxo",
+        new_axes={"c": len(CHANNELS)}, adjust_chunks={"y": ych, "x": xch},
+        align_arrays=False, dtype=np.float32,
         meta=np.empty((0,) * 5, np.float32), halo=halo, model=model, tracer=tracer,
         source=identity,
     )

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import storage
-from pipeline.blockwise import whole_blocks
+from pipeline.blockwise import blockwise
 from pipeline.errors import BTFError
 from pipeline.stores.base import (
     DIRECTION_COORDS,
@@ -95,13 +95,10 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
     There is one block per pair of a ``U`` chunk and a ``V`` tile. A cosine store needs
     ``theta_light`` (degrees, one per light): each layer is divided by its light's cosine.
     """
-    import dask.array as da
-
     extra = _layer_scale(u, transform, theta_light)
-    return da.blockwise(
-        whole_blocks(_rebuild), "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
-        concatenate=False, align_arrays=False, dtype=np.float32,
-        meta=np.empty((0,) * 5, np.float32), transform=transform)
+    return blockwise(_rebuild, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
+                     align_arrays=False, dtype=np.float32,
+                     meta=np.empty((0,) * 5, np.float32), transform=transform)
 
 
 def radiance_in(ds, chunks, path: str | Path | None = None):
@@ -123,8 +120,6 @@ def radiance_in(ds, chunks, path: str | Path | None = None):
     4,384 tasks, 1,510 of them reads of 9 KB of ``U`` and 1,963 cutting and joining them,
     for 453 blocks. The values read are the same, and so is every bit rebuilt.
     """
-    import dask.array as da
-
     transform = Transform.from_attrs(ds.attrs["transform"])
     theta = np.asarray(ds["theta_light"].values)
     u, s, v = ds["U"].data, ds["S"].data, ds["V"].data
@@ -139,10 +134,9 @@ def radiance_in(ds, chunks, path: str | Path | None = None):
     u = _factor_in(ds, path, "U", (*chunks[:2], chunks[4], -1))
     v = _factor_in(ds, path, "V", (*chunks[2:4], -1))
     extra = _layer_scale(u, transform, theta)
-    return da.blockwise(whole_blocks(_rebuild_pieces), "vlyxc", u, "vlck", s, "k", v, "yxk",
-                        *extra, concatenate=False, align_arrays=False, dtype=np.float32,
-                        meta=np.empty((0,) * 5, np.float32), transform=transform,
-                        sizes=tuple(int(p[0]) for p in pieces))
+    return blockwise(_rebuild_pieces, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
+                     align_arrays=False, dtype=np.float32, meta=np.empty((0,) * 5, np.float32),
+                     transform=transform, sizes=tuple(int(p[0]) for p in pieces))
 
 
 def _factor_in(ds, path, name: str, chunks):
