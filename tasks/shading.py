@@ -193,11 +193,12 @@ class ShadowCache:
 
     A store's task blocks hold one view each (its chunks are a view's), and every view of a
     tile needs the same shadows under each light: a 151 x 151 dome computed them 151 times,
-    most of a block's shading. Entries are keyed by the strip's heights (their bytes' hash),
-    the light and the model, and cover the widest margin asked for so far; a narrower one is
-    their centre, the same bits (a texel's visibility depends on the heights along its own
-    ray, not on the region around it; tested). At most ``limit`` bytes, the least recently
-    used dropped first; shared by the process's threads. ``computed`` counts the misses.
+    most of a block's shading. Entries are keyed by the strip's heights (the caller's key for
+    its fields, else the heights' hash), the light and the model, and cover the widest
+    margin asked for so far; a narrower one is their centre, the same bits (a texel's
+    visibility depends on the heights along its own ray, not on the region around it;
+    tested). At most ``limit`` bytes, the least recently used dropped first; shared by the
+    process's threads. ``computed`` counts the misses.
     """
 
     def __init__(self, limit: int = 64 << 20) -> None:
@@ -250,8 +251,9 @@ class ViewCache:
 
     A store's task blocks hold one view and a block of lights each: a 151 x 151 dome at
     ``--dir-chunk 16`` traced each oblique view's parallax and resampled its surface for each
-    of its 10 blocks of lights. Entries are keyed by the strip's fields (their bytes' hash),
-    the view and the model; a hit gives the arrays computed before, so the same bits. At most
+    of its 10 blocks of lights. Entries are keyed by what the strip's fields are (the
+    caller's key, else their bytes' hash), the view and the model; a hit gives the arrays
+    computed before, so the same bits. At most
     ``limit`` bytes, the least recently used dropped first; shared by the process's threads.
     ``computed`` counts the misses. Nothing writes to an entry's arrays once it is kept.
     """
