@@ -281,7 +281,6 @@ def _object_store(url: str, hidden_root: bool, environment: tuple):
     from obstore.store import from_url
     from zarr.storage import ObjectStore
 
-    _settle_registered()
     base = ObjectStore(from_url(url, **_options()))
     return RootKeptAside(base) if hidden_root else base
 

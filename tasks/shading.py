@@ -188,83 +188,21 @@ def shade_all(surface: Surface, vis: np.ndarray, lights: np.ndarray, *, ambient:
 STRIP_ROWS = 64  # rows rendered at once: keeps the temporaries in cache (measured ~30% faster)
 
 
-class ShadowCache:
-    """Cast-shadow visibility of a strip under one light, kept for the blocks of other views.
+class ByteCache:
+    """Arrays kept by key, at most ``limit`` bytes, the least recently used dropped first.
 
-    A store's task blocks hold one view each (its chunks are a view's), and every view of a
-    tile needs the same shadows under each light: a 151 x 151 dome computed them 151 times,
-    most of a block's shading. Entries are keyed by the strip's heights (the caller's key for
-    its fields, else the heights' hash), the light and the model, and cover the widest
-    margin asked for so far; a narrower one is their centre, the same bits (a texel's
-    visibility depends on the heights along its own ray, not on the region around it;
-    tested). At most ``limit`` bytes, the least recently used dropped first; shared by the
-    process's threads. ``computed`` counts the misses.
+    Shared by the process's threads (two that miss at once both compute; the second's entry
+    stays). ``computed`` counts the entries put, i.e. the misses. Nothing writes to an
+    entry's arrays once it is kept.
     """
 
     def __init__(self, limit: int = 64 << 20) -> None:
         self.limit, self.size, self.computed = limit, 0, 0
-        self.entries: OrderedDict[tuple, tuple[int, np.ndarray]] = OrderedDict()
+        self.entries: OrderedDict[tuple, tuple[int, object]] = OrderedDict()
         self.lock = threading.Lock()
 
-    def visibility(self, window: tuple, h: np.ndarray, halo: int, margin: int, ny: int,
-                   nx: int, theta: float, phi: float, model: ShadingModel) -> np.ndarray:
-        """:func:`tasks.heightfield.visibility` of the strip's texels and ``margin`` around."""
-        key = (window, theta, phi, model.relief, model.penumbra, model.max_shadow)
-        with self.lock:
-            found = self.entries.get(key)
-            if found is not None:
-                self.entries.move_to_end(key)
-        if found is not None and found[0] >= margin:
-            cut = found[0] - margin
-            return found[1][cut : cut + ny + 2 * margin, cut : cut + nx + 2 * margin]
-        r0 = halo - margin
-        values = visibility(h, r0, r0, ny + 2 * margin, nx + 2 * margin, theta=theta, phi=phi,
-                            relief=model.relief, penumbra=model.penumbra,
-                            max_length=model.max_shadow)
-        with self.lock:
-            self.computed += 1
-            if values.nbytes > self.limit:  # kept entries stay: they still serve narrower
-                return values
-            old = self.entries.pop(key, None)
-            if old is not None:
-                self.size -= old[1].nbytes
-            self.entries[key] = (margin, values)
-            self.size += values.nbytes
-            while self.size > self.limit:
-                self.size -= self.entries.popitem(last=False)[1][1].nbytes
-        return values
-
-    def clear(self) -> None:
-        """Drop every entry (the counter stays)."""
-        with self.lock:
-            self.entries.clear()
-            self.size = 0
-
-
-SHADOWS = ShadowCache()
-
-
-class ViewCache:
-    """What an oblique view sees of a strip, kept for the view's other blocks of lights.
-
-    An entry is the :class:`Surface` and the parallax offsets of a view.
-
-    A store's task blocks hold one view and a block of lights each: a 151 x 151 dome at
-    ``--dir-chunk 16`` traced each oblique view's parallax and resampled its surface for each
-    of its 10 blocks of lights. Entries are keyed by what the strip's fields are (the
-    caller's key, else their bytes' hash), the view and the model; a hit gives the arrays
-    computed before, so the same bits. At most
-    ``limit`` bytes, the least recently used dropped first; shared by the process's threads.
-    ``computed`` counts the misses. Nothing writes to an entry's arrays once it is kept.
-    """
-
-    def __init__(self, limit: int = 64 << 20) -> None:
-        self.limit, self.size, self.computed = limit, 0, 0
-        self.entries: OrderedDict[tuple, tuple[int, tuple]] = OrderedDict()
-        self.lock = threading.Lock()
-
-    def get(self, key: tuple) -> tuple | None:
-        """The entry kept for ``key``, or None."""
+    def get(self, key: tuple):
+        """The value kept for ``key``, or None."""
         with self.lock:
             found = self.entries.get(key)
             if found is None:
@@ -272,8 +210,11 @@ class ViewCache:
             self.entries.move_to_end(key)
             return found[1]
 
-    def put(self, key: tuple, value: tuple, nbytes: int) -> None:
-        """Keep ``value`` (``nbytes`` of arrays) for ``key``, dropping the oldest past the limit."""
+    def put(self, key: tuple, value, nbytes: int) -> None:
+        """Keep ``value`` (``nbytes`` of arrays) for ``key``, dropping the oldest past the limit.
+
+        A value over the limit is not kept, and the entries kept stay.
+        """
         with self.lock:
             self.computed += 1
             if nbytes > self.limit:
@@ -291,6 +232,47 @@ class ViewCache:
         with self.lock:
             self.entries.clear()
             self.size = 0
+
+
+class ShadowCache(ByteCache):
+    """Cast-shadow visibility of a strip under one light, kept for the blocks of other views.
+
+    A store's task blocks hold one view each (its chunks are a view's), and every view of a
+    tile needs the same shadows under each light: a 151 x 151 dome computed them 151 times,
+    most of a block's shading. Entries are keyed by what the strip's fields are (the
+    caller's key, else their hash), the light and the model, and cover the widest margin
+    asked for so far; a narrower one is their centre, the same bits (a texel's visibility
+    depends on the heights along its own ray, not on the region around it; tested).
+    """
+
+    def visibility(self, window: tuple, h: np.ndarray, halo: int, margin: int, ny: int,
+                   nx: int, theta: float, phi: float, model: ShadingModel) -> np.ndarray:
+        """:func:`tasks.heightfield.visibility` of the strip's texels and ``margin`` around."""
+        key = (window, theta, phi, model.relief, model.penumbra, model.max_shadow)
+        found = self.get(key)
+        if found is not None and found[0] >= margin:
+            cut = found[0] - margin
+            return found[1][cut : cut + ny + 2 * margin, cut : cut + nx + 2 * margin]
+        r0 = halo - margin
+        values = visibility(h, r0, r0, ny + 2 * margin, nx + 2 * margin, theta=theta, phi=phi,
+                            relief=model.relief, penumbra=model.penumbra,
+                            max_length=model.max_shadow)
+        self.put(key, (margin, values), values.nbytes)
+        return values
+
+
+SHADOWS = ShadowCache()
+
+
+class ViewCache(ByteCache):
+    """What an oblique view sees of a strip, kept for the view's other blocks of lights.
+
+    An entry is the :class:`Surface` and the parallax offsets of a view. A store's task
+    blocks hold one view and a block of lights each: a 151 x 151 dome at ``--dir-chunk 16``
+    traced each oblique view's parallax and resampled its surface for each of its 10 blocks
+    of lights. Entries are keyed by what the strip's fields are (the caller's key, else their
+    hash), the view and the model; a hit gives the arrays computed before, so the same bits.
+    """
 
 
 VIEWS = ViewCache()
@@ -398,18 +380,16 @@ def _render_strip(
                                        reference=model.reference)) + 1
     size_y, size_x = ny + 2 * margin, nx + 2 * margin
     vis = np.ones((len(theta_light), size_y, size_x), np.float32)
+    if key is None and (model.shadows or VIEWS.limit):
+        key = _fields_digest(fields)  # what the strip is, for the caches
     if model.shadows:
-        window = (hashlib.blake2b(np.ascontiguousarray(h).tobytes(), digest_size=16).digest()
-                  if key is None else key, h.shape, h.dtype.str, halo, ny, nx)
+        window = (key, h.shape, h.dtype.str, halo, ny, nx)
         for i, (t, p) in enumerate(zip(theta_light, phi_light, strict=True)):
             vis[i] = SHADOWS.visibility(window, h, halo, margin, ny, nx, float(t), float(p),
                                         model)
     lights = direction_vectors(theta_light, phi_light)
     views = direction_vectors(theta_view, phi_view)
-    strip = None
-    if VIEWS.limit:
-        strip = (_fields_digest(fields) if key is None else key, fields.height.shape, halo,
-                 model.relief, model.reference)
+    strip = (key, h.shape, halo, model.relief, model.reference) if VIEWS.limit else None
     n = layers = None
 
     def normals_once() -> tuple:
