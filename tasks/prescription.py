@@ -6,7 +6,7 @@ A plan made on the reference image (quilting, the roller) compiles to ``P``, a
 layer, which is what makes the transfer identical for all light and view directions; being
 linear, it applies just as well to the eigentextures of a compressed store. Stored as padded
 rows (an ELL matrix: ``index`` and ``weight`` of shape ``(output pixels, terms)``, index -1
-for unused terms) and applied as a scipy CSR matrix to whole layers (:func:`apply`): by a
+for unused terms) and applied as a CSR matrix (:func:`rows`) to whole layers (:func:`apply`): by a
 compiled row loop (:mod:`tasks.csr_kernel`, imported on first use) where there is enough work
 to pay for loading numba, 0.6-1.2 s of a process's time and ~100 MB, else by scipy's own row
 loop; both give the same bits (:func:`compiled_pays`).
@@ -16,21 +16,52 @@ from __future__ import annotations
 
 import platform
 import sys
+from typing import NamedTuple
 
 import numpy as np
 import scipy  # submodules load on first use, not at every btf command (test_layout: HEAVY)
 
 
-def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> scipy.sparse.csr_matrix:
-    """The CSR matrix of padded rows ``index``/``weight`` (``-1`` marks unused terms)."""
+class Csr(NamedTuple):
+    """A CSR matrix as scipy lays one out (float32 ``data``), held and applied without scipy."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    shape: tuple[int, int]
+
+
+def rows(index: np.ndarray, weight: np.ndarray, samples: int) -> Csr:
+    """The CSR matrix of padded rows ``index``/``weight`` (``-1`` marks unused terms).
+
+    Each row keeps its used terms in their stored order, a sample texel named twice as two
+    terms: the product adds them one after the other, in that order. Made with numpy alone:
+    importing ``scipy.sparse`` is 0.25-0.35 s of a process (scipy's array-API layer imports
+    parts of numpy no stage uses), more than applying a 960^2 tile to ten layers, and its
+    conversion to scipy's canonical form (columns sorted, duplicates summed) 0.1 s more.
+    """
     index = np.asarray(index).reshape(index.shape[0], -1)
     weight = np.asarray(weight, np.float32).reshape(index.shape)
     used = index >= 0
-    rows = np.broadcast_to(np.arange(index.shape[0])[:, None], index.shape)[used]
-    matrix = scipy.sparse.csr_matrix((weight[used], (rows, index[used])),
-                                     shape=(index.shape[0], samples), dtype=np.float32)
-    matrix.sum_duplicates()
-    return matrix
+    # scipy's index type: int32 where it holds every index and term (numba's cached loops)
+    kind = np.int32 if max(samples, index.size) <= np.iinfo(np.int32).max else np.int64
+    indptr = np.zeros(index.shape[0] + 1, kind)
+    np.cumsum(used.sum(axis=1), out=indptr[1:])
+    return Csr(indptr, index[used].astype(kind, copy=False), weight[used],
+               (index.shape[0], samples))
+
+
+def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> scipy.sparse.csr_matrix:
+    """:func:`rows` as a scipy CSR matrix: the same terms in the same order.
+
+    So ``to_csr(...) @ layer`` is :func:`apply`'s product, bit for bit; call
+    ``sum_duplicates`` on it for the canonical form.
+    """
+    import scipy.sparse
+
+    matrix = rows(index, weight, samples)
+    return scipy.sparse.csr_matrix((matrix.data, matrix.indices, matrix.indptr),
+                                   shape=matrix.shape)
 
 
 def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
@@ -70,10 +101,12 @@ def compiled_pays(values: int) -> bool:
     return values >= COMPILED_VALUES or "numba" in sys.modules
 
 
-def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[int, int],
-          out: np.ndarray | None = None, compiled: bool | None = None) -> np.ndarray:
+def apply(matrix: Csr | scipy.sparse.spmatrix, layers: np.ndarray, *,
+          output: tuple[int, int], out: np.ndarray | None = None,
+          compiled: bool | None = None) -> np.ndarray:
     """``P @ layer`` for each layer of ``(..., y, x, channel)`` float32 layers.
 
+    ``matrix`` is ``P``: a :class:`Csr` (:func:`rows`), or any scipy sparse matrix.
     ``output`` is the ``(y, x)`` shape of a result layer; ``out``, if given, a C-contiguous
     float32 array of the result's shape to write into (reusing one saves the page faults of a
     fresh allocation, which cost as much as the product here). ``compiled``: a compiled loop
@@ -83,7 +116,9 @@ def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[
     pipeline's threads apply prescriptions in parallel. The weights are taken as float32 (as
     stored); the result equals scipy's ``P @ layer`` for that float32 CSR matrix bit for bit.
     """
-    matrix = scipy.sparse.csr_matrix(matrix, dtype=np.float32)
+    if not isinstance(matrix, Csr):
+        matrix = scipy.sparse.csr_matrix(matrix, dtype=np.float32)
+        matrix = Csr(matrix.indptr, matrix.indices, matrix.data, matrix.shape)
     layers = np.ascontiguousarray(layers, np.float32)
     *lead, ny, nx, nc = layers.shape
     if matrix.shape != (output[0] * output[1], ny * nx):
@@ -109,8 +144,7 @@ def apply(matrix: scipy.sparse.csr_matrix, layers: np.ndarray, *, output: tuple[
     return out
 
 
-def _scipy_product(matrix: scipy.sparse.csr_matrix, source: np.ndarray, target: np.ndarray
-                   ) -> None:
+def _scipy_product(matrix: Csr, source: np.ndarray, target: np.ndarray) -> None:
     """``target[l] = P @ source[l]`` by scipy's row loop, into ``target`` (no copy).
 
     ``csr_matvecs`` is what ``P @ x`` runs for a dense ``x`` of several columns (one column:
@@ -121,16 +155,18 @@ def _scipy_product(matrix: scipy.sparse.csr_matrix, source: np.ndarray, target: 
     try:
         from scipy.sparse._sparsetools import csr_matvecs
     except ImportError:  # pragma: no cover - a scipy that moved it
+        product = scipy.sparse.csr_matrix((matrix.data, matrix.indices, matrix.indptr),
+                                          shape=matrix.shape)
         for layer in range(source.shape[0]):
-            target[layer] = matrix @ source[layer]
+            target[layer] = product @ source[layer]
         return
     # flat views of each layer: the loop writes into them, so they must not be copies
     sources = source.reshape(len(source), source.shape[1] * source.shape[2])
     targets = target.reshape(len(target), target.shape[1] * target.shape[2])
     if targets.size and not np.shares_memory(targets, target):
         raise ValueError("the output must be C-contiguous")
-    rows, columns = matrix.shape
+    height, width = matrix.shape
     for layer in range(len(source)):
         targets[layer] = 0  # the loop adds every term into its output value
-        csr_matvecs(rows, columns, source.shape[2], matrix.indptr, matrix.indices, matrix.data,
+        csr_matvecs(height, width, source.shape[2], matrix.indptr, matrix.indices, matrix.data,
                     sources[layer], targets[layer])

@@ -490,6 +490,7 @@ def _compact(index: np.ndarray, weight: np.ndarray, samples: int) -> None:
     """Sum duplicate indices within each row, drop zero weights, pad last (in place)."""
     for k in range(index.shape[0]):
         m = to_csr(index[k], weight[k], samples)
+        m.sum_duplicates()
         m.eliminate_zeros()
         counts = np.diff(m.indptr)
         rows = np.repeat(np.arange(counts.size), counts)

@@ -424,6 +424,9 @@ def test_apply_equals_scipys_sparse_product_bit_for_bit(channels, compiled):
         expected = matrix @ layers[v, light].reshape(63, channels)
         assert np.array_equal(out[v, light].reshape(72, channels), expected)
     assert np.array_equal(apply(matrix, layers[:1, :1], output=output), out[:1, :1])
+    # the same matrix made without scipy, as the pipeline's tasks take it: the same bits
+    assert np.array_equal(apply(prescription.rows(index, weight, 63), layers, output=output),
+                          out)
     with pytest.raises(ValueError, match="cannot take"):
         apply(matrix, layers, output=(6, 6))
     with pytest.raises(ValueError, match="C-contiguous float32"):
@@ -433,6 +436,26 @@ def test_apply_equals_scipys_sparse_product_bit_for_bit(channels, compiled):
     inside[...] = layers
     with pytest.raises(ValueError, match="must not overlap"):
         apply(matrix, inside, output=output, out=memory.reshape(out.shape))
+
+
+def test_rows_are_the_padded_prescription_with_every_term_kept_in_order():
+    rng = np.random.default_rng(7)
+    index = rng.integers(-1, 5, (40, TERMS))  # 5 sample texels: many named twice in a row
+    index[3] = -1
+    weight = np.where(index >= 0, rng.random(index.shape), 0).astype(np.float32)
+    matrix = prescription.rows(index, weight, 5)
+    assert matrix.shape == (40, 5) and matrix.indptr.dtype == matrix.indices.dtype == np.int32
+    assert matrix.data.dtype == np.float32
+    dense = np.zeros((40, 5))
+    for r, k in itertools.product(range(40), range(TERMS)):
+        if index[r, k] >= 0:
+            dense[r, index[r, k]] += weight[r, k]
+    assert np.allclose(to_csr(index, weight, 5).toarray(), dense, rtol=1e-6, atol=0)
+    for r in range(40):  # each row's used terms, in their stored order
+        terms = slice(matrix.indptr[r], matrix.indptr[r + 1])
+        assert np.array_equal(matrix.indices[terms], index[r][index[r] >= 0])
+        assert np.array_equal(matrix.data[terms], weight[r][index[r] >= 0])
+    assert np.diff(matrix.indptr)[3] == 0
 
 
 @settings(max_examples=12, deadline=None)

@@ -291,6 +291,8 @@ def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
     for r in result["rows"]:
         assert r["bytes"] == sizes.get(r["stage"], 151 * 151 * 16 * 16 * 3 * 4)
         assert r["floor_rate"] > 0 and r["rate"] == pytest.approx(r["bytes"] / r["seconds"])
+        # the floor's process holds its writes
+        assert r["floor_process_seconds"] > r["bytes"] / r["floor_rate"]
 
 
 def test_stored_checksums_are_checked_without_decoding_and_catch_a_flipped_bit(tmp_path):

@@ -158,9 +158,9 @@ class TileSet:
 
     def matrices(self) -> list:
         """The tiles' prescriptions as CSR matrices (output texels x sample texels)."""
-        from tasks.prescription import to_csr  # scipy.sparse: not for every store's reader
+        from tasks.prescription import rows
 
-        return [to_csr(i, w, self.samples) for i, w in zip(self.index, self.weight, strict=True)]
+        return [rows(i, w, self.samples) for i, w in zip(self.index, self.weight, strict=True)]
 
 
 def write_tileset_store(path, tiles: TileSet, *, source: Store):
@@ -380,10 +380,10 @@ class TileSetStore(Store):
 
     def prescription(self, tile: int):
         """Tile ``tile``'s prescription as a CSR matrix (tile texels x sample texels)."""
-        from tasks.prescription import to_csr
+        from tasks.prescription import rows
 
         sy, sx = self.sample_shape
-        return to_csr(self.group["prescription_index"][tile],
+        return rows(self.group["prescription_index"][tile],
                       self.group["prescription_weight"][tile], sy * sx)
 
 
