@@ -48,22 +48,23 @@ def test_main_returns_the_status_of_help_and_usage_errors(capsys):
 def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed(tmp_path):
     """Start-up: ``btf generate`` imports its own stage's module alone, and computing on a
     local scheduler does not import dask.distributed (dask does, given a scheduler's name).
-    Neither it nor ``btf inspect`` imports xarray or pandas, which dask.array would import
-    itself (0.4 s; pipeline._imports).
+    Neither it nor ``btf inspect`` nor ``btf crop`` imports xarray or pandas, which
+    dask.array would import itself (0.4 s; pipeline._imports).
     """
-    g = str(tmp_path / "g.zarr")
+    g, c = str(tmp_path / "g.zarr"), str(tmp_path / "c.zarr")
     code = ("import sys; from pipeline.cli import main; "
             f"status = main(['generate', {g!r}, '--material', 'wood', "
             "'--size', '16', '--sampling', 'abtf:2,1', '--quiet']); "
             "print(status, sorted(m for m in sys.modules if m.startswith('pipeline.stages.')), "
             "'distributed' in sys.modules, 'xarray' in sys.modules); "
             f"print(main(['inspect', {g!r}]) == 0, "
+            f"main(['crop', {g!r}, {c!r}, '--region', '1:9,2:7', '--light', '1', '-q']) == 0, "
             "sorted(m for m in ('xarray', 'pandas') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     lines = out.splitlines()
     assert lines[0].split() == ["0", "['pipeline.stages.generate']", "False", "False"], out
-    assert lines[-1] == "True []", out
+    assert lines[-1] == "True True []", out
 
 
 def test_dask_array_imported_before_xarray_still_tells_a_data_array():

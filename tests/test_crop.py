@@ -101,3 +101,45 @@ def test_a_store_with_some_of_the_truth_is_cropped_without_it(small_abtf, btf, t
     c = zarr.open_group(tmp_path / "c.zarr", mode="r")
     assert "height" not in c and "specular" not in c
     assert np.array_equal(c["radiance"][...], group["radiance"][:, :, 16:48, 0:32])
+
+
+def test_lights_in_any_order_and_a_region_are_the_source_s_values(small_abtf, btf, tmp_path):
+    m = zarr.open_group(small_abtf, mode="r")
+    assert btf("crop", small_abtf, tmp_path / "s.zarr", "--light", "5,1,9", "--region",
+               "3:40,7:21", "--quiet").code == 0
+    s = zarr.open_group(tmp_path / "s.zarr", mode="r")
+    assert np.array_equal(s["radiance"][...], m["radiance"][:, [5, 1, 9], 3:40, 7:21])
+    assert np.array_equal(s["theta_light"][...], m["theta_light"][[5, 1, 9]])
+    assert np.array_equal(s["height"][...], m["height"][3:40, 7:21])
+
+
+def test_a_variable_xarray_would_decode_is_read_as_xarray_reads_it(small_abtf, tmp_path):
+    """Variables are read without xarray where xarray would give the stored values; one it
+    would decode (a scale factor, a fill value to mask) is read through it, as before."""
+    import shutil
+
+    from pipeline.graphs.blocks import read_chunks
+    from pipeline.stores import open_store
+    from pipeline.stores.radiance import lazy_variable, open_dataset, plain
+
+    path = tmp_path / "s.zarr"
+    shutil.copytree(small_abtf, path)
+    group = zarr.open_group(path, mode="r+")
+    raw = group["height"][...]
+    group["height"].attrs["add_offset"] = 1.0
+    group["albedo"].attrs["scale_factor"] = 2.0
+    store = open_store(path)
+    assert plain(store.group["radiance"]) and not plain(store.group["height"])
+    assert not plain(store.group["albedo"])
+    dataset = open_dataset(path)
+    for name in ("radiance", "height", "albedo"):
+        data, dims = lazy_variable(store, name, read_chunks(store.group, name))
+        assert dims == dataset[name].dims
+        assert np.array_equal(data.compute(), dataset[name].values), name
+    height = lazy_variable(store, "height", read_chunks(store.group, "height"))[0].compute()
+    assert np.allclose(height, raw + 1, rtol=1e-6, atol=0)  # decoded, as xarray decodes it
+    masked = zarr.create_array(zarr.storage.MemoryStore(), shape=(2,), dtype="f4",
+                               attributes={"_FillValue": 0.0})
+    assert not plain(masked)
+    masked.attrs["_FillValue"] = float("nan")  # NaN masks nothing xarray would not
+    assert plain(masked)

@@ -1,8 +1,8 @@
 """``btf crop``: a region, and optionally some layers, of a store, as a new store.
 
 A generic cut: a sample of a measurement, the constraint photos of an enlargement, a
-ground-truth region for evaluation. The selection is made on the lazy Dataset
-(:func:`pipeline.stores.radiance.open_radiance`) and written block by block in the output's
+ground-truth region for evaluation. The selection is made on the store's lazy arrays
+(:func:`pipeline.stores.radiance.lazy_variable`) and written block by block in the output's
 task blocks, so memory is bounded by a few blocks whatever the sizes. Ground-truth fields of a
 generated store (``height``, ``albedo``, ...) are cropped along. The output records where it
 came from (``cropped_from``) and its provenance. A compressed store is cut in its factors and
@@ -26,8 +26,8 @@ from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage, selected_directions
 from pipeline.stores import CompressedStore, RadianceStore, open_store
-from pipeline.stores.base import RADIANCE, Directions, layer_indices, read_channels
-from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store
+from pipeline.stores.base import RADIANCE, layer_indices, read_channels
+from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store, lazy_variable
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,18 +123,16 @@ def crop(params: CropParams, session: Session) -> Path:
     if isinstance(store, CompressedStore):
         return _crop_factors(params, store, session)
     group = store.group
-    ds = store.dataset(read_chunks)
-    rad = ds[RADIANCE]
-    views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
-    lights = layer_indices(params.light, rad.sizes["light"], "light", params.store)
-    ys, xs = slice(0, rad.sizes["y"]), slice(0, rad.sizes["x"])
+    nv, nl, height, width, _ = store.shape
+    views = layer_indices(params.view, nv, "view", params.store)
+    lights = layer_indices(params.light, nl, "light", params.store)
+    ys, xs = slice(0, height), slice(0, width)
     if params.region is not None:
         ys, xs = parse_region(params.region)
-        if ys.stop > rad.sizes["y"] or xs.stop > rad.sizes["x"]:
+        if ys.stop > height or xs.stop > width:
             raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
-                           f"{rad.sizes['y']} x {rad.sizes['x']} texels of the store")
-    selected = ds.isel(view=views, light=lights, y=ys, x=xs)
-    d = Directions.of(selected)
+                           f"{height} x {width} texels of the store")
+    d = store.directions.select(views, lights)
     layout = params.layout(like=store.layout)
     attrs = {"source": "crop", "provenance": provenance("crop", params),
              "cropped_from": {"store": params.store, "y": [ys.start, ys.stop],
@@ -144,8 +142,8 @@ def crop(params: CropParams, session: Session) -> Path:
             attrs[key] = group.attrs[key]
     if params.light is None and params.view is None and "sampling" in group.attrs:
         attrs["sampling"] = group.attrs["sampling"]
-    truth = [name for name in TRUTH_DIMS if name in selected.data_vars]
-    ny, nx = selected.sizes["y"], selected.sizes["x"]
+    truth = [name for name in TRUTH_DIMS if store.has(name)]
+    ny, nx = ys.stop - ys.start, xs.stop - xs.start
     session.log(f"crop: {d.views} x {d.lights} layers of {ny} x {nx} texels at "
                 f"({ys.start}, {xs.start}) -> {params.out}")
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
@@ -157,19 +155,34 @@ def crop(params: CropParams, session: Session) -> Path:
         if progress.count():
             session.log(f"crop: resuming: {progress.count()} blocks already written")
         names = [RADIANCE, *(truth if len(truth) == len(TRUTH_DIMS) else [])]
-        whole = all(list(index) == list(range(rad.sizes[dim]))
-                    for dim, index in (("view", views), ("light", lights)))
-        reads = {n: _read_blocks(group[n], out[n], ds[n].dims, ys, xs) for n in names} \
+        whole = views == list(range(nv)) and lights == list(range(nl))
+        dims = {n: tuple(group[n].metadata.dimension_names or ()) for n in names}
+        reads = {n: _read_blocks(group[n], out[n], dims[n], ys, xs) for n in names} \
             if whole else {}
-        if reads and all(reads.values()):  # read in the output's blocks, cut at the region
-            cut = store.dataset(lambda g, name: reads.get(name) or read_chunks(g, name))
-            sources = [cut[n].isel(y=ys, x=xs).data for n in names]
-        else:
-            sources = [selected[n].data for n in names]
+        # in the output's blocks cut at the region where they fall on the source's write
+        # units (_read_blocks), else in the source's own task blocks
+        if not (reads and all(reads.values())):
+            reads = {n: read_chunks(group, n) for n in names}
+        sources = [_cut(*lazy_variable(store, n, reads[n]), views, lights, ys, xs)
+                   for n in names]
         sources = [data.rechunk(aligned_chunks(out[n])) for data, n in zip(sources, names,
                                                                            strict=True)]
         session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))
     return Path(params.out)
+
+
+def _cut(data, dims: tuple[str, ...], views: list[int], lights: list[int], ys: slice,
+         xs: slice):
+    """The views, lights and region of ``data``, a dask array along ``dims``.
+
+    One axis at a time, as xarray's ``isel`` takes them; a whole axis is left as it is.
+    """
+    for axis, dim in enumerate(dims):
+        index = {"view": views, "light": lights, "y": ys, "x": xs}.get(dim)
+        if index is None or (isinstance(index, list) and index == list(range(data.shape[axis]))):
+            continue
+        data = data[(slice(None),) * axis + (index,)]
+    return data
 
 
 def _read_blocks(source, target, dims: tuple, ys: slice, xs: slice) -> dict | None:

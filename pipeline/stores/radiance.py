@@ -306,6 +306,10 @@ def open_dataset(path: str | Path, group=None, chunks=None):
     return ds
 
 
+def _nan_or_none(value) -> bool:
+    return value is None or (isinstance(value, float | np.floating) and np.isnan(value))
+
+
 def _undecoded(variable, array) -> bool:
     """Whether xarray gives zarr ``array``'s values as they are stored.
 
@@ -313,13 +317,42 @@ def _undecoded(variable, array) -> bool:
     (:mod:`pipeline.chunk_io`) changes nothing.
     """
     encoding = variable.encoding
-
-    def nan_or_none(value) -> bool:
-        return value is None or (isinstance(value, float | np.floating) and np.isnan(value))
-
     return (variable.dtype == array.dtype and variable.dtype.kind == "f"
             and not {"scale_factor", "add_offset"} & encoding.keys()
-            and all(nan_or_none(encoding.get(k)) for k in ("_FillValue", "missing_value")))
+            and all(_nan_or_none(encoding.get(k)) for k in ("_FillValue", "missing_value")))
+
+
+def plain(array) -> bool:
+    """What :func:`_undecoded` finds, told from zarr ``array``'s metadata without xarray.
+
+    xarray takes a scale, an offset and a fill value to mask from the attributes (a zarr 3
+    array's own ``fill_value`` is not a mask to it).
+    """
+    attrs = array.attrs
+    return (array.dtype.kind == "f" and not {"scale_factor", "add_offset"} & attrs.keys()
+            and all(_nan_or_none(attrs.get(k)) for k in ("_FillValue", "missing_value")))
+
+
+def lazy_variable(store, name: str, chunks: dict[str, int]):
+    """``(data, dims)``: variable ``name`` of ``store`` as a dask array, and its dimensions.
+
+    ``chunks`` by dimension name (others whole), as :func:`open_dataset` takes them; float16
+    is widened to float32 as each block is read. A :func:`plain` variable is read in the
+    tasks' threads (:mod:`pipeline.chunk_io`) without xarray, whose import (with pandas') is
+    0.6-0.7 s of a process; any other through xarray's decoding, as the Dataset gives it.
+    """
+    array = store.group[name]
+    dims = tuple(array.metadata.dimension_names or ())
+    if plain(array):
+        return lazy_float32(chunk_io.dask_array(array, location(store.path), chunks, dims)), dims
+
+    def stored(group, other: str) -> dict[str, int]:  # the other variables: as stored
+        return dict(zip(group[other].metadata.dimension_names or (), group[other].chunks,
+                        strict=True))
+
+    dataset = open_dataset(store.path, store.group,
+                           lambda group, n: chunks if n == name else stored(group, n))
+    return dataset[name].data, dims
 
 
 def open_radiance(path: str | Path, chunks=None):
