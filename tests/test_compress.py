@@ -437,14 +437,15 @@ def test_radiance_in_any_chunks_is_the_rechunked_lazy_radiance_bit_for_bit(tmp_p
     way (a product's last bit depends on its shape, so the pieces must be those blocks), and
     with the factors read from the store in the blocks' chunks. With and without a DFMF
     file's cosine flag (each layer divided by its light's cosine)."""
-    from pipeline.stores.compressed import radiance_in
+    from pipeline.stores.compressed import open_factors, radiance_in
 
     _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
     group = zarr.open_group(tmp_path / "c.zarr", mode="r+")
     for cosine in (False, True):
         group.attrs["transform"] = {**group.attrs["transform"], "cosine": cosine}
         ds = open_compressed(tmp_path / "c.zarr", rank=5)
-        assert ds.attrs["transform"].get("cosine", False) == cosine
+        factors = open_factors(tmp_path / "c.zarr", rank=5)
+        assert factors.transform.cosine == cosine and factors.rank == 5
         (_, nl, nc, _), (ny, nx, _) = ds["U"].shape, ds["V"].shape
         lc, yc, xc = ds["U"].data.chunks[1][0], *(c[0] for c in ds["V"].data.chunks[:2])
         assert nl > 2 * lc and ny > 2 * yc and nx > 2 * xc  # several pieces per chunk below
@@ -453,12 +454,12 @@ def test_radiance_in_any_chunks_is_the_rechunked_lazy_radiance_bit_for_bit(tmp_p
                                 ((1, lc + 1, yc, xc), False),  # blocks cut
                                 ((1, lc, yc + 2, 2 * xc), False)):
             chunks = tuple(normalize_chunks((*chunk, nc), ds[RADIANCE].shape))
-            got = radiance_in(ds, chunks)
+            got = radiance_in(factors, chunks)
             assert got.chunks == chunks and ("rebuild_pieces" in got.name) == in_place, chunk
             expected = ds[RADIANCE].data.rechunk(chunks).compute()
             assert np.array_equal(got.compute(), expected), (cosine, chunk)
             # the factors read from the store in the blocks' chunks: no rechunk, the same bits
-            read = radiance_in(ds, chunks, tmp_path / "c.zarr")
+            read = radiance_in(factors, chunks, tmp_path / "c.zarr")
             rechunked = any(name.startswith("rechunk") for name in read.__dask_graph__().layers)
             assert rechunked != in_place, chunk
             assert np.array_equal(read.compute(), expected), (cosine, chunk)

@@ -26,7 +26,7 @@ from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage, selected_directions
 from pipeline.stores import CompressedStore, RadianceStore, open_store
-from pipeline.stores.base import RADIANCE, layer_indices, read_channels
+from pipeline.stores.base import RADIANCE, isel, layer_indices, read_channels
 from pipeline.stores.radiance import TRUTH_DIMS, LayoutOptions, create_radiance_store, lazy_variable
 
 
@@ -163,26 +163,12 @@ def crop(params: CropParams, session: Session) -> Path:
         # units (_read_blocks), else in the source's own task blocks
         if not (reads and all(reads.values())):
             reads = {n: read_chunks(group, n) for n in names}
-        sources = [_cut(*lazy_variable(store, n, reads[n]), views, lights, ys, xs)
-                   for n in names]
+        where = {"view": views, "light": lights, "y": ys, "x": xs}
+        sources = [isel(*lazy_variable(store, n, reads[n]), where) for n in names]
         sources = [data.rechunk(aligned_chunks(out[n])) for data, n in zip(sources, names,
                                                                            strict=True)]
         session.compute(store_aligned(sources, [out[n] for n in names], progress=progress))
     return Path(params.out)
-
-
-def _cut(data, dims: tuple[str, ...], views: list[int], lights: list[int], ys: slice,
-         xs: slice):
-    """The views, lights and region of ``data``, a dask array along ``dims``.
-
-    One axis at a time, as xarray's ``isel`` takes them; a whole axis is left as it is.
-    """
-    for axis, dim in enumerate(dims):
-        index = {"view": views, "light": lights, "y": ys, "x": xs}.get(dim)
-        if index is None or (isinstance(index, list) and index == list(range(data.shape[axis]))):
-            continue
-        data = data[(slice(None),) * axis + (index,)]
-    return data
 
 
 def _read_blocks(source, target, dims: tuple, ys: slice, xs: slice) -> dict | None:

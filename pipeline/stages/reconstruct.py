@@ -1,6 +1,6 @@
 """``btf reconstruct``: exactly the layers, region and rank asked for, from a compressed store.
 
-The selection is made on the lazy radiance of :func:`pipeline.stores.compressed.open_compressed`, so
+The selection is made on the lazy radiance of :func:`pipeline.stores.compressed.open_factors`, so
 only the ``U`` chunks and ``V`` tiles it touches are read. The result is a radiance store (the
 default) or one EXR per layer with a manifest, as ``btf export`` writes them.
 """
@@ -22,8 +22,8 @@ from pipeline.provenance import provenance
 from pipeline.resume import Progress
 from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, selected_directions
-from pipeline.stores.base import RADIANCE, Directions, layer_indices
-from pipeline.stores.compressed import open_compressed, radiance_in
+from pipeline.stores.base import RADIANCE, RADIANCE_DIMS, isel, layer_indices
+from pipeline.stores.compressed import open_factors, radiance_in
 from pipeline.stores.radiance import LayoutOptions, create_radiance_store
 
 
@@ -62,21 +62,24 @@ class ReconstructParams(LayoutOptions):
 
 
 def select(params: ReconstructParams):
-    """The compressed Dataset of exactly the requested layers, region and rank.
+    """``(factors, radiance, directions)``: exactly the requested layers, region and rank.
 
-    Its lazy radiance, and the factors it is built from.
+    The store's :func:`~pipeline.stores.compressed.open_factors`, the lazy radiance of the
+    selection, and the selection's directions.
     """
-    ds = open_compressed(params.store, rank=params.rank)
-    rad = ds[RADIANCE]
-    views = layer_indices(params.view, rad.sizes["view"], "view", params.store)
-    lights = layer_indices(params.light, rad.sizes["light"], "light", params.store)
+    factors = open_factors(params.store, rank=params.rank)
+    nv, nl, ny, nx, _ = factors.radiance.shape
+    views = layer_indices(params.view, nv, "view", params.store)
+    lights = layer_indices(params.light, nl, "light", params.store)
     ys, xs = slice(None), slice(None)
     if params.region is not None:
         ys, xs = parse_region(params.region)
-        if ys.stop > rad.sizes["y"] or xs.stop > rad.sizes["x"]:
+        if ys.stop > ny or xs.stop > nx:
             raise BTFError(f"{params.store}: --region {params.region} reaches beyond the "
-                           f"{rad.sizes['y']} x {rad.sizes['x']} texels of the store")
-    return ds.isel(view=views, light=lights, y=ys, x=xs)
+                           f"{ny} x {nx} texels of the store")
+    radiance = isel(factors.radiance, RADIANCE_DIMS,
+                    {"view": views, "light": lights, "y": ys, "x": xs})
+    return factors, radiance, factors.directions.select(views, lights)
 
 
 def _write_layer(pixels: np.ndarray, path: str, channels: tuple[str, ...]) -> None:
@@ -87,13 +90,11 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
     """Write the reconstruction requested by ``params``; returns the output path."""
     import dask
 
-    selected = select(params)
-    sel = selected[RADIANCE]
-    d = Directions.of(sel)
-    channels = tuple(str(c) for c in sel["channel"].values)
+    factors, sel, d = select(params)
+    channels = factors.channels
     nv, nl, ny, nx, _ = sel.shape
     session.log(f"reconstruct: {nv} x {nl} layers of {ny} x {nx} texels at rank "
-                f"{sel.attrs['rank_used']} -> {params.out}")
+                f"{factors.rank} -> {params.out}")
     needs = None
     if params.for_scene is not None:
         from pipeline.scene_needs import needs_of, spec_for_output
@@ -102,8 +103,8 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
         session.log(f"reconstruct: only what {params.for_scene} needs: {len(needs.layers)} "
                     f"of {needs.of} layers, texels {needs.window}")
     attrs = {"source": "reconstruct",
-             "reconstructed_from": {"store": params.store, "rank": sel.attrs["rank_used"],
-                                    "error": sel.attrs.get("error")},
+             "reconstructed_from": {"store": params.store, "rank": factors.rank,
+                                    "error": factors.attrs.get("error")},
              "provenance": provenance("reconstruct", params)}
     if needs is not None:
         attrs["computed_for_scene"] = needs.record(params.for_scene)
@@ -118,7 +119,7 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
                                       d.phi_view[v], "exr")
                     rows.append((name, d.theta_light[li], d.phi_light[li], d.theta_view[v],
                                  d.phi_view[v]))
-                    writes.append(dask.delayed(_write_layer)(sel.data[v, li], str(tmp / name),
+                    writes.append(dask.delayed(_write_layer)(sel[v, li], str(tmp / name),
                                                              channels))
             write_manifest(tmp, rows)
             session.compute(*writes)
@@ -132,8 +133,8 @@ def reconstruct(params: ReconstructParams, session: Session) -> Path:
             chunks = aligned_chunks(group[RADIANCE])
             whole = all(getattr(params, n) is None for n in ("light", "view", "region"))
             # the whole store's blocks rebuilt in place; a selection's cut blocks rechunked
-            data = (radiance_in(selected, chunks, params.store) if whole
-                    else sel.data.rechunk(chunks))
+            data = (radiance_in(factors, chunks, params.store) if whole
+                    else sel.rechunk(chunks))
             keep = None if needs is None else (lambda r: needs.keeps(
                 r[0].start, range(r[1].start, r[1].stop), r[2], r[3]))
             session.compute(store_aligned([data], [group[RADIANCE]], progress=progress,

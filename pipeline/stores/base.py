@@ -192,6 +192,21 @@ def layer_indices(selection, size: int, what: str, store: str) -> list[int]:
     return list(dict.fromkeys(selection))
 
 
+def isel(data, dims: tuple[str, ...], indexers: dict[str, list[int] | slice]):
+    """``data`` (a dask array along ``dims``) at ``indexers``' positions of named dimensions.
+
+    One axis at a time, as xarray's ``isel`` takes index lists; an indexer that keeps a
+    whole axis (every index in order, or ``slice(None)``) is left out.
+    """
+    for axis, dim in enumerate(dims):
+        index = indexers.get(dim)
+        if index is None or index == slice(None) or (
+                isinstance(index, list) and index == list(range(data.shape[axis]))):
+            continue
+        data = data[(slice(None),) * axis + (index,)]
+    return data
+
+
 def _rings(theta: np.ndarray) -> int:
     return len(np.unique(np.round(theta, 3)))
 

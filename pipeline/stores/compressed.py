@@ -10,13 +10,15 @@ A compressed store (made by ``btf compress``) holds
   its measured error and the provenance.
 
 :func:`open_compressed` gives a Dataset whose ``radiance`` is a lazy dask array with the dims,
-coordinates and chunking of a radiance store. Each of its blocks is
+coordinates and chunking of a radiance store (:func:`open_factors`: the same arrays, without
+xarray). Each of its blocks is
 ``exp(U[rows] diag(S) V[tile]^T) - eps`` and depends on one chunk of ``U`` and one tile of
 ``V``, so ``sel``/``isel`` followed by ``compute`` reads only what the selection needs.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -101,8 +103,8 @@ def lazy_radiance(u, s, v, *, transform: Transform, theta_light=None):
                      meta=np.empty((0,) * 5, np.float32), transform=transform)
 
 
-def radiance_in(ds, chunks, path: str | Path | None = None):
-    """The lazy radiance of :func:`open_compressed`'s Dataset in dask ``chunks``.
+def radiance_in(factors: LazyFactors, chunks, path: str | Path | None = None):
+    """The lazy radiance of :func:`open_factors`'s ``factors`` in dask ``chunks``.
 
     ``chunks``: per axis of ``(view, light, y, x, channel)``. Where every chunk is made of
     whole blocks of :func:`lazy_radiance` (one per ``U`` chunk and ``V`` tile), each chunk
@@ -110,19 +112,18 @@ def radiance_in(ds, chunks, path: str | Path | None = None):
     same bits as the radiance rechunked, without dask concatenating the blocks (one more
     copy of every value). Elsewhere it is that rechunk.
 
-    ``ds`` must be the whole Dataset: in a selection (``isel``) the factors are cut where
-    the radiance's blocks were computed whole and then cut, and a product's last bit depends
-    on its shape.
+    The radiance is the whole store's (a selection of it would cut the factors where the
+    radiance's blocks were computed whole and then cut, and a product's last bit depends on
+    its shape).
 
-    With ``path`` (the store ``ds`` was opened from, on a local disk), ``U`` and ``V`` are
+    With ``path`` (the store ``factors`` were opened from, on a local disk), ``U`` and ``V`` are
     read in the chunks the blocks need, each in one task per block, rather than in their
     stored chunks and rechunked: at 64 lights per chunk a 151 x 151 store's reconstruct had
     4,384 tasks, 1,510 of them reads of 9 KB of ``U`` and 1,963 cutting and joining them,
     for 453 blocks. The values read are the same, and so is every bit rebuilt.
     """
-    transform = Transform.from_attrs(ds.attrs["transform"])
-    theta = np.asarray(ds["theta_light"].values)
-    u, s, v = ds["U"].data, ds["S"].data, ds["V"].data
+    transform, theta = factors.transform, factors.directions.theta_light
+    u, s, v = factors.u, factors.s, factors.v
     pieces = (*u.chunks[:2], *v.chunks[:2])
     # pieces of one size (the last may be shorter), and blocks made of whole pieces: each
     # block's pieces then follow from its size alone
@@ -130,17 +131,17 @@ def radiance_in(ds, chunks, path: str | Path | None = None):
     if not regular or tuple(chunks[4]) != u.chunks[2] or not all(
             set(np.cumsum(c)) <= set(np.cumsum(p)) for c, p in zip(chunks[:4], pieces,
                                                                     strict=True)):
-        return ds[RADIANCE].data.rechunk(chunks)
-    u = _factor_in(ds, path, "U", (*chunks[:2], chunks[4], -1))
-    v = _factor_in(ds, path, "V", (*chunks[2:4], -1))
+        return factors.radiance.rechunk(chunks)
+    u = _factor_in(u, path, "U", (*chunks[:2], chunks[4], -1))
+    v = _factor_in(v, path, "V", (*chunks[2:4], -1))
     extra = _layer_scale(u, transform, theta)
     return blockwise(_rebuild_pieces, "vlyxc", u, "vlck", s, "k", v, "yxk", *extra,
                      align_arrays=False, dtype=np.float32, meta=np.empty((0,) * 5, np.float32),
                      transform=transform, sizes=tuple(int(p[0]) for p in pieces))
 
 
-def _factor_in(ds, path, name: str, chunks):
-    """Factor ``name`` of ``ds`` in ``chunks``.
+def _factor_in(factor, path, name: str, chunks):
+    """``factor`` (the lazy factor ``name``) in ``chunks``.
 
     Read so from the store at ``path`` where its chunks are read here (:mod:`pipeline.chunk_io`),
     else rechunked.
@@ -153,8 +154,8 @@ def _factor_in(ds, path, name: str, chunks):
         array = zarr.open_array(storage.store(location(path)), path=name, mode="r")
         if chunk_io.here(array):
             whole = chunk_io.dask_array(array, location(path), chunks)
-            return lazy_float32(whole[..., : ds[name].shape[-1]])  # the rank in use
-    return ds[name].data.rechunk(chunks)
+            return lazy_float32(whole[..., : factor.shape[-1]])  # the rank in use
+    return factor.rechunk(chunks)
 
 
 def _rebuild_pieces(u, s, v, *scale, transform: Transform, sizes: tuple[int, ...]):
@@ -218,8 +219,28 @@ def _read_in_pieces(array):
     return pieces.rechunk(array.chunks)
 
 
-def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
-    """Open a compressed store as a Dataset with a lazy ``radiance`` (and ``U``, ``S``, ``V``).
+@dataclass(frozen=True)
+class LazyFactors:
+    """A compressed store's factors and lazy radiance as dask arrays, without xarray.
+
+    What :func:`open_compressed`'s Dataset holds, for stages that need no labelled arrays:
+    importing xarray (and pandas with it) is 0.6-0.7 s of a process, a quarter of a
+    ``btf reconstruct`` of one layer.
+    """
+
+    u: Any  # (view, light, channel, component), the first ``rank`` components, float32
+    s: Any  # (component,)
+    v: Any  # (y, x, component)
+    radiance: Any  # (view, light, y, x, channel): lazy_radiance of the three
+    transform: Transform
+    directions: Directions
+    channels: tuple[str, ...]
+    rank: int
+    attrs: dict[str, Any]  # the store's
+
+
+def open_factors(path: str | Path, *, rank: int | None = None, group=None) -> LazyFactors:
+    """Open a compressed store's factors and lazy radiance (see :class:`LazyFactors`).
 
     Parameters
     ----------
@@ -230,7 +251,6 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     group
         Its zarr group, if already open.
     """
-    import xarray as xr
     import zarr
 
     group = open_group(path) if group is None else group
@@ -242,20 +262,30 @@ def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
     # zarr arrays, not a path: dask would open a path through fsspec instead of zarr's store
     store = storage.store(location(path))
     arrays = {name: zarr.open_array(store, path=name, mode="r") for name in FACTOR_DIMS}
-    factors = {name: lazy_float32(_factor(a, location(path))[..., :rank])
-               for name, a in arrays.items()}
+    u, s, v = (lazy_float32(_factor(a, location(path))[..., :rank]) for a in arrays.values())
     transform = Transform.from_attrs(group.attrs["transform"])
     d = read_directions(group)
-    radiance = lazy_radiance(factors["U"], factors["S"], factors["V"], transform=transform,
-                             theta_light=d.theta_light)
-    coords = {name: (dim, getattr(d, name)) for name, dim in DIRECTION_COORDS.items()}
-    coords["channel"] = ("channel", list(read_channels(group)))
-    attrs = {**group.attrs, "rank_used": rank}
-    data = {RADIANCE: (RADIANCE_DIMS, radiance,
-                       {"rank_used": rank, "transform": transform.name, "eps": transform.eps,
-                        "error": attrs.get("error"),
-                        "long_name": f"radiance rebuilt as {transform.name} of U S V^T"})}
-    data.update({name: (FACTOR_DIMS[name], factors[name]) for name in FACTOR_DIMS})
+    return LazyFactors(u, s, v, lazy_radiance(u, s, v, transform=transform,
+                                              theta_light=d.theta_light),
+                       transform, d, tuple(read_channels(group)), rank, dict(group.attrs))
+
+
+def open_compressed(path: str | Path, *, rank: int | None = None, group=None):
+    """Open a compressed store as a Dataset with a lazy ``radiance`` (and ``U``, ``S``, ``V``).
+
+    The arrays of :func:`open_factors` (its parameters), labelled.
+    """
+    import xarray as xr
+
+    f = open_factors(path, rank=rank, group=group)
+    coords = {name: (dim, getattr(f.directions, name)) for name, dim in DIRECTION_COORDS.items()}
+    coords["channel"] = ("channel", list(f.channels))
+    attrs = {**f.attrs, "rank_used": f.rank}
+    data = {RADIANCE: (RADIANCE_DIMS, f.radiance,
+                       {"rank_used": f.rank, "transform": f.transform.name,
+                        "eps": f.transform.eps, "error": attrs.get("error"),
+                        "long_name": f"radiance rebuilt as {f.transform.name} of U S V^T"})}
+    data.update({name: (dims, getattr(f, name.lower())) for name, dims in FACTOR_DIMS.items()})
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
