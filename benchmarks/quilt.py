@@ -138,11 +138,11 @@ def _planning(store: Path, args, session) -> tuple[dict, object, object]:
 
 def _application(plan, layers: np.ndarray, args) -> dict:
     from tasks.canvas import TERMS
-    from tasks.prescription import apply, rows
+    from tasks.prescription import apply, to_csr
 
     tile = plan.tiles[0]
     ny, nx = layers.shape[1:3]
-    matrix = rows(tile.index.reshape(-1, TERMS), tile.weight.reshape(-1, TERMS), ny * nx)
+    matrix = to_csr(tile.index.reshape(-1, TERMS), tile.weight.reshape(-1, TERMS), ny * nx)
     shape = tile.index.shape[:2]
     out = np.empty((layers.shape[0], *shape, layers.shape[-1]), np.float32)
     source = np.ones_like(out)

@@ -1102,6 +1102,22 @@ def test_the_quilt_bench_takes_its_application_rate_from_the_run_that_plans_once
     assert "quilt_values_per_core_second" not in rates(result)
 
 
+def test_the_quilt_bench_times_the_product_against_scipys_and_a_copy():
+    import argparse
+    import types
+
+    from benchmarks.quilt import _application
+
+    rng = np.random.default_rng(0)
+    index = rng.integers(-1, 64, (8, 8, TERMS)).astype(np.int32)
+    weight = np.where(index >= 0, rng.random(index.shape), 0).astype(np.float32)
+    plan = types.SimpleNamespace(tiles=[types.SimpleNamespace(index=index, weight=weight)])
+    result = _application(plan, rng.random((2, 8, 8, 3)).astype(np.float32),
+                          argparse.Namespace(repeat=1))
+    assert result["nnz_per_row"] == pytest.approx((index >= 0).sum() / 64)
+    assert all(r["apply_gbps"] > 0 and r["scipy_gbps"] > 0 for r in result["threads"].values())
+
+
 def test_the_photo_plans_bench_draws_crops_and_seeds_and_repeats_a_draw():
     from benchmarks.photoplans import SIZE, draws, photo, photo_reference
 
