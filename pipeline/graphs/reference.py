@@ -13,12 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.reductions import layer_light_sums, light_sums
 from pipeline.params import ParamError
 from pipeline.session import Session
-from pipeline.stores import CompressedStore, open_layers, open_store
-from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores import CompressedStore, RadianceStore, lazy_layers, open_store
 from tasks.reference import ReferenceMaps, reference_maps
 from tasks.sampling import direction_vectors
 
@@ -47,16 +45,16 @@ def parse_weights(text: str) -> tuple[float, float, float]:
 def compute_reference(path: str | Path, *, weights: tuple[float, float, float],
                       view: int | None, session: Session) -> tuple[ReferenceMaps, int]:
     """The reference maps of a store, and the view they were computed from."""
-    ds = open_layers(path, read_chunks)
-    d = Directions.of(ds)
+    store = open_store(path, RadianceStore, CompressedStore)
+    d = store.directions
     if view is None:
         view = int(np.argmin(d.theta_view))
     elif not 0 <= view < d.theta_view.size:
         raise BTFError(f"{path}: --view {view} is out of range (the store has "
                        f"{d.theta_view.size} views)")
     lights = direction_vectors(d.theta_light, d.phi_light)
-    if isinstance(open_store(path), CompressedStore):  # layers reconstructed in tasks
-        sums, blocks = layer_light_sums(ds[RADIANCE].data[view], lights)
+    if isinstance(store, CompressedStore):  # layers reconstructed in tasks
+        sums, blocks = layer_light_sums(lazy_layers(store, None)[view], lights)
     else:
         sums, blocks = light_sums(path, view, lights)
     session.log(f"reference: {blocks[1] * blocks[2]} spatial blocks x {blocks[0]} light blocks "

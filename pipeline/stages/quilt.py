@@ -17,7 +17,6 @@ from pathlib import Path
 import psutil
 
 from pipeline.errors import BTFError
-from pipeline.graphs.blocks import read_chunks
 from pipeline.graphs.prescriptions import write_tileset
 from pipeline.graphs.reference import WEIGHTS_HELP, check_weights, compute_reference, parse_weights
 from pipeline.params import ParamError, check_seed, option
@@ -25,8 +24,7 @@ from pipeline.planning import Shape, StageEstimate, rate
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, same_directions
-from pipeline.stores import open_layers
-from pipeline.stores.base import RADIANCE
+from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.tileset import Placement, TileSet
 from tasks.canvas import TERMS
 from tasks.corner_tiles import plan_first
@@ -110,8 +108,7 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
 
     # a bad scene spec stops before the planning
     needs = tileset_needs(params.for_scene, params.store, params.out, session, label="quilt")
-    layers = open_layers(params.store, read_chunks)[RADIANCE]
-    sample = (layers.sizes["y"], layers.sizes["x"])
+    _, _, *sample, channels = open_store(params.store, RadianceStore, CompressedStore).shape
     if params.block is not None and min(sample) < params.block:
         raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
                        f"than a block ({params.block})")
@@ -120,7 +117,7 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     def plan_tiles() -> TileSet:  # not called when a killed run's stored plan is resumed
         maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
                                        view=params.view, session=session)
-        plan, qp = _plan(params, maps.reference, sample, layers.sizes["channel"], session)
+        plan, qp = _plan(params, maps.reference, tuple(sample), channels, session)
         return _tileset(params, plan, qp, maps.reference, view, record, needs)
 
     return write_tileset(plan_tiles, params.out, source=params.store, session=session,

@@ -27,8 +27,7 @@ from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
 from pipeline.session import Session
 from pipeline.stage import Stage, for_scene_option, same_directions
-from pipeline.stores import open_layers
-from pipeline.stores.base import RADIANCE, Directions
+from pipeline.stores import CompressedStore, RadianceStore, lazy_layers, open_store
 from pipeline.stores.tileset import Placement, TileSet
 from tasks.periodicity import Lattice, detect_lattice
 from tasks.reference import luminance
@@ -92,11 +91,11 @@ def analysis_image(path: str, image: str, session: Session) -> tuple[np.ndarray,
         maps, view = compute_reference(path, weights=(1.0, 0.5, 0.5), view=None,
                                        session=session)
         return maps.reference.astype(np.float64), f"the reference image of view {view}"
-    ds = open_layers(path, read_chunks)
-    d = Directions.of(ds)
+    store = open_store(path, RadianceStore, CompressedStore)
+    d = store.directions
     view = int(np.argmin(d.theta_view))
     light = int(np.argmin(d.theta_light))
-    (layer,) = session.compute(ds[RADIANCE].data[view, light])
+    (layer,) = session.compute(lazy_layers(store, read_chunks)[view, light])
     return (np.asarray(layer, np.float64),
             f"view {view}, light {light} (theta {d.theta_light[light]:.0f} deg)")
 
