@@ -30,6 +30,13 @@ class Csr(NamedTuple):
     data: np.ndarray
     shape: tuple[int, int]
 
+    def to_scipy(self) -> scipy.sparse.csr_matrix:
+        """The same matrix for scipy: the same terms in the same order."""
+        import scipy.sparse
+
+        return scipy.sparse.csr_matrix((self.data, self.indices, self.indptr),
+                                       shape=self.shape)
+
 
 def rows(index: np.ndarray, weight: np.ndarray, samples: int) -> Csr:
     """The CSR matrix of padded rows ``index``/``weight`` (``-1`` marks unused terms).
@@ -57,11 +64,7 @@ def to_csr(index: np.ndarray, weight: np.ndarray, samples: int) -> scipy.sparse.
     So ``to_csr(...) @ layer`` is :func:`apply`'s product, bit for bit; call
     ``sum_duplicates`` on it for the canonical form.
     """
-    import scipy.sparse
-
-    matrix = rows(index, weight, samples)
-    return scipy.sparse.csr_matrix((matrix.data, matrix.indices, matrix.indptr),
-                                   shape=matrix.shape)
+    return rows(index, weight, samples).to_scipy()
 
 
 def check(index: np.ndarray, weight: np.ndarray, samples: int) -> list[str]:
@@ -155,8 +158,7 @@ def _scipy_product(matrix: Csr, source: np.ndarray, target: np.ndarray) -> None:
     try:
         from scipy.sparse._sparsetools import csr_matvecs
     except ImportError:  # pragma: no cover - a scipy that moved it
-        product = scipy.sparse.csr_matrix((matrix.data, matrix.indices, matrix.indptr),
-                                          shape=matrix.shape)
+        product = matrix.to_scipy()
         for layer in range(source.shape[0]):
             target[layer] = product @ source[layer]
         return

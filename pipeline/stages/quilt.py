@@ -108,7 +108,8 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
 
     # a bad scene spec stops before the planning
     needs = tileset_needs(params.for_scene, params.store, params.out, session, label="quilt")
-    _, _, *sample, channels = open_store(params.store, RadianceStore, CompressedStore).shape
+    _, _, ny, nx, channels = open_store(params.store, RadianceStore, CompressedStore).shape
+    sample = (ny, nx)
     if params.block is not None and min(sample) < params.block:
         raise BTFError(f"{params.store}: the sample ({sample[0]} x {sample[1]}) is smaller "
                        f"than a block ({params.block})")
@@ -117,7 +118,7 @@ def quilt(params: QuiltStageParams, session: Session) -> Path:
     def plan_tiles() -> TileSet:  # not called when a killed run's stored plan is resumed
         maps, view = compute_reference(params.store, weights=parse_weights(params.weights),
                                        view=params.view, session=session)
-        plan, qp = _plan(params, maps.reference, tuple(sample), channels, session)
+        plan, qp = _plan(params, maps.reference, sample, channels, session)
         return _tileset(params, plan, qp, maps.reference, view, record, needs)
 
     return write_tileset(plan_tiles, params.out, source=params.store, session=session,

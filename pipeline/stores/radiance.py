@@ -345,13 +345,8 @@ def lazy_variable(store, name: str, chunks: dict[str, int]):
     dims = tuple(array.metadata.dimension_names or ())
     if plain(array):
         return lazy_float32(chunk_io.dask_array(array, location(store.path), chunks, dims)), dims
-
-    def stored(group, other: str) -> dict[str, int]:  # the other variables: as stored
-        return dict(zip(group[other].metadata.dimension_names or (), group[other].chunks,
-                        strict=True))
-
-    dataset = open_dataset(store.path, store.group,
-                           lambda group, n: chunks if n == name else stored(group, n))
+    # the other variables whole ({}): only this one is read
+    dataset = open_dataset(store.path, store.group, lambda _, n: chunks if n == name else {})
     return dataset[name].data, dims
 
 
