@@ -6,11 +6,11 @@ store, file and scheduler.
 
 from importlib.metadata import PackageNotFoundError, version
 
-from pipeline._imports import defer_xarray
+from pipeline._imports import defer_optional_imports
 
 try:
     __version__ = version("btf-pipeline")
 except PackageNotFoundError:  # running from a source tree that was not installed
     __version__ = "0+unknown"
 
-defer_xarray()  # before any module of the package imports dask.array
+defer_optional_imports()  # before any module of the package imports dask.array

@@ -1,11 +1,20 @@
-"""``dask.array`` without xarray at start-up.
+"""``dask.array`` without xarray, ``scipy.sparse`` and ``scipy.fftpack`` at start-up.
 
-``dask.array.core`` imports xarray (and pandas with it) when it is itself imported, only to
-tell a DataArray in ``from_array``: 0.4 s of every btf process's start-up, where most stages
-open no Dataset. :func:`defer_xarray` has that one import fail quietly (dask's optional import
-gives ``None``) and puts in its place an object that stands for xarray once it is imported.
-Any ``import xarray`` elsewhere, in this thread or another, is untouched: a plain import,
-when it is made.
+``dask.array`` imports three optional modules when it is itself imported, and most btf
+processes use none of them: 0.7-1.0 s of every start-up on a 2-core machine.
+
+- ``dask.array.core`` imports xarray (and pandas with it) only to tell a DataArray in
+  ``from_array``;
+- ``dask.array.chunk_types`` imports ``scipy.sparse`` to register its matrices and arrays as
+  chunk types;
+- ``dask.array.fft`` imports ``scipy.fftpack`` to refuse its functions in ``fft_wrap``.
+
+:func:`defer_optional_imports` has each of those imports fail quietly, in the thread that runs
+that module's import and for that import only (dask's optional imports are written to survive
+it), then puts back what dask would have had: an object that stands for xarray once it is
+imported, the sparse chunk types registered when ``scipy.sparse`` is first imported, and the
+``scipy`` that ``fft_wrap`` checks. Any other import of these modules, in this thread or
+another, is untouched: a plain import, when it is made.
 """
 
 from __future__ import annotations
@@ -15,7 +24,10 @@ import importlib.machinery
 import sys
 import threading
 
-_CORE = "dask.array.core"
+#: dask's modules, and the optional import each one makes at its own import.
+_DEFERRED = {"dask.array.core": "xarray", "dask.array.chunk_types": "scipy.sparse",
+             "dask.array.fft": "scipy.fftpack"}
+_SPARSE = "scipy.sparse"
 
 
 class _NoDataArray:
@@ -43,41 +55,27 @@ class _XarrayOnUse:
         return getattr(xarray, name)
 
 
-class _Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """Runs ``dask.array.core`` with xarray unimportable in its thread, for that import only.
+def _register_sparse_chunk_types() -> None:
+    """Register ``scipy.sparse``'s matrices and arrays with dask, as its import would have."""
+    chunk_types, sparse = sys.modules.get("dask.array.chunk_types"), sys.modules.get(_SPARSE)
+    if chunk_types is None or sparse is None:
+        return
+    for kind in (getattr(sparse, "spmatrix", None), getattr(sparse, "sparray", None)):
+        if kind is not None and kind not in chunk_types._HANDLED_CHUNK_TYPES:
+            chunk_types.register_chunk_type(kind)
 
-    While the module runs, this finder refuses ``xarray`` to the thread running it and to no
-    other: nothing is put in ``sys.modules``, and an xarray another thread imports meanwhile
-    is the real one (and ``dask.array.core`` then keeps it, if it was there first).
-    """
 
-    def __init__(self) -> None:
-        self.loader: importlib.abc.Loader | None = None
-        self.running: int | None = None  # the thread running dask.array.core's import
+class _Wrapped(importlib.abc.Loader):
+    """A module's own loader, with :class:`_Finder`'s work before and after its code runs."""
 
-    def find_spec(self, name, path, target=None):
-        if name == "xarray" and self.running == threading.get_ident():
-            raise ModuleNotFoundError(f"{name} is imported at first use (pipeline._imports)",
-                                      name=name)
-        if name != _CORE or "xarray" in sys.modules:
-            return None
-        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
-        if spec is None or spec.loader is None:
-            return None
-        self.loader, spec.loader = spec.loader, self
-        return spec
+    def __init__(self, finder: _Finder, loader: importlib.abc.Loader) -> None:
+        self.finder, self.loader = finder, loader
 
     def create_module(self, spec):
         return self.loader.create_module(spec)
 
     def exec_module(self, module) -> None:
-        self.running = threading.get_ident()
-        try:
-            self.loader.exec_module(module)
-        finally:
-            self.running = None
-        if getattr(module, "xr", False) is None:
-            module.xr = _XarrayOnUse()
+        self.finder.run(module, self.loader)
 
     def get_source(self, name):  # tracebacks and inspect read the module through its loader
         return self.loader.get_source(name)
@@ -88,7 +86,55 @@ class _Finder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         return getattr(self.loader, name)
 
 
-def defer_xarray() -> None:
-    """Have ``dask.array``, when next imported, leave xarray to be imported at first use."""
-    if _CORE not in sys.modules and not any(isinstance(f, _Finder) for f in sys.meta_path):
+class _Finder(importlib.abc.MetaPathFinder):
+    """Runs each of :data:`_DEFERRED`'s modules with its optional import refused in its thread.
+
+    While such a module runs, this finder refuses its optional module to the thread running it
+    and to no other: nothing is put in ``sys.modules``, and a module another thread imports
+    meanwhile is the real one.
+    """
+
+    def __init__(self) -> None:
+        self.refused = threading.local()  # per thread: the names refused to it, innermost last
+        self.sparse_owed = False  # dask's chunk types wait for scipy.sparse's own import
+
+    def find_spec(self, name, path, target=None):
+        if name in getattr(self.refused, "names", ()):
+            raise ModuleNotFoundError(f"{name} is imported at first use (pipeline._imports)",
+                                      name=name)
+        deferred = _DEFERRED.get(name)
+        owed = name == _SPARSE and self.sparse_owed
+        if not owed and (deferred is None or deferred in sys.modules):
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
+        if spec is None or spec.loader is None:
+            return None
+        spec.loader = _Wrapped(self, spec.loader)
+        return spec
+
+    def run(self, module, loader: importlib.abc.Loader) -> None:
+        name = module.__name__
+        deferred = _DEFERRED.get(name)
+        names = self.refused.__dict__.setdefault("names", [])
+        if deferred is not None:
+            names.append(deferred)
+        try:
+            loader.exec_module(module)
+        finally:
+            if deferred is not None:
+                names.pop()
+        if name == "dask.array.core" and getattr(module, "xr", False) is None:
+            module.xr = _XarrayOnUse()
+        elif name == "dask.array.fft" and getattr(module, "scipy", False) is None:
+            module.scipy = sys.modules.get("scipy")  # fft_wrap's check needs no fftpack
+        elif name == "dask.array.chunk_types":
+            self.sparse_owed = True
+        if self.sparse_owed:
+            _register_sparse_chunk_types()
+
+
+def defer_optional_imports() -> None:
+    """Have ``dask.array``, when next imported, leave its optional modules to their first use."""
+    if "dask.array.core" not in sys.modules and not any(isinstance(f, _Finder)
+                                                         for f in sys.meta_path):
         sys.meta_path.insert(0, _Finder())

@@ -82,6 +82,30 @@ def test_dask_array_imported_before_xarray_still_tells_a_data_array():
     assert out.split() == ["False", "True", "Array"], out
 
 
+def test_dask_array_s_sparse_and_fftpack_imports_wait_for_their_first_use():
+    """``dask.array`` imported after ``pipeline`` imports neither ``scipy.sparse`` nor
+    ``scipy.fftpack`` (0.3-0.4 s); once ``scipy.sparse`` is imported, dask handles the same
+    chunk types as without ``pipeline``, and ``fft_wrap`` still warns of fftpack's functions.
+    """
+    probe = ("import dask.array as da, scipy.sparse, scipy.fftpack, warnings; "
+             "from dask.array.chunk_types import _HANDLED_CHUNK_TYPES as kinds, "
+             "is_valid_chunk_type; "
+             "print(sorted(k.__name__ for k in kinds), "
+             "is_valid_chunk_type(scipy.sparse.csr_matrix), "
+             "is_valid_chunk_type(scipy.sparse.csr_array)); "
+             "warnings.simplefilter('error'); "
+             "exec('try: da.fft.fft_wrap(scipy.fftpack.fft)\\n"
+             "except FutureWarning: print(\\'warned\\')')")
+    first = ("import sys, pipeline, dask.array; "
+             "print(sorted(m for m in ('scipy.sparse', 'scipy.fftpack', 'xarray') "
+             "if m in sys.modules)); ")
+    deferred, plain = (subprocess.run([sys.executable, "-c", code], capture_output=True,
+                                      text=True, check=True).stdout.splitlines()
+                       for code in (first + probe, probe))
+    assert deferred[0] == "[]", deferred
+    assert deferred[1:] == plain and "True True" in plain[0] and plain[1] == "warned", plain
+
+
 def test_a_rechunk_on_a_local_scheduler_does_not_import_distributed(tmp_path):
     """dask's rechunk looks for a default client by importing distributed (0.17 s); a session
     tells it the method it would choose ("tasks"). ``btf scene`` rechunks the layers it reads.
