@@ -48,10 +48,12 @@ def test_main_returns_the_status_of_help_and_usage_errors(capsys):
 def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed(tmp_path):
     """Start-up: ``btf generate`` imports its own stage's module alone, and computing on a
     local scheduler does not import dask.distributed (dask does, given a scheduler's name).
-    Neither it nor ``btf inspect``, ``crop``, ``compress`` or ``reconstruct`` imports
-    xarray or pandas (0.6-0.7 s), which dask.array would import itself (pipeline._imports).
+    Neither it nor ``btf inspect``, ``crop``, ``compress``, ``reconstruct`` or ``export`` (EXR)
+    imports xarray or pandas (0.6-0.7 s), which dask.array would import itself
+    (pipeline._imports).
     """
     g, c, k, r = (str(tmp_path / f"{name}.zarr") for name in "gckr")
+    e = str(tmp_path / "exr")
     code = ("import sys; from pipeline.cli import main; "
             f"status = main(['generate', {g!r}, '--material', 'wood', "
             "'--size', '16', '--sampling', 'abtf:2,1', '--quiet']); "
@@ -61,12 +63,13 @@ def test_a_stage_s_command_imports_no_other_stage_and_a_local_run_no_distributed
             f"main(['crop', {g!r}, {c!r}, '--region', '1:9,2:7', '--light', '1', '-q']) == 0, "
             f"main(['compress', {g!r}, {k!r}, '--rank', '2', '-q']) == 0, "
             f"main(['reconstruct', {k!r}, {r!r}, '--light', '1', '-q']) == 0, "
+            f"main(['export', {k!r}, {e!r}, '--light', '0', '-q']) == 0, "
             "sorted(m for m in ('xarray', 'pandas') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     lines = out.splitlines()
     assert lines[0].split() == ["0", "['pipeline.stages.generate']", "False", "False"], out
-    assert lines[-1] == "True True True True []", out
+    assert lines[-1] == "True True True True True []", out
 
 
 def test_dask_array_imported_before_xarray_still_tells_a_data_array():
