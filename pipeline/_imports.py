@@ -9,12 +9,12 @@ processes use none of them: 0.7-1.0 s of every start-up on a 2-core machine.
   chunk types;
 - ``dask.array.fft`` imports ``scipy.fftpack`` to refuse its functions in ``fft_wrap``.
 
-:func:`defer_optional_imports` has each of those imports fail quietly, in the thread that runs
-that module's import and for that import only (dask's optional imports are written to survive
-it), then puts back what dask would have had: an object that stands for xarray once it is
-imported, the sparse chunk types registered when ``scipy.sparse`` is first imported, and the
-``scipy`` that ``fft_wrap`` checks. Any other import of these modules, in this thread or
-another, is untouched: a plain import, when it is made.
+:func:`defer_optional_imports` has each of those imports fail quietly: that module's own import
+statement, in the thread running it, and nothing else (dask's optional imports are written to
+survive it). It then puts back what dask would have had: an object that stands for xarray once
+it is imported, the sparse chunk types registered when ``scipy.sparse`` is first imported, and
+the ``scipy`` that ``fft_wrap`` checks. Any other import of these modules (from another module,
+in this thread or another) is untouched: a plain import, when it is made.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ import threading
 _DEFERRED = {"dask.array.core": "xarray", "dask.array.chunk_types": "scipy.sparse",
              "dask.array.fft": "scipy.fftpack"}
 _SPARSE = "scipy.sparse"
+#: the modules between an import statement and a finder (dask's optional import, importlib's)
+_MACHINERY = frozenset({"importlib", "importlib._bootstrap", "importlib._bootstrap_external",
+                        "dask._compatibility", __name__})
 
 
 class _NoDataArray:
@@ -55,16 +58,6 @@ class _XarrayOnUse:
         return getattr(xarray, name)
 
 
-def _register_sparse_chunk_types() -> None:
-    """Register ``scipy.sparse``'s matrices and arrays with dask, as its import would have."""
-    chunk_types, sparse = sys.modules.get("dask.array.chunk_types"), sys.modules.get(_SPARSE)
-    if chunk_types is None or sparse is None:
-        return
-    for kind in (getattr(sparse, "spmatrix", None), getattr(sparse, "sparray", None)):
-        if kind is not None and kind not in chunk_types._HANDLED_CHUNK_TYPES:
-            chunk_types.register_chunk_type(kind)
-
-
 class _Wrapped(importlib.abc.Loader):
     """A module's own loader, with :class:`_Finder`'s work before and after its code runs."""
 
@@ -86,25 +79,46 @@ class _Wrapped(importlib.abc.Loader):
         return getattr(self.loader, name)
 
 
-class _Finder(importlib.abc.MetaPathFinder):
-    """Runs each of :data:`_DEFERRED`'s modules with its optional import refused in its thread.
+def _importer() -> str | None:
+    """The module whose code asked for the import being found (import machinery skipped)."""
+    frame = sys._getframe(2)
+    while frame is not None:
+        name = frame.f_globals.get("__name__")
+        if name not in _MACHINERY:
+            return name
+        frame = frame.f_back
+    return None
 
-    While such a module runs, this finder refuses its optional module to the thread running it
-    and to no other: nothing is put in ``sys.modules``, and a module another thread imports
+
+class _Finder(importlib.abc.MetaPathFinder):
+    """Runs each of :data:`_DEFERRED`'s modules with its optional import refused to it.
+
+    While such a module runs, this finder refuses its optional module to that module's own
+    import statements in the thread running it, and to nothing else: not to another thread,
+    nor to a module it imports in turn (pydata's ``sparse`` or cupy importing
+    ``scipy.sparse``). Nothing is put in ``sys.modules``; a module another thread imports
     meanwhile is the real one.
+
+    Once both ``dask.array.chunk_types`` (its own ``scipy.sparse`` refused) and a later
+    ``scipy.sparse`` have run, whichever last, it registers scipy's sparse types with dask.
     """
 
     def __init__(self) -> None:
-        self.refused = threading.local()  # per thread: the names refused to it, innermost last
-        self.sparse_owed = False  # dask's chunk types wait for scipy.sparse's own import
+        self.refused = threading.local()  # per thread: (module, name) refused, innermost last
+        self.lock = threading.Lock()
+        self.finished: set[str] = set()  # chunk_types (deferred) and scipy.sparse, once run
+        self.registered = False
 
     def find_spec(self, name, path, target=None):
-        if name in getattr(self.refused, "names", ()):
+        refused = getattr(self.refused, "pairs", ())
+        if refused and (_importer(), name) in refused:
             raise ModuleNotFoundError(f"{name} is imported at first use (pipeline._imports)",
                                       name=name)
         deferred = _DEFERRED.get(name)
-        owed = name == _SPARSE and self.sparse_owed
-        if not owed and (deferred is None or deferred in sys.modules):
+        if name == _SPARSE:  # dask's sparse chunk types may wait for it: see the class
+            if self.registered:
+                return None
+        elif deferred is None or deferred in sys.modules:
             return None
         spec = importlib.machinery.PathFinder.find_spec(name, path, target)
         if spec is None or spec.loader is None:
@@ -115,22 +129,36 @@ class _Finder(importlib.abc.MetaPathFinder):
     def run(self, module, loader: importlib.abc.Loader) -> None:
         name = module.__name__
         deferred = _DEFERRED.get(name)
-        names = self.refused.__dict__.setdefault("names", [])
+        pairs = self.refused.__dict__.setdefault("pairs", [])
         if deferred is not None:
-            names.append(deferred)
+            pairs.append((name, deferred))
         try:
             loader.exec_module(module)
         finally:
             if deferred is not None:
-                names.pop()
+                pairs.pop()
         if name == "dask.array.core" and getattr(module, "xr", False) is None:
             module.xr = _XarrayOnUse()
         elif name == "dask.array.fft" and getattr(module, "scipy", False) is None:
             module.scipy = sys.modules.get("scipy")  # fft_wrap's check needs no fftpack
-        elif name == "dask.array.chunk_types":
-            self.sparse_owed = True
-        if self.sparse_owed:
-            _register_sparse_chunk_types()
+        elif name in ("dask.array.chunk_types", _SPARSE):
+            self._finished(name, module)
+
+    def _finished(self, name: str, module) -> None:
+        """Register scipy's sparse types with dask once both modules have run."""
+        if name == "dask.array.chunk_types" and any(
+                k.__module__.startswith("scipy.sparse") for k in module._HANDLED_CHUNK_TYPES):
+            self.registered = True  # its own import found scipy.sparse (another thread's)
+            return
+        with self.lock:
+            self.finished.add(name)
+            if self.registered or self.finished != {"dask.array.chunk_types", _SPARSE}:
+                return
+            chunk_types, sparse = (sys.modules[n] for n in sorted(self.finished))
+            for kind in (getattr(sparse, "spmatrix", None), getattr(sparse, "sparray", None)):
+                if kind is not None and kind not in chunk_types._HANDLED_CHUNK_TYPES:
+                    chunk_types.register_chunk_type(kind)
+            self.registered = True
 
 
 def defer_optional_imports() -> None:

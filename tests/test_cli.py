@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -107,6 +108,23 @@ def test_dask_array_s_sparse_and_fftpack_imports_wait_for_their_first_use():
                        for code in (first + probe, probe))
     assert deferred[0] == "[]", deferred
     assert deferred[1:] == plain and "True True" in plain[0] and plain[1] == "warned", plain
+
+
+def test_a_module_dask_imports_in_turn_still_gets_scipy_sparse(tmp_path):
+    """Only dask's own optional imports wait: a package ``dask.array.chunk_types`` imports
+    that imports ``scipy.sparse`` itself (pydata's ``sparse`` before 0.16) gets it, and its
+    arrays stay a chunk type."""
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "sparse" / "__init__.py").write_text(
+        "import scipy.sparse\nclass SparseArray:\n    pass\n")
+    code = ("import pipeline, dask.array; "
+            "from dask.array.chunk_types import _HANDLED_CHUNK_TYPES as kinds; "
+            "print(sorted(k.__name__ for k in kinds))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                             [str(tmp_path), os.environ.get("PYTHONPATH", "")])}).stdout
+    assert out.split("\n")[0] == str(sorted(["ndarray", "MaskedArray", "SparseArray",
+                                               "spmatrix", "sparray"])), out
 
 
 def test_a_rechunk_on_a_local_scheduler_does_not_import_distributed(tmp_path):
