@@ -25,9 +25,8 @@ import sys
 import threading
 
 #: dask's modules, and the optional import each one makes at its own import.
-_DEFERRED = {"dask.array.core": "xarray", "dask.array.chunk_types": "scipy.sparse",
-             "dask.array.fft": "scipy.fftpack"}
-_SPARSE = "scipy.sparse"
+_CHUNK_TYPES, _SPARSE = "dask.array.chunk_types", "scipy.sparse"
+_DEFERRED = {"dask.array.core": "xarray", _CHUNK_TYPES: _SPARSE, "dask.array.fft": "scipy.fftpack"}
 #: the modules between an import statement and a finder (dask's optional import, importlib's)
 _MACHINERY = frozenset({"importlib", "importlib._bootstrap", "importlib._bootstrap_external",
                         "dask._compatibility", __name__})
@@ -141,20 +140,20 @@ class _Finder(importlib.abc.MetaPathFinder):
             module.xr = _XarrayOnUse()
         elif name == "dask.array.fft" and getattr(module, "scipy", False) is None:
             module.scipy = sys.modules.get("scipy")  # fft_wrap's check needs no fftpack
-        elif name in ("dask.array.chunk_types", _SPARSE):
+        elif name in (_CHUNK_TYPES, _SPARSE):
             self._finished(name, module)
 
     def _finished(self, name: str, module) -> None:
         """Register scipy's sparse types with dask once both modules have run."""
-        if name == "dask.array.chunk_types" and any(
-                k.__module__.startswith("scipy.sparse") for k in module._HANDLED_CHUNK_TYPES):
+        if name == _CHUNK_TYPES and any(
+                k.__module__.startswith(_SPARSE) for k in module._HANDLED_CHUNK_TYPES):
             self.registered = True  # its own import found scipy.sparse (another thread's)
             return
         with self.lock:
             self.finished.add(name)
-            if self.registered or self.finished != {"dask.array.chunk_types", _SPARSE}:
+            if self.registered or self.finished != {_CHUNK_TYPES, _SPARSE}:
                 return
-            chunk_types, sparse = (sys.modules[n] for n in sorted(self.finished))
+            chunk_types, sparse = sys.modules[_CHUNK_TYPES], sys.modules[_SPARSE]
             for kind in (getattr(sparse, "spmatrix", None), getattr(sparse, "sparray", None)):
                 if kind is not None and kind not in chunk_types._HANDLED_CHUNK_TYPES:
                     chunk_types.register_chunk_type(kind)

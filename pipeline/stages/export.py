@@ -25,7 +25,7 @@ from pipeline.params import ParamError, option
 from pipeline.session import Session
 from pipeline.stage import Stage
 from pipeline.stores import CompressedStore, RadianceStore, open_layers, open_store
-from pipeline.stores.base import RADIANCE, layer_indices, location, read_channels
+from pipeline.stores.base import layer_indices, location, read_channels
 from pipeline.stores.radiance import as_float32
 from tasks.svd import reconstruct_layers
 from tasks.tonemap import exposure, to_uint8, tonemap
@@ -133,7 +133,7 @@ def export(params: ExportParams, session: Session) -> Path:
                                  session)
     # lights per stored chunk (and shard) of a radiance store, per block of a compressed
     # store's U: each is read once
-    block = (source.group[RADIANCE].chunks[1] if isinstance(source, RadianceStore)
+    block = (source.radiance.chunks[1] if isinstance(source, RadianceStore)
              else read_chunks(source.group, "U")["light"])
     layer_bytes = 4 * int(np.prod(source.shape[2:]))  # a task's layers are float32
     per_task = max(1, min(block, TASK_BUDGET // max(layer_bytes, 1)))
