@@ -42,11 +42,13 @@ from pipeline.graphs.row_passes import (
     FAN_IN,
     RowBlock,
     memory_estimate,
+    parts_kept,
     pass_graph,
     plan_row_blocks,
     raise_on_bad_data,
 )
 from pipeline.graphs.tile_passes import (
+    SKETCH_FAN_IN,
     TexelTile,
     create_scratch,
     plan_tile_rows,
@@ -59,7 +61,7 @@ from pipeline.graphs.tile_passes import (
 )
 from pipeline.params import ParamError, check_seed, option
 from pipeline.provenance import provenance
-from pipeline.resume import Progress
+from pipeline.resume import PassCheckpoint, Progress
 from pipeline.session import Session
 from pipeline.stores import CompressedStore, RadianceStore, open_store
 from pipeline.stores.base import RADIANCE, location
@@ -221,8 +223,8 @@ class _Passes:
         if kind == "sketch-vectors":  # from the scratch array: not a pass over the store
             # named after the map, so that V written from other factors is never kept
             digest = hashlib.sha256(np.ascontiguousarray(arrays["m"]).tobytes()).hexdigest()
-            result, _ = self.progress.memo(f"{kind}-{digest[:16]}",
-                                           lambda: self._vectors(arrays["m"]))
+            name = f"{kind}-{digest[:16]}"
+            result, _ = self.progress.memo(name, lambda: self._vectors(name, arrays["m"]))
             return result
         self.count += 1
         what = {"power": f"power iteration {self.count}", "project": "projection",
@@ -231,8 +233,8 @@ class _Passes:
                 "row-vectors": "eigentextures"}[kind]
         by_tiles = kind.startswith("row-") or kind in ("verify", "sketch")
         name = f"pass-{self.count}-{kind}" + (f"-{SCRATCH_LAYOUT}" if kind == "sketch" else "")
-        result, stored = self.progress.memo(name,
-                                            lambda: self._run(kind, what, by_tiles, arrays))
+        result, stored = self.progress.memo(name, lambda: self._run(name, kind, what,
+                                                                    by_tiles, arrays))
         if stored:
             self.session.log(f"compress: pass {self.count}/{self.planned} ({what}): kept from "
                              "the interrupted run")
@@ -240,16 +242,26 @@ class _Passes:
             raise_on_bad_data(result.check, self.params.store, self.params.clamp)
         return result
 
-    def _run(self, kind: str, what: str, by_tiles: bool, arrays: dict) -> PassPart:
+    def _run(self, name: str, kind: str, what: str, by_tiles: bool, arrays: dict) -> PassPart:
+        # the bytes a part reads: a tile's column, or a row block of every texel
+        last = self.tiles[-1]
+        read = 4 * (self.tiles[0].texels * sum(b.rows for b in self.tile_rows) if by_tiles
+                    else max(b.rows for b in self.blocks) * last.y1 * last.x1)
+        fan_in = SKETCH_FAN_IN if kind == "sketch" else FAN_IN
+        kept = PassCheckpoint.of(self.progress, name, (fan_in - 1) * read)
+        parts = len(self.tiles) if by_tiles else len(self.blocks)
+        done = parts_kept(kept, parts, fan_in=fan_in)
         self.session.log(f"compress: pass {self.count}/{self.planned} ({what}, "
-                         + (f"{len(self.tiles)} texel tiles)" if by_tiles
-                            else f"{len(self.blocks)} row blocks)"))
-        common = {"eps": self.params.eps, "clamp": self.params.clamp, "first": self.count == 1}
+                         + (f"{parts} texel tiles" if by_tiles else f"{parts} row blocks")
+                         + (f"; {done} kept from the interrupted run)" if done else ")"))
+        common = {"eps": self.params.eps, "clamp": self.params.clamp, "first": self.count == 1,
+                  "kept": kept}
         if kind == "sketch":
             sketch = arrays["sketch"]
             first, last = self.tiles[0], self.tiles[-1]
-            create_scratch(self.scratch, last.y1, last.x1, sketch.s,
-                           (first.y1 - first.y0, first.x1 - first.x0))
+            if not done:  # else the killed run made it, and wrote the tiles kept
+                create_scratch(self.scratch, last.y1, last.x1, sketch.s,
+                               (first.y1 - first.y0, first.x1 - first.x0))
             graph = sketch_pass_graph(self.store, self.tiles, self.tile_rows, sketch=sketch,
                                       seed=arrays["seed"], scratch=self.scratch, **common)
         else:
@@ -261,11 +273,14 @@ class _Passes:
         (result,) = self.session.compute(graph, reads=True)
         return result
 
-    def _vectors(self, to_v: np.ndarray) -> PassPart:
+    def _vectors(self, name: str, to_v: np.ndarray) -> PassPart:
         self.session.log(f"compress: eigentextures from the scratch sketch ({len(self.tiles)} "
                          "texel tiles; no read of the store)")
+        first = self.tiles[0]
+        kept = PassCheckpoint.of(self.progress, name, (FAN_IN - 1) * 4 * first.texels
+                                 * to_v.shape[0])
         graph = sketch_vectors_graph(self.scratch, self.tiles, self.session.share(to_v),
-                                     self.out)
+                                     self.out, kept=kept)
         (result,) = self.session.compute(graph, reads=True)
         return result
 

@@ -631,6 +631,12 @@ class PassPart:
     check: BlockCheck
     frobenius2: float
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of its arrays."""
+        return (sum(a.nbytes for a in self.sums.values())
+                + sum(piece.nbytes for pieces in self.rows.values() for _, piece in pieces))
+
 
 def combine_parts(*parts: PassPart) -> PassPart:
     """Merge pass parts (in the given order, so the float sums are reproducible).

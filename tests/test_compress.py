@@ -352,6 +352,112 @@ def test_the_running_sum_gives_the_same_bits_for_every_fan_in(count):
         assert total.frobenius2 == sum(range(count))
 
 
+@pytest.mark.parametrize("fan_in", [2, 4])
+def test_a_running_sum_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, fan_in):
+    import dask
+
+    from pipeline.resume import PassCheckpoint
+
+    rng = np.random.default_rng(fan_in)
+    count = 23
+    values = [(rng.standard_normal((30, 5)) * 10.0 ** rng.integers(-6, 7)).astype(np.float32)
+              for _ in range(count)]
+    computed = []
+
+    def part(i, killed_at=None):
+        if i == killed_at:
+            raise Killed(i)
+        computed.append(i)
+        return PassPart({"y": values[i]}, {"z": [(i, np.full((1, 2), i))]}, BlockCheck(),
+                        float(i))
+
+    def total(**how):
+        killed_at = how.pop("killed_at", None)
+        parts = [dask.delayed(part)(i, killed_at) for i in range(count)]
+        return dask.compute(running_sum(parts, fan_in=fan_in, **how), scheduler="sync")[0]
+
+    expected = total()
+    kept = PassCheckpoint(str(tmp_path / "pass.partial"), read_per_step=1 << 40)
+    with pytest.raises(Killed):
+        total(kept=kept, killed_at=15)
+    steps, _ = kept.latest()
+    summed = 1 + steps * (fan_in - 1)
+    assert 1 < summed <= 15
+    computed.clear()
+    resumed = total(kept=kept)
+    assert sorted(computed) == list(range(summed, count))  # the parts kept are not computed
+    assert np.array_equal(resumed.sums["y"], expected.sums["y"])
+    assert [r for r, _ in resumed.rows["z"]] == list(range(count))
+    assert resumed.frobenius2 == expected.frobenius2
+
+
+def test_a_pass_keeps_its_total_at_most_16_times_and_within_a_share_of_its_reads(tmp_path,
+                                                                                monkeypatch):
+    import pickle
+
+    from pipeline import resume
+
+    written = []
+    monkeypatch.setattr(resume.storage, "write",
+                        lambda where, data, durable: written.append(pickle.loads(data)[0]))
+    total = PassPart({"y": np.zeros((100, 10))}, {}, BlockCheck(), 0.0)  # 8,000 bytes
+    for read, every in ((1 << 30, 7), (2 * total.nbytes, 10)):  # 100 steps / 16; 1 / 5% / 2
+        written.clear()
+        kept = resume.PassCheckpoint(str(tmp_path / "p.partial"), read_per_step=read)
+        for step in range(100):
+            kept.keep(step, 100, total)
+        assert written == list(range(every, 100, every))  # never the last: the pass is kept
+
+
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monkeypatch, capsys,
+                                                                sketch):
+    """The projection pass killed after some of its parts: the rerun sums the rest onto the
+    total the killed run kept, to the same bits."""
+    import pipeline.graphs.row_passes as row_passes
+    from pipeline import resume
+    from pipeline.cli import main
+
+    store = store_from_log_matrix(tmp_path / "s.zarr",  # 12 row blocks, 12 texel tiles
+                                  spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE,
+                                  dir_chunk=2)
+
+    def run(out, *more):
+        return main(["compress", str(store), str(out), "--rank", "6", "--sketch", sketch,
+                     "--scheduler", "synchronous", *more])
+
+    tasks, kind = ((tile_passes._TASKS, "row-gram") if sketch == "rows"
+                   else (row_passes._TASKS, "project"))
+    original, calls, kill = tasks[kind][0], [], []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) in kill:
+            raise Killed
+        return original(*args, **kwargs)
+
+    monkeypatch.setitem(tasks, kind, (counted, *tasks[kind][1:]))
+    monkeypatch.setattr(resume, "CHECKPOINT_SHARE", 1e9)  # a total a step: a test store is small
+    assert run(tmp_path / "ref.zarr", "--quiet") == 0
+    parts = len(calls)
+    assert parts >= 8
+    calls.clear()
+    kill.append(parts - 2)
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        run(tmp_path / "out.zarr", "--quiet")
+    calls.clear()
+    capsys.readouterr()
+    assert run(tmp_path / "out.zarr") == 0
+    err = capsys.readouterr().err
+    kept = int(err.split(" kept from the interrupted run)")[0].rsplit("; ", 1)[1])
+    assert 1 < kept < parts - 2 and len(calls) == parts - kept, err
+    a, b = zarr.open_group(tmp_path / "ref.zarr", mode="r"), \
+        zarr.open_group(tmp_path / "out.zarr", mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
 def test_lazy_radiance_has_the_original_dims_and_coordinates(tmp_path, btf, small_abtf):
     _compress(btf, small_abtf, tmp_path / "c.zarr", "--rank", "6")
     original = open_radiance(small_abtf)

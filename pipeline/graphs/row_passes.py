@@ -18,6 +18,7 @@ import numpy as np
 
 from pipeline import checksums, chunk_io, storage
 from pipeline.errors import BTFError
+from pipeline.resume import PassCheckpoint
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import as_float32
 from tasks.svd import (
@@ -187,7 +188,8 @@ def _project_task(store: str, block: RowBlock, x: np.ndarray, *, eps: float, cla
     return PassPart({}, {"z": [(block.row0, z)]}, check, f2)
 
 
-def running_sum(parts: list, *, fan_in: int = FAN_IN) -> Any:
+def running_sum(parts: list, *, fan_in: int = FAN_IN, kept: PassCheckpoint | None = None
+                ) -> Any:
     """Delayed sum of pass parts into one running total, ``fan_in`` - 1 parts a step.
 
     The order is fixed, so the sums are reproducible, and one float64 total is alive at a
@@ -198,12 +200,39 @@ def running_sum(parts: list, *, fan_in: int = FAN_IN) -> Any:
     Every ``fan_in`` gives the same bits (each step adds its parts to the total in order); a
     smaller one leaves fewer finished parts waiting for their step, and copies the total more
     often.
+
+    With ``kept``, steps keep the total so far every few steps, and the sum starts from the
+    one a killed run kept: the parts it holds are not computed again (their tasks are not in
+    the graph), and the result is the same, bit for bit.
     """
     import dask
 
-    total = parts[0]
-    for i in range(1, len(parts), fan_in - 1):
-        total = dask.delayed(combine_parts, pure=True)(total, *parts[i : i + fan_in - 1])
+    starts = range(1, len(parts), fan_in - 1)
+    total, first = parts[0], 0
+    found = kept.latest() if kept is not None else None
+    if found is not None and 0 < found[0] < len(starts):
+        first, total = found
+    for step, i in enumerate(starts):
+        if step < first:
+            continue
+        terms = parts[i : i + fan_in - 1]
+        total = dask.delayed(combine_parts, pure=True)(total, *terms) if kept is None else \
+            dask.delayed(_kept_step, pure=True)(kept, step, len(starts), total, *terms)
+    return total
+
+
+def parts_kept(kept: PassCheckpoint, parts: int, *, fan_in: int = FAN_IN) -> int:
+    """How many of a pass's ``parts`` the total that ``kept`` holds already sums (0: none)."""
+    found = kept.latest()
+    steps = len(range(1, parts, fan_in - 1))
+    return 1 + found[0] * (fan_in - 1) if found is not None and 0 < found[0] < steps else 0
+
+
+def _kept_step(kept: PassCheckpoint, step: int, steps: int, total: PassPart, *parts: PassPart
+               ) -> PassPart:
+    """A step of :func:`running_sum` that keeps its total when it is due (``kept.keep``)."""
+    total = combine_parts(total, *parts)
+    kept.keep(step, steps, total)
     return total
 
 
@@ -212,10 +241,11 @@ _TASKS = {"power": (_power_task, ("x",)), "project": (_project_task, ("x",))}
 
 
 def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[str, Any],
-               eps: float, clamp: bool, first: bool):
+               eps: float, clamp: bool, first: bool, kept: PassCheckpoint | None = None):
     """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the row blocks.
 
-    ``shared`` are handles of arrays every task reads whole (sketches, factors).
+    ``shared`` are handles of arrays every task reads whole (sketches, factors); ``kept``:
+    see :func:`running_sum`.
     """
     import dask
 
@@ -223,7 +253,7 @@ def pass_graph(kind: str, store: str, blocks: list[RowBlock], *, shared: dict[st
     parts = [dask.delayed(task, pure=True)(store, b, *(shared[name] for name in whole),
                                            eps=eps, clamp=clamp, first=first)
              for b in blocks]
-    return running_sum(parts)
+    return running_sum(parts, kept=kept)
 
 
 def raise_on_bad_data(check: BlockCheck, store: str, clamp: bool) -> None:

@@ -34,6 +34,7 @@ from pipeline.graphs.row_passes import (
     running_sum,
     transformed_rows,
 )
+from pipeline.resume import PassCheckpoint
 from pipeline.stores.radiance import as_float32
 from tasks.svd import (
     SPARSITY,
@@ -207,21 +208,25 @@ def _sketch_vectors_task(scratch: str, tile: TexelTile, to_v: np.ndarray, out: s
 
 def sketch_pass_graph(store: str, tiles: list[TexelTile], blocks: list[RowBlock], *,
                       sketch: Sketch, seed: int, scratch: str, eps: float, clamp: bool,
-                      first: bool):
-    """A delayed :class:`tasks.svd.PassPart` of the one-view sketch over the texel tiles."""
+                      first: bool, kept: PassCheckpoint | None = None):
+    """A delayed :class:`tasks.svd.PassPart` of the one-view sketch over the texel tiles.
+
+    ``kept``: see :func:`~pipeline.graphs.row_passes.running_sum`.
+    """
     import dask
 
     return running_sum([dask.delayed(_sketch_task, pure=True)(
         store, tile, blocks, sketch, seed, scratch, eps=eps, clamp=clamp, first=first)
-        for tile in tiles], fan_in=SKETCH_FAN_IN)
+        for tile in tiles], fan_in=SKETCH_FAN_IN, kept=kept)
 
 
-def sketch_vectors_graph(scratch: str, tiles: list[TexelTile], to_v, out: str):
+def sketch_vectors_graph(scratch: str, tiles: list[TexelTile], to_v, out: str, *,
+                         kept: PassCheckpoint | None = None):
     """A delayed (empty) :class:`tasks.svd.PassPart` writing ``V`` from the scratch sketch."""
     import dask
 
     return running_sum([dask.delayed(_sketch_vectors_task, pure=True)(scratch, tile, to_v, out)
-                     for tile in tiles])
+                        for tile in tiles], kept=kept)
 
 
 def _verify_task(store: str, tile: TexelTile, blocks: list[RowBlock], u: np.ndarray,
@@ -260,13 +265,14 @@ _TASKS = {"row-power": (_row_power_task, ("q",), False),
 
 def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[RowBlock], *,
                     shared: dict, out: str | None, eps: float, clamp: bool, first: bool,
-                    cache: int = TILE_CACHE_BYTES):
+                    cache: int = TILE_CACHE_BYTES, kept: PassCheckpoint | None = None):
     """A delayed :class:`tasks.svd.PassPart` of one pass of ``kind`` over the texel tiles.
 
     ``blocks`` are the row blocks of a full tile (:func:`plan_tile_rows`); ``shared`` are
     handles of the arrays every task reads whole; ``out`` the compressed store being written
     (its ``V`` for ``row-vectors`` and ``verify``); ``cache`` the bytes of a tile's column
-    a row-side power pass keeps between its two products.
+    a row-side power pass keeps between its two products; ``kept``: see
+    :func:`~pipeline.graphs.row_passes.running_sum`.
     """
     import dask
 
@@ -277,7 +283,7 @@ def tile_pass_graph(kind: str, store: str, tiles: list[TexelTile], blocks: list[
                  store, tile, blocks, *(shared[name] for name in whole),
                  *((out,) if writes else ()), eps=eps, clamp=clamp, first=first, **extra)
              for tile in tiles]
-    return running_sum(parts)
+    return running_sum(parts, kept=kept)
 
 
 def sketch_memory(rows: int, tile_texels: int, sketch: Sketch, blocks: list[RowBlock], *,
