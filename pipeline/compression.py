@@ -248,7 +248,7 @@ class _Passes:
         read = 4 * (self.tiles[0].texels * sum(b.rows for b in self.tile_rows) if by_tiles
                     else max(b.rows for b in self.blocks) * last.y1 * last.x1)
         fan_in = SKETCH_FAN_IN if kind == "sketch" else FAN_IN
-        kept = PassCheckpoint.of(self.progress, name, (fan_in - 1) * read)
+        kept = PassCheckpoint.of(self.progress, name, (fan_in - 1) * read, sorted(arrays.items()))
         parts = len(self.tiles) if by_tiles else len(self.blocks)
         done = parts_kept(kept, parts, fan_in=fan_in)
         self.session.log(f"compress: pass {self.count}/{self.planned} ({what}, "
@@ -274,11 +274,12 @@ class _Passes:
         return result
 
     def _vectors(self, name: str, to_v: np.ndarray) -> PassPart:
+        kept = PassCheckpoint.of(self.progress, name, (FAN_IN - 1) * 4 * self.tiles[0].texels
+                                 * to_v.shape[0], to_v)
+        done = parts_kept(kept, len(self.tiles))
         self.session.log(f"compress: eigentextures from the scratch sketch ({len(self.tiles)} "
-                         "texel tiles; no read of the store)")
-        first = self.tiles[0]
-        kept = PassCheckpoint.of(self.progress, name, (FAN_IN - 1) * 4 * first.texels
-                                 * to_v.shape[0])
+                         "texel tiles; no read of the store"
+                         + (f"; {done} kept from the interrupted run)" if done else ")"))
         graph = sketch_vectors_graph(self.scratch, self.tiles, self.session.share(to_v),
                                      self.out, kept=kept)
         (result,) = self.session.compute(graph, reads=True)

@@ -255,14 +255,25 @@ class PassCheckpoint:
 
     marker: str
     read_per_step: int
+    inputs: str = ""  # a digest of what every part reads besides the store
 
     @classmethod
-    def of(cls, progress: Progress, name: str, read_per_step: int) -> PassCheckpoint:
-        """The checkpoint of unit ``name`` among ``progress``'s markers."""
-        return cls(progress.marker(name) + PARTIAL, max(1, int(read_per_step)))
+    def of(cls, progress: Progress, name: str, read_per_step: int, inputs: Any = None
+           ) -> PassCheckpoint:
+        """The checkpoint of unit ``name`` among ``progress``'s markers.
+
+        ``inputs``: what the parts read besides the store (the sketch, the factors). A total
+        kept from other inputs is not resumed from: a client's products can differ in their
+        last bits on another machine (its BLAS threads), and a pass must add parts of one.
+        """
+        import hashlib
+
+        digest = hashlib.sha256(pickle.dumps(inputs, protocol=pickle.HIGHEST_PROTOCOL))
+        return cls(progress.marker(name) + PARTIAL, max(1, int(read_per_step)),
+                   digest.hexdigest())
 
     def latest(self) -> tuple[int, Any] | None:
-        """``(steps summed, total)`` that a killed run kept, or None.
+        """``(steps summed, total)`` that a killed run kept from the same inputs, or None.
 
         A file that does not unpickle (one a crashed machine left part of) is ignored.
         """
@@ -270,10 +281,10 @@ class PassCheckpoint:
         if data is None:
             return None
         try:
-            steps, total = pickle.loads(data)
+            inputs, steps, total = pickle.loads(data)
         except Exception:  # any damage (a crashed machine's file): sum the pass again
             return None
-        return int(steps), total
+        return (int(steps), total) if inputs == self.inputs else None
 
     def keep(self, step: int, steps: int, total: Any) -> None:
         """After step ``step`` (from 0) of ``steps``: keep ``total`` if this step is due.
@@ -288,7 +299,7 @@ class PassCheckpoint:
         every = max(-(-steps // CHECKPOINTS),
                     math.ceil(total.nbytes / (CHECKPOINT_SHARE * self.read_per_step)))
         if done % every == 0:
-            storage.write(self.marker, pickle.dumps((done, total),
+            storage.write(self.marker, pickle.dumps((self.inputs, done, total),
                                                     protocol=pickle.HIGHEST_PROTOCOL),
                           durable=False)
 

@@ -383,6 +383,8 @@ def test_a_running_sum_killed_in_its_middle_resumes_from_its_kept_total(tmp_path
     steps, _ = kept.latest()
     summed = 1 + steps * (fan_in - 1)
     assert 1 < summed <= 15
+    # a pass of other inputs (another sketch) does not resume from it
+    assert PassCheckpoint(kept.marker, kept.read_per_step, "other inputs").latest() is None
     computed.clear()
     resumed = total(kept=kept)
     assert sorted(computed) == list(range(summed, count))  # the parts kept are not computed
@@ -399,7 +401,7 @@ def test_a_pass_keeps_its_total_at_most_16_times_and_within_a_share_of_its_reads
 
     written = []
     monkeypatch.setattr(resume.storage, "write",
-                        lambda where, data, durable: written.append(pickle.loads(data)[0]))
+                        lambda where, data, durable: written.append(pickle.loads(data)[1]))
     total = PassPart({"y": np.zeros((100, 10))}, {}, BlockCheck(), 0.0)  # 8,000 bytes
     for read, every in ((1 << 30, 7), (2 * total.nbytes, 10)):  # 100 steps / 16; 1 / 5% / 2
         written.clear()
@@ -441,6 +443,50 @@ def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monke
     assert run(tmp_path / "ref.zarr", "--quiet") == 0
     parts = len(calls)
     assert parts >= 8
+    calls.clear()
+    kill.append(parts - 2)
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        run(tmp_path / "out.zarr", "--quiet")
+    calls.clear()
+    capsys.readouterr()
+    assert run(tmp_path / "out.zarr") == 0
+    err = capsys.readouterr().err
+    kept = int(err.split(" kept from the interrupted run)")[0].rsplit("; ", 1)[1])
+    assert 1 < kept < parts - 2 and len(calls) == parts - kept, err
+    a, b = zarr.open_group(tmp_path / "ref.zarr", mode="r"), \
+        zarr.open_group(tmp_path / "out.zarr", mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
+@pytest.mark.parametrize("task", ["_sketch_task", "_sketch_vectors_task"])
+def test_a_one_view_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monkeypatch,
+                                                                         capsys, task):
+    """The one-view sketch (its scratch tiles kept, not made again) and V from it."""
+    from pipeline import resume
+    from pipeline.cli import main
+
+    store = store_from_log_matrix(tmp_path / "s.zarr",
+                                  spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE,
+                                  dir_chunk=2)
+
+    def run(out, *more):
+        return main(["compress", str(store), str(out), "--rank", "6", "--passes", "1",
+                     "--scheduler", "synchronous", *more])
+
+    original, calls, kill = getattr(tile_passes, task), [], []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) in kill:
+            raise Killed
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tile_passes, task, counted)
+    monkeypatch.setattr(resume, "CHECKPOINT_SHARE", 1e9)  # a total a step: a test store is small
+    assert run(tmp_path / "ref.zarr", "--quiet") == 0
+    parts = len(calls)
     calls.clear()
     kill.append(parts - 2)
     with monkeypatch.context() as m, pytest.raises(Killed):

@@ -195,7 +195,7 @@ def test_blocks_a_killed_process_wrote_on_this_machine_are_kept_unread(tmp_path,
         assert np.array_equal(expected[n], got[n]), n
 
 
-@pytest.mark.parametrize("scheduler", ["synchronous", "threads",
+@pytest.mark.parametrize("scheduler", ["synchronous", "threads", "processes",
                                        pytest.param("cluster", marks=pytest.mark.distributed)])
 def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch, small_tasks,
                                                            scheduler, request):
@@ -212,7 +212,7 @@ def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch
     _flip_a_byte(tmp_path, partial, name, region)
     monkeypatch.setattr(resume, "_boot", lambda: "a-later-boot")
     assert main(["generate", str(out), *GENERATE, *rerun, "--quiet"]) == 0
-    if scheduler != "cluster":  # the workers' writes are not seen here
+    if scheduler in ("synchronous", "threads"):  # other processes' writes are not seen here
         assert (name, region) in written  # the damaged block, written again
         assert not set(kept[1:]) & set(written)  # the intact ones kept
     names = ("radiance", "height", "albedo")

@@ -198,38 +198,60 @@ def _pending(graph, token: str, units: list, regions: dict, progress):
     keys = [key for name, key in units if name not in kept]
     kept -= set(progress.vouched(kept))  # written before a kill, on this machine: in its cache
     if kept:
-        whole = f"graph-{token}"  # one task's value: the graph, for the units made again
-        made = {i: key for i, (name, key) in enumerate(units) if name in kept}
-        checks = {(f"kept-{token}", i): (_kept_or_made, *regions[units[i][0]], i, whole)
-                  for i in made}
-        graph = {**graph, whole: _Graph(dict(graph), made), **checks}
+        graph = dict(graph)
+        made = _Units(graph)
+        checks = {(f"kept-{token}", i): (_kept_or_made, *regions[name], made(key))
+                  for i, (name, key) in enumerate(units) if name in kept}
+        graph.update(checks)
         keys += list(checks)
     return _gathered(graph, token, keys)
 
 
-class _Graph:
-    """A graph and the keys of its units, carried as a task's value.
+class _Units:
+    """The tasks that make each unit of a graph, apart: ``units(key)`` is a :class:`_Unit`.
+
+    A check task carries its own unit's tasks only: the processes scheduler pickles every
+    task's arguments, and a check task carrying the whole graph copied it once per check.
+    """
+
+    def __init__(self, graph: dict):
+        self.graph, self.deps = graph, {}  # key: its dependencies, found once
+
+    def __call__(self, key) -> _Unit:
+        from dask.core import get_dependencies
+
+        tasks, todo = {}, [key]
+        while todo:
+            k = todo.pop()
+            if k not in tasks:
+                tasks[k] = self.graph[k]
+                if k not in self.deps:
+                    self.deps[k] = get_dependencies(self.graph, key=k)
+                todo.extend(self.deps[k])
+        return _Unit(tasks, key)
+
+
+class _Unit:
+    """The tasks of one unit and its key, carried as a task's argument.
 
     Dask looks into a task's tuples, lists and dicts for keys to compute first; not in here.
     """
 
-    def __init__(self, graph: dict, units: dict):
-        self.graph, self.units = graph, units
+    def __init__(self, tasks: dict, key):
+        self.tasks, self.key = tasks, key
 
 
-def _kept_or_made(target, region: tuple[slice, ...], unit: int, whole: _Graph) -> int:
-    """Unit number ``unit`` a killed run finished: checked, and made again if it fails.
+def _kept_or_made(target, region: tuple[slice, ...], unit: _Unit) -> int:
+    """A unit a killed run finished: checked, and made again if it fails.
 
-    Made again by running its tasks of ``whole`` here, on the synchronous scheduler: its block is
-    written and marked done as in any run (a crash of the machine can leave a marker whose
-    chunks never reached the disk).
+    Made again by running its tasks here, on the synchronous scheduler: its block is written
+    and marked done as in any run (a crash of the machine can leave a marker whose chunks
+    never reached the disk).
     """
     if not _intact(target, region):
         from dask.local import get_sync
-        from dask.optimization import cull
 
-        key = whole.units[unit]
-        get_sync(cull(whole.graph, [key])[0], [key])
+        get_sync(unit.tasks, [unit.key])
     return 1
 
 
