@@ -331,6 +331,35 @@ def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tm
     assert not any(k.startswith("_") for k in b.array_keys())  # scratch arrays are gone
 
 
+def test_a_resumed_tiled_enlargement_builds_no_table_for_a_level_it_kept(inputs, tiled,
+                                                                          tmp_path, monkeypatch):
+    """A level whose tiles the killed run all finished is not searched again: no coherence
+    table is built for it; the result keeps its bits."""
+    import pipeline.graphs.enlarge as graphs
+    from pipeline.cli import main
+
+    out = tmp_path / "out.zarr"
+    args = ["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out), "--tile", "32",
+            "--statistics", "--scheduler", "synchronous", "--quiet"]
+    with monkeypatch.context() as m, pytest.raises(Killed):
+        killed_before_unit(m, 1, "tile")  # the coarsest level: one tile
+        m.setattr("pipeline.atomic._remove", lambda path: None)
+        main(args)
+    original, tables = graphs._coherence_table, []
+
+    def table(projected, k, *, session):
+        tables.append(projected.shape[:2])
+        return original(projected, k, session=session)
+
+    monkeypatch.setattr(graphs, "_coherence_table", table)
+    assert main(args) == 0
+    levels = zarr.open_group(tiled["tiled"], mode="r").attrs["enlargement"]["levels"]
+    assert levels[0]["tasks"] == 1 and len(tables) == len(levels) - 1, tables
+    a, b = zarr.open_group(tiled["tiled"], mode="r"), zarr.open_group(out, mode="r")
+    for name in ("U", "S", "V"):
+        assert np.array_equal(a[name][...], b[name][...]), name
+
+
 def test_a_resumed_tiled_enlargement_whose_kept_chunk_changed_starts_over(
         inputs, tiled, tmp_path, monkeypatch, capsys):
     """A tiled enlargement resumes with the tiles left (kill -9: tests/test_resume.py); but if

@@ -302,11 +302,16 @@ def synthesize(out, path, guide: Guide, rows: np.ndarray, sample: np.ndarray,
         start = time.perf_counter()
         factor = 2**level
         shape = (-(-big_h // factor), -(-big_w // factor))
+        whole, regions = _level_regions(shape, tile)
+        # a level whose tiles a killed run all finished needs no coherence table (7 s for a
+        # 256^2 sample's finest level on one core); the rest of its source is made again,
+        # as it draws from the client's random state
+        kept = len(progress.finished(_tile_names(level, regions))) == len(regions)
         source = SampleLevel(downsample(sample, factor), downsample(sample_values, factor),
                              rotation, guide_weight, to, rng,
-                             table=partial(_coherence_table, session=session))
+                             table=_no_table if kept else partial(_coherence_table,
+                                                                  session=session))
         name = "_coefficients" if level == 0 else f"_level{level}"
-        whole, regions = _level_regions(shape, tile)
         blend = level == 0 and not whole  # the finest level's tiles are blended
         _level_arrays(out, name, shape, sample.shape[-1], tile, len(regions) if blend else 0,
                       halo)
@@ -350,6 +355,16 @@ def _coherence_table(projected: np.ndarray, k: int, *, session) -> np.ndarray:
     return np.concatenate(rows)
 
 
+def _no_table(projected: np.ndarray, k: int) -> None:
+    """No k-coherence table: for a level none of whose tiles is computed."""
+    return None
+
+
+def _tile_names(level: int, regions: list) -> list[str]:
+    """The units of a level's tiles (:func:`_level_tasks`)."""
+    return [f"level{level}-tile{k}" for k in range(len(regions))]
+
+
 def _level_regions(shape: tuple[int, int], tile: int
                    ) -> tuple[bool, list[tuple[int, int, int, int]]]:
     """Whether a level fits in one tile (then it is one task), and its tasks' regions."""
@@ -378,11 +393,12 @@ def _level_tasks(here: str, name: str, regions, *, level: int, blend: bool, shap
     """
     import dask
 
-    return [(f"level{level}-tile{k}", dask.delayed(level_task)(
+    return [(unit, dask.delayed(level_task)(
                 here, "_grown" if blend else name, region, shape=shape, factor=factor,
                 coarse=coarse, coarse_shape=coarse_shape, source=source, guide=guide,
                 params=params, halo=halo, finish=finish, slot=k if blend else None))
-            for k, region in enumerate(regions)]
+            for k, (unit, region) in enumerate(zip(_tile_names(level, regions), regions,
+                                                   strict=True))]
 
 
 def _run_level(tasks: list, progress, session, *, factor: int, shape) -> list:
