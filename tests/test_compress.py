@@ -411,12 +411,12 @@ def test_a_pass_keeps_its_total_at_most_16_times_and_within_a_share_of_its_reads
         assert written == list(range(every, 100, every))  # never the last: the pass is kept
 
 
-@pytest.mark.parametrize("sketch", ["texels", "rows"])
-def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monkeypatch, capsys,
-                                                                sketch):
-    """The projection pass killed after some of its parts: the rerun sums the rest onto the
-    total the killed run kept, to the same bits."""
-    import pipeline.graphs.row_passes as row_passes
+def _killed_two_parts_before_a_pass_ends(tmp_path, monkeypatch, capsys, options: list,
+                                         install) -> None:
+    """Compress with ``options``, a pass's task wrapped by ``install(wrap)`` (``wrap(task)``:
+    the task, counted, and killed at one call): a reference run, a run killed two parts
+    before the pass ends, and its rerun, which sums the rest onto the total the killed run
+    kept, to the same bits."""
     from pipeline import resume
     from pipeline.cli import main
 
@@ -425,20 +425,21 @@ def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monke
                                   dir_chunk=2)
 
     def run(out, *more):
-        return main(["compress", str(store), str(out), "--rank", "6", "--sketch", sketch,
+        return main(["compress", str(store), str(out), "--rank", "6", *options,
                      "--scheduler", "synchronous", *more])
 
-    tasks, kind = ((tile_passes._TASKS, "row-gram") if sketch == "rows"
-                   else (row_passes._TASKS, "project"))
-    original, calls, kill = tasks[kind][0], [], []
+    calls, kill = [], []
 
-    def counted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) in kill:
-            raise Killed
-        return original(*args, **kwargs)
+    def wrap(task):
+        def counted(*args, **kwargs):
+            calls.append(1)
+            if len(calls) in kill:
+                raise Killed
+            return task(*args, **kwargs)
 
-    monkeypatch.setitem(tasks, kind, (counted, *tasks[kind][1:]))
+        return counted
+
+    install(wrap)
     monkeypatch.setattr(resume, "CHECKPOINT_SHARE", 1e9)  # a total a step: a test store is small
     assert run(tmp_path / "ref.zarr", "--quiet") == 0
     parts = len(calls)
@@ -460,48 +461,32 @@ def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monke
         assert np.array_equal(a[name][...], b[name][...]), name
 
 
+@pytest.mark.parametrize("sketch", ["texels", "rows"])
+def test_a_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monkeypatch, capsys,
+                                                                sketch):
+    """The projection pass killed after some of its parts: the rerun sums the rest onto the
+    total the killed run kept, to the same bits."""
+    import pipeline.graphs.row_passes as row_passes
+
+    tasks, kind = ((tile_passes._TASKS, "row-gram") if sketch == "rows"
+                   else (row_passes._TASKS, "project"))
+
+    def install(wrap):
+        monkeypatch.setitem(tasks, kind, (wrap(tasks[kind][0]), *tasks[kind][1:]))
+
+    _killed_two_parts_before_a_pass_ends(tmp_path, monkeypatch, capsys, ["--sketch", sketch],
+                                         install)
+
+
 @pytest.mark.parametrize("task", ["_sketch_task", "_sketch_vectors_task"])
 def test_a_one_view_pass_killed_in_its_middle_resumes_from_its_kept_total(tmp_path, monkeypatch,
                                                                          capsys, task):
     """The one-view sketch (its scratch tiles kept, not made again) and V from it."""
-    from pipeline import resume
-    from pipeline.cli import main
+    def install(wrap):
+        monkeypatch.setattr(tile_passes, task, wrap(getattr(tile_passes, task)))
 
-    store = store_from_log_matrix(tmp_path / "s.zarr",
-                                  spectrum_matrix(144, 768, np.exp(-np.arange(30) / 5.0)), SHAPE,
-                                  dir_chunk=2)
-
-    def run(out, *more):
-        return main(["compress", str(store), str(out), "--rank", "6", "--passes", "1",
-                     "--scheduler", "synchronous", *more])
-
-    original, calls, kill = getattr(tile_passes, task), [], []
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) in kill:
-            raise Killed
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(tile_passes, task, counted)
-    monkeypatch.setattr(resume, "CHECKPOINT_SHARE", 1e9)  # a total a step: a test store is small
-    assert run(tmp_path / "ref.zarr", "--quiet") == 0
-    parts = len(calls)
-    calls.clear()
-    kill.append(parts - 2)
-    with monkeypatch.context() as m, pytest.raises(Killed):
-        m.setattr("pipeline.atomic._remove", lambda path: None)
-        run(tmp_path / "out.zarr", "--quiet")
-    calls.clear()
-    capsys.readouterr()
-    assert run(tmp_path / "out.zarr") == 0
-    err = capsys.readouterr().err
-    kept = int(err.split(" kept from the interrupted run)")[0].rsplit("; ", 1)[1])
-    assert 1 < kept < parts - 2 and len(calls) == parts - kept, err
-    a, b = zarr.open_group(tmp_path / "ref.zarr", mode="r"), \
-        zarr.open_group(tmp_path / "out.zarr", mode="r")
-    for name in ("U", "S", "V"):
-        assert np.array_equal(a[name][...], b[name][...]), name
+    _killed_two_parts_before_a_pass_ends(tmp_path, monkeypatch, capsys, ["--passes", "1"],
+                                         install)
 
 
 def test_lazy_radiance_has_the_original_dims_and_coordinates(tmp_path, btf, small_abtf):

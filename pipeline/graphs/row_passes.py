@@ -209,8 +209,8 @@ def running_sum(parts: list, *, fan_in: int = FAN_IN, kept: PassCheckpoint | Non
 
     starts = range(1, len(parts), fan_in - 1)
     total, first = parts[0], 0
-    found = kept.latest() if kept is not None else None
-    if found is not None and 0 < found[0] < len(starts):
+    found = _kept_total(kept, len(parts), fan_in)
+    if found is not None:
         first, total = found
     for step, i in enumerate(starts):
         if step < first:
@@ -223,9 +223,18 @@ def running_sum(parts: list, *, fan_in: int = FAN_IN, kept: PassCheckpoint | Non
 
 def parts_kept(kept: PassCheckpoint, parts: int, *, fan_in: int = FAN_IN) -> int:
     """How many of a pass's ``parts`` the total that ``kept`` holds already sums (0: none)."""
-    found = kept.latest()
+    found = _kept_total(kept, parts, fan_in)
+    return 0 if found is None else 1 + found[0] * (fan_in - 1)
+
+
+def _kept_total(kept: PassCheckpoint | None, parts: int, fan_in: int) -> tuple[int, Any] | None:
+    """``(steps summed, total)`` a killed run kept of a sum of ``parts``, or None.
+
+    None too where it holds no step or every one (the last step's total is never kept).
+    """
+    found = kept.latest() if kept is not None else None
     steps = len(range(1, parts, fan_in - 1))
-    return 1 + found[0] * (fan_in - 1) if found is not None and 0 < found[0] < steps else 0
+    return found if found is not None and 0 < found[0] < steps else None
 
 
 def _kept_step(kept: PassCheckpoint, step: int, steps: int, total: PassPart, *parts: PassPart
