@@ -16,9 +16,11 @@ import pytest
 from benchmarks.harness import stop_processes
 from pipeline.cli import main
 
-# The processes scheduler (a fresh interpreter per worker, seconds each) as a slow parameter:
-# a cluster's worker processes stand for it in the default set.
+# The processes scheduler (a fresh interpreter per worker) and a local cluster, seconds each to
+# start, as slow parameters: threads and synchronous stand for them in the default set, and
+# .ci/run runs them (the slow set).
 SLOW_PROCESSES = pytest.param("processes", marks=pytest.mark.slow)
+SLOW_CLUSTER = pytest.param("cluster", marks=[pytest.mark.slow, pytest.mark.distributed])
 
 
 # float16's rounding of a value, relative: a store of 8-bit or half-float measurements holds

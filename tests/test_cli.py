@@ -127,6 +127,7 @@ def test_a_module_dask_imports_in_turn_still_gets_scipy_sparse(tmp_path):
                                                "spmatrix", "sparray"])), out
 
 
+@pytest.mark.slow  # 6 s (3 processes): kept out of the default run (4 min), run by .ci/run
 def test_a_rechunk_on_a_local_scheduler_does_not_import_distributed(tmp_path):
     """dask's rechunk looks for a default client by importing distributed (0.17 s); a session
     tells it the method it would choose ("tasks"). ``btf scene`` rechunks the layers it reads.

@@ -13,7 +13,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import pipeline.graphs.tile_passes as tile_passes
-from helpers import SLOW_PROCESSES, Killed, killed_before_unit
+from helpers import SLOW_CLUSTER, SLOW_PROCESSES, Killed, killed_before_unit
 from pipeline.graphs.row_passes import ROW_BLOCK_BYTES, plan_row_blocks, running_sum, spans
 from pipeline.stores.base import RADIANCE, Directions
 from pipeline.stores.compressed import open_compressed
@@ -156,7 +156,8 @@ def test_rank_larger_than_the_matrix_is_refused(tmp_path, btf):
     assert "min(144, 768) = 144" in result.err and not (tmp_path / "c.zarr").exists()
 
 
-@pytest.mark.parametrize("sketch", ["texels", "rows", "one pass"])
+@pytest.mark.parametrize("sketch", ["texels", pytest.param("rows", marks=pytest.mark.slow),
+                                    "one pass"])
 def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_path, btf,
                                                                      monkeypatch):
     # row blocks of one stored light chunk: the two bad values lie in two blocks of one tile
@@ -186,8 +187,7 @@ def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_
     assert np.isfinite(s).all() and attrs["transform"]["clamp"] is True
 
 
-@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES, SLOW_CLUSTER])
 def test_the_same_seed_gives_the_same_factors_on_every_scheduler(tmp_path, btf, scheduler,
                                                                  request, monkeypatch):
     monkeypatch.setattr("pipeline.graphs.row_passes.MIN_ROW_BLOCKS", 5)
@@ -679,8 +679,7 @@ def test_verify_measures_the_log_domain_error(sketch, tmp_path, btf):
         attrs["error"]["log_relative_frobenius_measured"], rel=1e-3)
 
 
-@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES, SLOW_CLUSTER])
 @pytest.mark.parametrize(("mode", "passes"), [(("--passes", "1"), 2),
                                               (("--sketch", "rows"), 5)])
 def test_one_pass_row_side_and_verify_are_identical_on_every_scheduler(

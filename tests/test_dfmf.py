@@ -313,7 +313,8 @@ def test_a_cosine_flag_is_folded_into_linear_models(tmp_path, btf):
     assert "cosine" not in zarr.open_group(tmp_path / "c.zarr").attrs["transform"]
 
 
-@pytest.mark.parametrize("model", [9, 10, 11, 12])
+@pytest.mark.parametrize("model", [9, *(pytest.param(m, marks=pytest.mark.slow) for m in (10, 11)),
+                                   12])
 def test_a_cosine_flag_with_a_log_model_is_divided_out_after_the_colour_model(tmp_path, btf,
                                                                               model):
     """Decoded as the flag means (btflib: the colour model, then / cos(theta_light)), against

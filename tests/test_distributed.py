@@ -109,6 +109,7 @@ def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster
             assert np.array_equal(outs[0][name][:], outs[1][name][:]), (store, name)
 
 
+@pytest.mark.slow  # 12 s (a cluster): kept out of the default run (4 min), run by .ci/run
 @pytest.mark.distributed
 def test_a_subcommand_on_the_cluster_shows_progress_and_reports_a_failing_task(tmp_path,
                                                                                cluster):

@@ -360,6 +360,7 @@ def test_a_resumed_tiled_enlargement_builds_no_table_for_a_level_it_kept(inputs,
         assert np.array_equal(a[name][...], b[name][...]), name
 
 
+@pytest.mark.slow  # 8 s: kept out of the default run (4 min), run by .ci/run
 def test_a_resumed_tiled_enlargement_whose_kept_chunk_changed_starts_over(
         inputs, tiled, tmp_path, monkeypatch, capsys):
     """A tiled enlargement resumes with the tiles left (kill -9: tests/test_resume.py); but if
@@ -444,6 +445,7 @@ def periodic(tmp_path_factory):
     return tmp
 
 
+@pytest.mark.slow  # 8 s: kept out of the default run (4 min), run by .ci/run
 def test_a_periodic_sample_is_said_to_match_in_several_places_which_changes_nothing(
         periodic, btf):
     out = periodic / "E.zarr"

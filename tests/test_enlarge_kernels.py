@@ -354,6 +354,7 @@ with Session(RuntimeOptions(scheduler=sys.argv[1], workers=2, quiet=True)) as se
 """
 
 
+@pytest.mark.slow  # 6 s: kept out of the default run (4 min), run by .ci/run
 def test_faiss_searches_give_the_same_bits_on_every_local_scheduler():
     """faiss's distances change in their last bits with its (OpenMP) BLAS threads: the session
     gives tasks one, as worker processes have. Before, ``btf enlarge`` of a 256^2 sample

@@ -107,7 +107,7 @@ def _field(rng, shape, k, sigma=1.0):
     return (f / f.std(axis=(0, 1))).astype(np.float32)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, *(pytest.param(s, marks=pytest.mark.slow) for s in (1, 2))])
 def test_the_coherent_search_reaches_the_exact_searchs_energy(seed):
     rng = np.random.default_rng(seed)
     sample, target = _field(rng, (48, 48), 6), _field(rng, (96, 96), 6)

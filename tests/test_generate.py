@@ -54,6 +54,7 @@ def test_same_arguments_give_identical_stores_on_every_scheduler(tmp_path, sched
         assert np.array_equal(a[name], b[name]), name
 
 
+@pytest.mark.slow  # 10 s (a cluster): kept out of the default run (4 min), run by .ci/run
 @pytest.mark.distributed
 def test_a_local_cluster_gives_the_identical_store(tmp_path, local_cluster, small_tasks):
     reference = generate_store(tmp_path / "a" / "s.zarr", *SMALL, "--scheduler", "synchronous")

@@ -226,7 +226,8 @@ def test_a_tiles_border_bands_are_exactly_its_edge_strips(noise, steps):
             assert np.array_equal(tile.weight[where], strip.weight[there])
 
 
-@pytest.mark.parametrize("material", ["fabric", "stone", "tiles"])
+@pytest.mark.parametrize("material", ["fabric", *(pytest.param(m, marks=pytest.mark.slow)
+                                                  for m in ("stone", "tiles"))])
 def test_a_quilted_texture_wraps_seamlessly_in_every_layer(tmp_path, btf, samples, material):
     # Pooled over seeds, layers and both wraps: one 48-pixel wrap line may run along an edge of
     # the sample itself (seen with stone, seed 0: adjacent sample pixels across a shadow edge).

@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 import pipeline.graphs.blocks as blocks
-from helpers import Killed, killed_before_unit
+from helpers import SLOW_CLUSTER, SLOW_PROCESSES, Killed, killed_before_unit
 from pipeline.cli import main
 from pipeline.resume import CREATED, DONE, Progress
 
@@ -93,6 +93,7 @@ def test_crop_and_reconstruct_resume_with_the_blocks_left(tmp_path, monkeypatch,
                                     "--scheduler", "synchronous"], ("radiance",))
 
 
+@pytest.mark.slow  # 9 s: kept out of the default run (4 min), run by .ci/run
 def test_ingest_resumes_with_the_images_and_blocks_left(tmp_path, monkeypatch, capsys,
                                                         small_abtf, small_tasks):
     layers = tmp_path / "layers"
@@ -116,6 +117,7 @@ def test_ingest_of_whole_images_resumes_with_the_blocks_left(tmp_path, monkeypat
                        ("radiance",))
 
 
+@pytest.mark.slow  # 13 s: kept out of the default run (4 min), run by .ci/run
 def test_a_staged_image_whose_chunk_changed_is_staged_again(tmp_path, monkeypatch, capsys,
                                                             small_abtf, small_tasks):
     """Ingest stages images too large for a task block, then copies them in blocks; a staged
@@ -195,8 +197,8 @@ def test_blocks_a_killed_process_wrote_on_this_machine_are_kept_unread(tmp_path,
         assert np.array_equal(expected[n], got[n]), n
 
 
-@pytest.mark.parametrize("scheduler", ["synchronous", "threads", "processes",
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+@pytest.mark.parametrize("scheduler", ["synchronous", "threads", SLOW_PROCESSES,
+                                       SLOW_CLUSTER])
 def test_a_kept_block_whose_chunk_changed_is_written_again(tmp_path, monkeypatch, small_tasks,
                                                            scheduler, request):
     """After the machine started again, a marker whose data did not survive (bit rot, a

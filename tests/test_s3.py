@@ -250,6 +250,7 @@ def test_a_lost_chunk_write_fails_the_commit_and_a_lost_object_fails_its_reader(
     assert not storage.any_below(s3.url("lost/crop.zarr"))
 
 
+@pytest.mark.slow  # 5 s: kept out of the default run (4 min), run by .ci/run
 def test_overwrite_keeps_the_old_output_until_the_new_one_is_complete(tmp_path, btf, s3,
                                                                        monkeypatch):
     url = s3.url("over/wood.zarr")
@@ -273,6 +274,7 @@ def test_overwrite_keeps_the_old_output_until_the_new_one_is_complete(tmp_path, 
                 and storage.any_below(s3.url(f"over/{c}"))]
 
 
+@pytest.mark.slow  # 5 s: kept out of the default run (4 min), run by .ci/run
 def test_a_swap_cut_short_is_finished_by_the_next_run(btf, s3, monkeypatch):
     url = s3.url("swap/wood.zarr")
     assert btf("generate", url, *GEN, "--seed", "1", "--quiet").code == 0
@@ -349,8 +351,9 @@ def test_an_object_store_error_inside_zarr_is_one_message_with_the_object_s_url(
     assert storage.explain_request(RuntimeError(text)) is None  # only obstore's errors
 
 
-# the issue's 10 s in the slow set; 3 s take the same path (retries with backoff) sooner
-@pytest.mark.parametrize("seconds", [3, pytest.param(10, marks=pytest.mark.slow)])
+# the issue's 10 s, in the slow set (.ci/run)
+@pytest.mark.parametrize("seconds", [10])
+@pytest.mark.slow
 def test_a_run_rides_out_an_outage_of_the_object_store(tmp_path, btf, s3, monkeypatch, seconds):
     """Every connection reset, and every new one, for some seconds in the middle of the
     writes: the run waits it out (obstore's retries) and writes the same store as without the
@@ -493,7 +496,8 @@ def test_a_server_that_exits_at_once_is_started_again_then_named_with_its_log(tm
     assert len(starts) == 3
 
 
-@pytest.mark.parametrize("opened", ["no", "made", "unpickled"])
+@pytest.mark.parametrize("opened", ["no", "made",
+                                    pytest.param("unpickled", marks=pytest.mark.slow)])
 def test_a_process_that_opened_object_storage_lets_foreign_threads_leave_python_at_exit(
         tmp_path, monkeypatch, opened):
     # obstore answers from tokio's threads, which call into Python; one still in such a call

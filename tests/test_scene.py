@@ -278,6 +278,7 @@ def test_tile_set_levels_come_from_the_tiles_pyramid(stores, tmp_path, btf, monk
     assert beyond.code == 1 and "level 3 is beyond the pyramid" in beyond.err
 
 
+@pytest.mark.slow  # 5 s: kept out of the default run (4 min), run by .ci/run
 def test_roller_tile_sets_equal_btf_render(tmp_path, btf):
     """Several roller tiles: picked per cell of a sheared lattice (every tile is read)."""
     src = generate_store(tmp_path / "f.zarr", "--material", "fabric", "--size", "96",

@@ -189,6 +189,7 @@ def test_an_input_several_outputs_share_is_computed_once_per_block(tmp_path):
     np.testing.assert_array_equal(targets[2][:], first * 2)
 
 
+@pytest.mark.slow  # 3 s (a cluster): kept out of the default run (4 min), run by .ci/run
 @pytest.mark.distributed
 def test_shard_aligned_writes_from_a_local_cluster_keep_every_value(tmp_path, local_cluster,
                                                                     shard_sized_tasks):
@@ -281,6 +282,7 @@ def test_blocks_made_by_plain_tasks_resume_as_store_aligneds_units(tmp_path, sha
                          scheduler="sync")
 
 
+@pytest.mark.slow  # 5 s (a cluster): kept out of the default run (4 min), run by .ci/run
 @pytest.mark.distributed
 def test_blocks_made_by_plain_tasks_are_written_from_a_local_cluster(tmp_path, local_cluster,
                                                                      shard_sized_tasks):

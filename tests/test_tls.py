@@ -58,6 +58,7 @@ def test_btf_run_over_tls_with_certificates_from_flags_or_dask_config(tls_cluste
     assert (tmp_path / "b.zarr" / "zarr.json").is_file()
 
 
+@pytest.mark.slow  # 9 s (a TLS cluster): kept out of the default run (4 min), run by .ci/run
 def test_a_client_without_the_cluster_s_certificates_is_refused(tls_cluster, tmp_path):
     address, folder = tls_cluster
     config = tmp_path / "run.yaml"

@@ -1,8 +1,8 @@
 """``btf view``: the relighting page, its blending rule, its errors, and the page in chromium.
 
 The browser tests run Debian's chromium headless with WebGL2 on SwiftShader, driven by
-playwright; they skip where there is no chromium (``.ci/run`` installs it and sets
-BTF_REQUIRE_BROWSER, so there they fail instead).
+playwright, in the slow set (``.ci/run``; 3-10 s each): they skip where there is no chromium,
+and ``.ci/run`` installs it and sets BTF_REQUIRE_BROWSER, so there they fail instead.
 """
 
 from __future__ import annotations
@@ -34,6 +34,9 @@ HEIGHT, WIDTH, RANK = 40, 56, 8  # not square: rows and columns cannot be swappe
 # Half-float eigentextures and float32 arithmetic on the GPU against float32 numpy: at most
 # this many 8-bit display steps apart at a measured pair (measured: 1).
 BOUND = 2
+
+#: the tests in chromium: the slow set (a browser's start and 3-10 s a test)
+BROWSER = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
@@ -187,6 +190,7 @@ def _canvas(tab) -> np.ndarray:
     return flat.reshape(HEIGHT, WIDTH, 4)[::-1, :, :3]  # GL rows run bottom-up
 
 
+@BROWSER
 def test_at_measured_pairs_the_canvas_is_btf_reconstruct_tone_mapped(browser, page,
                                                                      compressed):
     g = zarr.open_group(compressed, mode="r")
@@ -206,6 +210,7 @@ def test_at_measured_pairs_the_canvas_is_btf_reconstruct_tone_mapped(browser, pa
     tab.close()
 
 
+@BROWSER
 def test_between_two_measured_lights_the_canvas_lies_between_them(browser, page, compressed):
     g = zarr.open_group(compressed, mode="r")
     tl, pl = g["theta_light"][...], g["phi_light"][...]
@@ -239,6 +244,7 @@ def test_between_two_measured_lights_the_canvas_lies_between_them(browser, page,
     tab.close()
 
 
+@BROWSER
 def test_the_url_sets_the_directions_and_dragging_the_light_changes_the_image(browser, page):
     tab, _ = _open(browser, page, "#light=40,90&view=10,0&exposure=1.5")
     state = tab.evaluate("window.btfView.state")
@@ -294,6 +300,7 @@ def _sphere_shown(tab) -> np.ndarray:
     return _pixels(tab).reshape(SPHERE, SPHERE, 4)[::-1, :, :3].astype(int)
 
 
+@BROWSER
 def test_the_sphere_gives_every_pixel_its_own_light_view_and_texel(browser, page, compressed):
     g = zarr.open_group(compressed, mode="r")
     tab, _ = _open(browser, page, "#light=45,135&view=0,0&mode=1&repeat=3")
@@ -358,7 +365,7 @@ def _terminator_region(geometry) -> np.ndarray:
     return geometry.lit & (theta >= 65) & (rim < 0.95**2)
 
 
-@pytest.mark.slow  # 13 s: in the slow set (.ci/run), out of the default run's 4 minutes
+@BROWSER  # 13 s
 def test_the_sphere_is_its_replica_smooth_at_the_terminator_with_every_texel_in_place(
         browser, tmp_path):
     """Issue 53: no polygon patches at the terminator, no pinching at the poles.
@@ -411,6 +418,7 @@ def tiles(compressed):
     return q
 
 
+@BROWSER
 def test_a_tile_set_is_laid_as_btf_render_lays_it_and_wraps_round_the_sphere(browser, tiles):
     from pipeline.cli import main
     from pipeline.stores import open_store
@@ -457,6 +465,7 @@ def _blob(page, name: str) -> str:
     return page.read_text().split(f'id="blob-{name}">')[1].split("</script>")[0]
 
 
+@BROWSER
 def test_a_compressed_tile_set_fits_its_budget_at_a_level_or_a_region(browser, tiles, btf,
                                                                       tmp_path):
     """Issue 53, part 3's page: a tile set is shown within --budget, at a level of detail
@@ -503,6 +512,7 @@ def test_a_compressed_tile_set_fits_its_budget_at_a_level_or_a_region(browser, t
     tab.close()
 
 
+@BROWSER
 def test_the_page_says_its_rank_against_the_stores_and_the_energy_kept(browser, compressed,
                                                                        btf, tmp_path):
     """Issue 53: the default rank comes from the spectrum and the budget, and the page and the
@@ -544,6 +554,7 @@ def test_the_page_says_its_rank_against_the_stores_and_the_energy_kept(browser, 
     tab.close()
 
 
+@BROWSER
 def test_the_address_drives_the_page_whenever_it_changes(browser, page):
     """Issue 53: every key of the fragment (light, view, exposure, mode, repeat) is followed
     when it changes, and the address the page writes back keeps them."""
@@ -566,6 +577,7 @@ def test_the_address_drives_the_page_whenever_it_changes(browser, page):
     tab.close()
 
 
+@BROWSER
 def test_the_status_line_says_measured_at_a_measured_pair(browser, page, compressed):
     """A link reopens the measured pair (two decimals, and a direction within 0.075 degrees of
     a measured one is it; with one decimal alone the store's directions, a Fibonacci spiral
@@ -610,6 +622,7 @@ def test_the_status_line_says_measured_at_a_measured_pair(browser, page, compres
     tab.close()
 
 
+@BROWSER
 def test_lit_from_plus_y_the_page_brightens_the_slopes_facing_the_top(browser, btf, tmp_path):
     """Issue 53, part 1 on the page: the bump field of tests/test_frame.py, written as a DFMF
     file by the test and ingested; lit from each side, the swatch brightens the slopes that
@@ -655,6 +668,7 @@ def test_lit_from_plus_y_the_page_brightens_the_slopes_facing_the_top(browser, b
     tab.close()
 
 
+@BROWSER
 def test_a_roller_tile_set_is_laid_on_its_lattice_as_btf_render_lays_it(browser, tmp_path):
     from pipeline.cli import main
     from pipeline.stores import open_store
@@ -713,11 +727,10 @@ def _bonn_factors(rng, model: int, texels: int):
     return u, sxv
 
 
-# models 9-11 in the slow set (2 s each in the browser): test_dfmf.py decodes every model in
-# the default one
-@pytest.mark.parametrize("model,cosine", [
-    (3, False), *(pytest.param(m, False, marks=pytest.mark.slow) for m in (9, 10, 11)),
-    (12, False), (12, True)])
+# test_dfmf.py decodes every model in the default run
+@BROWSER
+@pytest.mark.parametrize("model,cosine", [(3, False), *((m, False) for m in (9, 10, 11, 12)),
+                                          (12, True)])
 def test_a_bonn_file_shows_what_bonns_reader_decodes(browser, tmp_path, model, cosine):
     """Data the viewer was not made on: a DFMF file of each kind of colour model, ingested
     (the YUV models are decoded by the shader), against the decoding of Bonn's own reader;
