@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--s3", action="store_true",
                         help="also reconstruct and crop into a local S3 server (SeaweedFS on "
                              "loopback, benchmarks.s3server), beside zarr writing the same "
-                             "array there")
+                             "array there; at the first of --dir-chunks")
     parser.add_argument("--image-size", type=int, default=512,
                         help="texels per side of the EXR layers ingested; quilt's output is "
                              "15/8 of it, render's layer 16x (default 512)")
@@ -139,9 +139,11 @@ def _side_by_side(repeat: int, argv: list[str], out: Path | str, tmp: Path | str
     return best, floor
 
 
-def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int) -> list[dict]:
-    """Reconstruct (786 KB chunks) and crop into a SeaweedFS server on loopback, each beside
-    zarr writing the same array into the same server from memory."""
+def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int,
+             dir_chunk: int) -> list[dict]:
+    """Reconstruct (``dir_chunk`` lights a chunk: 786 KB chunks at 64^2 and 16) and crop (of the
+    local store of those chunks) into a SeaweedFS server on loopback, each beside zarr writing
+    the same array into the same server from memory."""
     from benchmarks.s3server import serving
     from pipeline import storage
 
@@ -149,8 +151,8 @@ def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int
     with serving(tmp / "s3") as server:
         root = server.url("bench")
         out = storage.join(root, "r16.zarr")
-        m, floor = _side_by_side(repeat, [btf, "reconstruct", str(factors), out, "-q"], out,
-                                 root)
+        m, floor = _side_by_side(repeat, [btf, "reconstruct", str(factors), out, "--dir-chunk",
+                                          str(dir_chunk), "-q"], out, root)
         rows.append(_row("reconstruct (S3)", out, m, floor))
         if local is not None:
             out = storage.join(root, "crop.zarr")
@@ -215,7 +217,8 @@ def run(args: argparse.Namespace) -> dict:
                                          "-q"], out, tmp, floors=args.repeat)
             rows.append(_row("generate", out, m, floor))
         if args.s3:
-            rows += _s3_rows(btf, tmp, factors, first, args.repeat)
+            rows += _s3_rows(btf, tmp, factors, first, args.repeat,
+                             int(args.dir_chunks.split(",")[0]))
         rows += _more_stages(btf, tmp, stages, args.repeat, args.image_size)
         recon = next((r for r in rows if r["stage"] == "reconstruct"), None)
     finally:

@@ -324,7 +324,7 @@ def test_btf_bench_writes_puts_every_stage_beside_zarrs_floor(tmp_path, capsys):
     from benchmarks.cli import main as bench
 
     out = tmp_path / "w.json"
-    assert bench(["writes", "--texels", "16", "--components", "2", "--dir-chunks", "16",
+    assert bench(["writes", "--texels", "16", "--components", "2", "--dir-chunks", "64",
                   "--repeat", "1", "--image-size", "128", "--json", str(out)]) == 0
     assert "vs floor" in capsys.readouterr().out
     result = json.loads(out.read_text())

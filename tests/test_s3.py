@@ -467,7 +467,7 @@ def test_btf_bench_writes_s3_rows_stand_beside_zarr_writing_to_the_same_server()
 
     from benchmarks import writes as suite
 
-    result = suite.run(argparse.Namespace(texels=16, components=2, dir_chunks="16",
+    result = suite.run(argparse.Namespace(texels=16, components=2, dir_chunks="64",
                                           stages="reconstruct,crop", repeat=1, s3=True,
                                           image_size=128))
     rows = {r["stage"]: r for r in result["rows"]}
