@@ -150,7 +150,7 @@ def _s3_rows(btf: str, tmp: Path, factors: Path, local: Path | None, repeat: int
     rows = []
     with serving(tmp / "s3") as server:
         root = server.url("bench")
-        out = storage.join(root, "r16.zarr")
+        out = storage.join(root, f"r{dir_chunk}.zarr")
         m, floor = _side_by_side(repeat, [btf, "reconstruct", str(factors), out, "--dir-chunk",
                                           str(dir_chunk), "-q"], out, root)
         rows.append(_row("reconstruct (S3)", out, m, floor))

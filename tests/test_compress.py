@@ -156,8 +156,8 @@ def test_rank_larger_than_the_matrix_is_refused(tmp_path, btf):
     assert "min(144, 768) = 144" in result.err and not (tmp_path / "c.zarr").exists()
 
 
-@pytest.mark.parametrize("sketch", ["texels", pytest.param("rows", marks=pytest.mark.slow),
-                                    "one pass"])
+@pytest.mark.parametrize("sketch", ["texels", *(pytest.param(s, marks=pytest.mark.slow)
+                                                for s in ("rows", "one pass"))])
 def test_nan_and_negative_radiance_are_refused_with_count_and_place(sketch, tmp_path, btf,
                                                                      monkeypatch):
     # row blocks of one stored light chunk: the two bad values lie in two blocks of one tile

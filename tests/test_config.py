@@ -20,7 +20,7 @@ def workdir(tmp_path, monkeypatch):
 
 # In the slow set: terabyte.yaml (at 64^2 texels still 151 x 151 directions, 1.1 GB, 70-85 s
 # with its tiles at 120^2 rather than 504^2; its plan is checked in the default set,
-# tests/test_plan.py) and cluster.yaml (the default set runs it on S3 and on a cluster:
+# tests/test_plan.py) and cluster.yaml (run on S3 and on a cluster, also in the slow set:
 # tests/test_s3.py::test_the_cluster_config_on_s3_...)
 SLOW_CONFIGS = ("terabyte.yaml", "cluster.yaml")
 SMALLER = {"terabyte.yaml": ("--set", "quilt.size=[120, 120]")}  # 504^2 tiles: 71 s more

@@ -52,9 +52,9 @@ def _shows_progress(stderr: str) -> bool:
     return "% Completed" in stderr and "Traceback" not in stderr
 
 
-# In the slow set: the default set runs btf on clusters of separate processes over TLS
-# (tests/test_tls.py) and with cluster.yaml on S3 (tests/test_s3.py), the demo locally
-# (tests/test_config.py), and shows progress on a cluster in the next test.
+# In the slow set, with the other runs of btf on clusters of separate processes: over TLS
+# (tests/test_tls.py), with cluster.yaml on S3 (tests/test_s3.py), and progress on a cluster
+# in the next test. The default set runs the demo locally (tests/test_config.py).
 @pytest.mark.slow
 @pytest.mark.distributed
 @pytest.mark.parametrize("quiet", [False, True], ids=["progress", "quiet"])
@@ -85,7 +85,7 @@ def test_btf_run_on_a_dask_cluster_of_separate_processes(tmp_path, cluster, quie
         assert np.array_equal(a[name][:], b[name][:]), name
 
 
-@pytest.mark.slow  # the default set quilts on a cluster in cluster.yaml (tests/test_s3.py)
+@pytest.mark.slow
 @pytest.mark.distributed
 def test_quilting_on_the_cluster_gives_the_bits_of_a_local_run(tmp_path, cluster):
     src = generate_store(tmp_path / "s.zarr", "--material", "fabric", "--size", "48",
@@ -170,6 +170,7 @@ def test_ctrl_c_on_a_cluster_run_stops_cleanly(tmp_path, cluster):
     assert again.returncode == 0 and again.stderr == "", again.stderr
 
 
+@pytest.mark.distributed
 def test_shared_values_are_graph_tasks_a_lost_worker_can_recompute(local_cluster):
     """Values every task reads travel as one graph task, not scattered data: the scheduler can
     run it again when the worker holding it is lost (tests/test_lost_worker.py kills one)."""

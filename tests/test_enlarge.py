@@ -313,7 +313,7 @@ def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):
 
 
 # processes (a fresh interpreter per worker, 12 s) and a cluster's worker processes (5 s) in
-# the slow set; the default set runs compress and generate on a cluster's processes
+# the slow set, as every scheduler matrix's (tests/helpers.py)
 @pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES,
                                        pytest.param("cluster", marks=[pytest.mark.distributed,
                                                                       pytest.mark.slow])])

@@ -42,8 +42,8 @@ def test_generated_store_follows_the_contract(small_abtf):
         assert ds[name].dims[:2] == ("y", "x") and np.isfinite(ds[name].values).all()
 
 
-# processes in the slow set; test_a_local_cluster_gives_the_identical_store runs worker
-# processes in the default one
+# processes in the slow set, as test_a_local_cluster_gives_the_identical_store's worker
+# processes
 @pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES])
 def test_same_arguments_give_identical_stores_on_every_scheduler(tmp_path, scheduler,
                                                                  small_tasks):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zarr
 
-from helpers import HALF_ROUNDING, SLOW_PROCESSES, no_partial_outputs, stored_dtype
+from helpers import HALF_ROUNDING, SLOW_CLUSTER, SLOW_PROCESSES, no_partial_outputs, stored_dtype
 from pipeline.images import read_image, write_exr, write_png
 from pipeline.stores.base import RADIANCE
 from pipeline.stores.radiance import open_radiance
@@ -238,8 +238,7 @@ def test_bad_input_names_the_file_and_leaves_no_store(tmp_path, btf, damage):
     assert no_partial_outputs(out)
 
 
-@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES,  # a cluster's processes: default
-                                       pytest.param("cluster", marks=pytest.mark.distributed)])
+@pytest.mark.parametrize("scheduler", ["threads", SLOW_PROCESSES, SLOW_CLUSTER])
 def test_tasks_still_running_after_a_failure_leave_nothing_behind(tmp_path, btf, scheduler,
                                                                   request):
     # Many images, one bad: when the bad one fails, other tasks are mid-write. Cleanup must wait

@@ -479,9 +479,9 @@ def test_prescription_rows_sum_to_one_and_index_valid_sample_pixels(block_overla
                            tile.value.reshape(-1, 3), atol=1e-4)
 
 
-# processes (a fresh interpreter per worker, seconds each) in the slow set; the default set
-# quilts on a cluster's worker processes (tests/test_s3.py, the cluster config: the bits of a
-# synchronous run)
+# processes (a fresh interpreter per worker, seconds each) in the slow set, as quilting on a
+# cluster's worker processes (tests/test_s3.py, the cluster config: the bits of a synchronous
+# run)
 @pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES])
 def test_the_same_seed_gives_the_same_tile_set_and_another_seed_another(tmp_path, btf,
                                                                        samples, scheduler):

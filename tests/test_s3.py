@@ -160,7 +160,7 @@ def test_a_lock_whose_holder_is_gone_is_taken_at_once_and_a_live_one_is_not(btf,
         assert zarr.open_group(url, mode="r")["radiance"].shape[:2] == (1, 8)
 
 
-@pytest.mark.slow  # kill -9 and resume on a local disk: tests/test_resume.py, default set
+@pytest.mark.slow  # kill -9 and resume on a local disk: tests/test_resume.py, also slow
 def test_a_killed_run_leaves_nothing_that_opens_and_resumes_to_the_same_bits(tmp_path, s3):
     url, whole = s3.url("killed/wood.zarr"), s3.url("killed/whole.zarr")
     args = ["generate", url, "--material", "wood", "--size", "96", "--sampling", "abtf:6,4",
@@ -293,6 +293,7 @@ def test_a_swap_cut_short_is_finished_by_the_next_run(btf, s3, monkeypatch):
     _same(url, s3.url("swap/two.zarr"))
 
 
+@pytest.mark.slow  # 4 s: kept out of the default run (4 min), run by .ci/run
 def test_a_write_landing_after_a_failed_run_s_cleanup_is_removed_by_the_next_run(btf, s3,
                                                                                  monkeypatch):
     """A failed run's cleanup lists and removes its partial output; a write still in flight
@@ -418,8 +419,8 @@ def s3_cluster(tmp_path, s3):
         yield address
 
 
-# slow: 18 s, and test_every_stage_on_s3_gives_the_bits_of_a_local_run covers every stage on S3
-# in the default set; this one adds configs/cluster.yaml on a cluster of shared-nothing workers
+# slow: 18 s; test_every_stage_on_s3_gives_the_bits_of_a_local_run (also slow) covers every
+# stage on S3, this one adds configs/cluster.yaml on a cluster of shared-nothing workers
 @pytest.mark.slow
 @pytest.mark.distributed
 def test_the_cluster_config_on_s3_gives_the_bits_of_a_local_run(tmp_path, btf, s3, s3_cluster):

@@ -229,6 +229,7 @@ def test_tile_set_scenes_equal_btf_render_and_read_only_visible_tiles(stores, tm
         assert len(_chunk_reads(keys, variable)) == 1
 
 
+@pytest.mark.slow  # 5 s: kept out of the default run (4 min), run by .ci/run
 def test_tile_set_levels_come_from_the_tiles_pyramid(stores, tmp_path, btf, monkeypatch):
     """Level 2 of a quilted surface: laid from the tiles' level 2 once ``btf pyramid`` made
     it, equal to the on-the-fly block means (exactly for radiance tiles; within the

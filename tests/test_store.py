@@ -148,8 +148,8 @@ def test_store_aligned_refuses_chunks_that_split_shards(tmp_path):
         store_aligned([data], [group[RADIANCE]])
 
 
-# a pool of fresh interpreters in the slow set; the default one has a local cluster's worker
-# processes writing (test_shard_aligned_writes_from_a_local_cluster_keep_every_value)
+# a pool of fresh interpreters in the slow set, as a local cluster's worker processes writing
+# (test_shard_aligned_writes_from_a_local_cluster_keep_every_value)
 @pytest.mark.parametrize("scheduler", ["threads", pytest.param("processes",
                                                                marks=pytest.mark.slow)])
 def test_shard_aligned_parallel_writes_keep_every_value(tmp_path, scheduler, shard_sized_tasks):

@@ -41,7 +41,7 @@ def tls_cluster(tmp_path_factory):
 
 
 
-@pytest.mark.slow  # 10 s, two runs on the cluster; the refusals below stay in the default set
+@pytest.mark.slow  # 10 s, two runs on the cluster (every test here is in the slow set)
 def test_btf_run_over_tls_with_certificates_from_flags_or_dask_config(tls_cluster, tmp_path):
     address, folder = tls_cluster
     config = tmp_path / "run.yaml"

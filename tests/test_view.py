@@ -1,7 +1,7 @@
 """``btf view``: the relighting page, its blending rule, its errors, and the page in chromium.
 
 The browser tests run Debian's chromium headless with WebGL2 on SwiftShader, driven by
-playwright, in the slow set (``.ci/run``; 3-10 s each): they skip where there is no chromium,
+playwright, in the slow set (``.ci/run``; 3-13 s each): they skip where there is no chromium,
 and ``.ci/run`` installs it and sets BTF_REQUIRE_BROWSER, so there they fail instead.
 """
 
@@ -35,7 +35,7 @@ HEIGHT, WIDTH, RANK = 40, 56, 8  # not square: rows and columns cannot be swappe
 # this many 8-bit display steps apart at a measured pair (measured: 1).
 BOUND = 2
 
-#: the tests in chromium: the slow set (a browser's start and 3-10 s a test)
+#: the tests in chromium: the slow set (a browser's start and 3-13 s a test)
 BROWSER = pytest.mark.slow
 
 
