@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from benchmarks.enlarge import _material
+from tasks.evaluation import gap_share
 
 
 def _clean(folder: Path) -> None:
@@ -33,8 +34,7 @@ def _clean(folder: Path) -> None:
 
 
 def _gap(row: dict) -> float:
-    oracle, lookup = row["oracle"]["error"], row["lookup"]["error"]
-    return (row["final"]["error"] - oracle) / (lookup - oracle)
+    return gap_share(row["final"]["error"], row["lookup"]["error"], row["oracle"]["error"])
 
 
 def _runs(name: str, args: argparse.Namespace, folder: Path, mults: list[float],

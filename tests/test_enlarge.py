@@ -8,7 +8,14 @@ import zarr
 from scipy import ndimage
 
 from benchmarks.enlarge import abrdf_error, lookup_baseline, truth_rows
-from helpers import SLOW_PROCESSES, Killed, generate_store, killed_before_unit, no_partial_outputs
+from helpers import (
+    SLOW_CLUSTER,
+    SLOW_PROCESSES,
+    Killed,
+    generate_store,
+    killed_before_unit,
+    no_partial_outputs,
+)
 from pipeline.stores.compressed import open_compressed
 from tasks.transform import Transform
 
@@ -314,9 +321,7 @@ def test_tiled_statistics_are_blended_without_a_seam(inputs, enlarged, tiled):
 
 # processes (a fresh interpreter per worker, 12 s) and a cluster's worker processes (5 s) in
 # the slow set, as every scheduler matrix's (tests/helpers.py)
-@pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES,
-                                       pytest.param("cluster", marks=[pytest.mark.distributed,
-                                                                      pytest.mark.slow])])
+@pytest.mark.parametrize("scheduler", ["synchronous", SLOW_PROCESSES, SLOW_CLUSTER])
 def test_tiled_enlargement_is_the_same_on_every_scheduler(inputs, tiled, btf, tmp_path,
                                                           scheduler, request):
     if scheduler == "cluster":
