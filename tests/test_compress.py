@@ -567,6 +567,7 @@ def test_reconstruct_writes_exactly_the_selection(tmp_path, btf, small_abtf):
     assert np.array_equal(open_radiance(tmp_path / "back.zarr")[RADIANCE].values, full)
 
 
+@pytest.mark.slow  # 9 s: kept out of the default run (4 min), run by .ci/run
 def test_radiance_in_any_chunks_is_the_rechunked_lazy_radiance_bit_for_bit(tmp_path, btf,
                                                                           small_abtf):
     """Chunks of whole blocks of the lazy radiance (a U chunk by a V tile each) are rebuilt

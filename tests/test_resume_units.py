@@ -79,6 +79,7 @@ def test_generate_resumes_with_the_blocks_left(tmp_path, monkeypatch, capsys, sm
                        ("radiance", "height", "albedo"))
 
 
+@pytest.mark.slow  # 8.5 s: generate's resume above keeps the path in the default run
 def test_crop_and_reconstruct_resume_with_the_blocks_left(tmp_path, monkeypatch, capsys,
                                                           small_abtf, small_tasks):
     _crash_then_resume(tmp_path, monkeypatch, capsys,
