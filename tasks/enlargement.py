@@ -16,7 +16,12 @@ sample direction row ``i`` of ``U_S`` is the linear function ``U_S[i] x`` of the
    constraint values (a local linear regression fitted on the sample, by ``regress`` times
    the share of variation it explains there, :mod:`tasks.photo_regression`), and the QP
    applied again;
-4. the result is the last ``R``, which meets the constraints to within the sample's own
+4. with ``shrink``, each texel of ``R`` is moved that share of the way toward the mean of
+   the sample texels nearest to it in constraint values (:func:`photo_mean`: the expected
+   coefficients given what the photos show, where they leave the texel open), and the QP
+   applied again; :func:`choose_shrink` picks the share on the sample itself, its central
+   quarter enlarged back to the whole sample, where the truth is known;
+5. the result is the last ``R``, which meets the constraints to within the sample's own
    compression error of the constraint layers (the QP's damping, chosen by the discrepancy
    principle, see :mod:`tasks.constrained_blend`), or exactly with ``exact`` (the paper's
    QP; up to nearly dependent rows, and in the least-squares sense for more rows than
@@ -34,7 +39,8 @@ reported as the approximation's cost.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -45,6 +51,13 @@ from tasks.statistical_synthesis import StatisticsParams, impose_statistics, sam
 from tasks.texture_optimization import TextureOptimizationParams, texture_optimization
 
 METRICS = ("sample", "plain")
+SHRINK_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the shares choose_shrink tries
+NEAREST = 64  # sample texels a photo_mean averages (fewer in a sample of under 64^2 texels)
+# choose_shrink keeps 0 unless a share lowers the error on the sample by more than this: one
+# inner problem's errors move by about 1% from seed to seed and between near choices
+# (BENCHMARKS.md, "Lambda chosen inside the sample"), and a stone's 0.6% gain there was a
+# loss at full size
+SHRINK_MARGIN = 0.02
 
 
 @dataclass(frozen=True)
@@ -62,6 +75,7 @@ class EnlargementParams:
     exact: bool = False  # enforce A x = b exactly instead of to the sample's compression error
     metric: str = "sample"  # the QP's metric: "sample" (the sample's covariance) or "plain"
     regress: float = 0.0  # share of the photos' local regression after the rounds (then a QP)
+    shrink: float = 0.0  # share of the way to photo_mean after that (then a QP)
 
     def __post_init__(self):
         if self.rounds < 1:
@@ -78,6 +92,8 @@ class EnlargementParams:
                                              f"got {self.metric!r}")
         if not 0 <= self.regress <= 1:
             raise InvalidParameter("regress", f"regress must be in [0, 1], got {self.regress}")
+        if not 0 <= self.shrink <= 1:
+            raise InvalidParameter("shrink", f"shrink must be in [0, 1], got {self.shrink}")
         if not self.beta >= 0 or self.alpha + self.beta <= 0:
             raise InvalidParameter("beta", f"beta must be non-negative (and alpha + beta > 0), "
                                            f"got {self.beta}")
@@ -143,6 +159,11 @@ def enlarge(sample: np.ndarray, sample_constraints: np.ndarray,
                                         target_constraints, projector, noise=noise,
                                         params=params, bounds=bounds)
         seconds["regression"] = time.perf_counter() - start
+    if params.shrink:
+        start = time.perf_counter()
+        rounds.coefficients = shrunk(rounds.coefficients, sample, sample_constraints,
+                                     target_constraints, projector, noise=noise, params=params)
+        seconds["shrink"] = time.perf_counter() - start
     return EnlargementResult(
         coefficients=rounds.coefficients, texture_optimization=to.coefficients,
         statistics=rounds.first_statistics, seconds={**seconds, **rounds.seconds},
@@ -174,6 +195,105 @@ def regressed(x: np.ndarray, sample: np.ndarray, sample_constraints: np.ndarray,
         move *= bounds.share(x, move)[..., None]
     moved = x + move
     return blend(moved, moved, target_constraints, projector, noise=noise)[0]
+
+
+def photo_mean(sample: np.ndarray, sample_constraints: np.ndarray,
+               target_constraints: np.ndarray) -> np.ndarray:
+    """Each target texel's mean of the sample texels nearest to it in constraint values.
+
+    The :data:`NEAREST` nearest (a 64th of the sample's texels if fewer, at least one), in the
+    log domain of the constraint values: an estimate of the coefficients given what the
+    photos show, which averages over what they leave open (a slope's direction under one
+    near-top light). ``(H, W, K)`` float32, computed a block of texels at a time.
+    """
+    from scipy.spatial import cKDTree
+
+    flat = np.asarray(sample, np.float32).reshape(-1, sample.shape[-1])
+    keys = np.asarray(sample_constraints, np.float64).reshape(len(flat), -1)
+    queries = np.asarray(target_constraints, np.float64).reshape(-1, keys.shape[-1])
+    k = max(1, min(NEAREST, len(flat) // 64))
+    tree = cKDTree(keys)
+    out = np.empty((len(queries), flat.shape[-1]), np.float32)
+    for a in range(0, len(queries), 16384):
+        _, near = tree.query(queries[a : a + 16384], k=k)
+        out[a : a + 16384] = flat[np.reshape(near, (len(near), k))].mean(axis=1)
+    return out.reshape(*target_constraints.shape[:2], -1)
+
+
+def shrunk(x: np.ndarray, sample: np.ndarray, sample_constraints: np.ndarray,
+           target_constraints: np.ndarray, projector: ConstraintProjector, *, noise: float,
+           params: EnlargementParams) -> np.ndarray:
+    """``x`` moved ``params.shrink`` of the way to :func:`photo_mean`, then the QP.
+
+    ``x`` itself for ``shrink`` 0 or no constraint values.
+    """
+    if params.shrink == 0 or not target_constraints.shape[-1]:
+        return x
+    mean = photo_mean(sample, sample_constraints, target_constraints)
+    moved = x + np.float32(params.shrink) * (mean - x)
+    return blend(moved, moved, target_constraints, projector, noise=noise)[0]
+
+
+@dataclass(frozen=True)
+class ShrinkChoice:
+    """What :func:`choose_shrink` chose, and from what."""
+
+    weight: float
+    errors: dict[float, float]  # per share tried: the error where the truth is known
+    seconds: float
+    skipped: str | None = None  # why nothing was tried (weight 0)
+
+
+def choose_shrink(sample: np.ndarray, sample_constraints: np.ndarray, rows: np.ndarray, *,
+                  params: EnlargementParams, guide_weight: float, seed: int,
+                  radiance: Callable[[np.ndarray], np.ndarray],
+                  basis: np.ndarray | None = None) -> ShrinkChoice:
+    """The share of :func:`shrunk` with the least error on a problem whose truth is known.
+
+    The sample's central quarter (half its size in each direction) is enlarged back to the
+    whole sample under the sample's own constraint values, with ``params`` (``shrink`` 0);
+    each of :data:`SHRINK_WEIGHTS` is applied to the result, and the one whose texels outside
+    the quarter (at most about 8,192 of them, evenly spread) are nearest the sample's own wins
+    if it beats 0 (the result kept) by more than :data:`SHRINK_MARGIN`.
+    ``radiance`` maps coefficients ``(N, K)`` to the radiance the error is measured in
+    ``(N, R)`` (rows of the sample's choosing); the error is the mean over texels of each
+    texel's RMS, as eq. (11). Too small a sample for a neighbourhood at one level: weight 0.
+    """
+    start = time.perf_counter()
+    h, w = sample.shape[:2]
+    inner = (slice(h // 4, h // 4 + h // 2), slice(w // 4, w // 4 + w // 2))
+    texture = params.texture
+    levels = texture.levels
+    while levels > 1 and -(-(min(h, w) // 2) // 2 ** (levels - 1)) < texture.patch:
+        levels -= 1
+    if min(h // 2, w // 2) < texture.patch or not sample_constraints.shape[-1]:
+        return ShrinkChoice(0.0, {}, time.perf_counter() - start,
+                            skipped=f"a {h // 2} x {w // 2} quarter of the sample is smaller "
+                                    f"than a neighbourhood ({texture.patch} texels)"
+                            if sample_constraints.shape[-1] else "no constraint values")
+    inner_params = replace(params, shrink=0.0, texture=replace(texture, levels=levels))
+    result = enlarge(sample[inner], sample_constraints[inner], sample_constraints, rows,
+                     params=inner_params, guide_weight=guide_weight, seed=seed, basis=basis)
+    projector = qp_projector(rows, sample[inner], params)
+    noise = 0.0 if params.exact else projector.rms_residual(sample[inner],
+                                                            sample_constraints[inner])
+    mean = photo_mean(sample[inner], sample_constraints[inner], sample_constraints)
+    outside = np.ones((h, w), bool)
+    outside[inner] = False
+    picked = np.flatnonzero(outside)  # at most about 8192 of them, evenly spread
+    picked = picked[:: max(1, len(picked) // 8192)]
+    truth = radiance(np.asarray(sample, np.float32).reshape(h * w, -1)[picked])
+    errors = {}
+    for weight in SHRINK_WEIGHTS:
+        moved = result.coefficients + np.float32(weight) * (mean - result.coefficients)
+        if weight:
+            moved = blend(moved, moved, sample_constraints, projector, noise=noise)[0]
+        diff = radiance(moved.reshape(h * w, -1)[picked]) - truth
+        errors[weight] = float(np.mean(np.sqrt(np.mean(diff**2, axis=1))))
+    best = min(SHRINK_WEIGHTS, key=lambda weight: errors[weight])
+    if errors[best] > (1 - SHRINK_MARGIN) * errors[0.0]:
+        best = 0.0
+    return ShrinkChoice(best, errors, time.perf_counter() - start)
 
 
 def qp_projector(rows: np.ndarray, sample: np.ndarray,

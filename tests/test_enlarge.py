@@ -270,6 +270,56 @@ def test_the_regression_is_on_by_default_from_ten_photos(inputs, enlarged, btf, 
         assert attrs["provenance"]["parameters"]["regress"] is None
 
 
+def test_shrink_auto_is_chosen_on_the_sample_and_recorded(inputs, enlarged, btf, tmp_path):
+    from tasks.enlargement import SHRINK_MARGIN, SHRINK_WEIGHTS
+
+    out = tmp_path / "auto.zarr"
+    result = btf("enlarge", inputs["S_svd"], inputs["C"], out, "--shrink", "auto")
+    assert result.code == 0, result.err
+    attrs = zarr.open_group(out, mode="r").attrs
+    shrink = attrs["enlargement"]["shrink"]
+    errors = {float(w): e for w, e in shrink["errors"].items()}
+    assert set(errors) == set(SHRINK_WEIGHTS) and not shrink["given"]
+    best = min(SHRINK_WEIGHTS, key=errors.get)
+    assert shrink["weight"] == (best if errors[best] < (1 - SHRINK_MARGIN) * errors[0.0] else 0)
+    assert attrs["enlargement"]["parameters"]["shrink"] == shrink["weight"]
+    assert f"--shrink auto: {shrink['weight']:g} (error on the sample at" in result.err
+    assert attrs["provenance"]["parameters"]["shrink"] == "auto"
+    # the default is 0 and leaves the result as it was; a share moves it, and the QP keeps
+    # the photo as the default result meets it
+    default = zarr.open_group(enlarged, mode="r").attrs["enlargement"]
+    assert default["shrink"] == {"weight": 0.0, "given": True}
+    half = tmp_path / "half.zarr"
+    assert btf("enlarge", inputs["S_svd"], inputs["C"], half, "--shrink", "0.5").code == 0
+    moved, plain = _log_abrdfs(half), _log_abrdfs(enlarged)
+    assert np.mean(np.abs(moved - plain)) > 0.01 * np.mean(np.abs(plain))
+    info = zarr.open_group(half, mode="r").attrs["enlargement"]
+    assert info["constraint_residual_rms"] <= 1.5 * default["constraint_residual_rms"] + 1e-6
+
+
+@pytest.mark.parametrize("value", ["2", "-0.5", "half", "nan"])
+def test_a_bad_shrink_is_refused_by_name(inputs, btf, tmp_path, value):
+    result = btf("enlarge", inputs["S_svd"], inputs["C"], tmp_path / "o.zarr", "--shrink", value)
+    assert result.code != 0 and "shrink" in result.err and value in result.err
+    assert not (tmp_path / "o.zarr").exists()
+
+
+@pytest.mark.slow  # 5 s: two more enlargements of the tiled fixture's inputs
+def test_tiles_shrink_as_the_whole_target_does(inputs, tiled):
+    from pipeline.cli import main
+
+    out = {}
+    for name, tile in (("whole-shrink", "0"), ("tiled-shrink", "32")):
+        out[name] = inputs["tmp"] / f"{name}.zarr"
+        assert main(["enlarge", str(inputs["S_svd"]), str(inputs["C"]), str(out[name]),
+                     "--tile", tile, "--shrink", "0.5", "--overwrite", "--quiet"]) == 0
+    whole, tiles = _log_abrdfs(out["whole-shrink"]), _log_abrdfs(out["tiled-shrink"])
+    assert np.mean(np.abs(tiles - whole)) < 0.02 * np.mean(np.abs(whole))
+    for shrunk, plain in ((whole, _log_abrdfs(tiled["whole-plain"])),
+                          (tiles, _log_abrdfs(tiled["tiled-plain"]))):
+        assert np.mean(np.abs(shrunk - plain)) > np.mean(np.abs(tiles - whole))
+
+
 def test_the_regression_is_bounded_by_every_layer_of_the_sample(inputs, monkeypatch):
     from pipeline.cli import main
     from tasks.photo_regression import ValueRange

@@ -606,3 +606,49 @@ def test_regress_must_be_a_share():
     for share in (-0.1, 1.5, float("nan")):
         with pytest.raises(InvalidParameter, match="regress"):
             EnlargementParams(regress=share)
+
+
+def test_photo_mean_is_the_mean_of_the_sample_texels_nearest_in_photo_values():
+    from tasks.enlargement import photo_mean
+
+    rng = np.random.default_rng(8)
+    sample, keys = rng.standard_normal((16, 16, 5)), rng.standard_normal((16, 16, 2))
+    targets = rng.standard_normal((10, 12, 2))
+    mean = photo_mean(sample, keys, targets)
+    k = 256 // 64  # a 64th of a sample of fewer than 64^2 texels
+    distance = np.linalg.norm(targets.reshape(-1, 1, 2) - keys.reshape(1, -1, 2), axis=-1)
+    near = np.argsort(distance, axis=1)[:, :k]
+    expected = sample.reshape(-1, 5)[near].mean(axis=1).reshape(10, 12, 5)
+    np.testing.assert_allclose(mean, expected, rtol=1e-5, atol=1e-6)
+
+
+def _shrink_case(hidden: str) -> tuple[np.ndarray, np.ndarray]:
+    """A 32^2 sample whose first coefficient is its photo, and the rest ``hidden``: 'signs',
+    independent of everything the photo shows; or 'slopes' of the photo, which its
+    neighbourhoods tell and its value at a texel does not."""
+    rng = np.random.default_rng(12)
+    photo = ndimage.gaussian_filter(rng.standard_normal((32, 32)), 3.0, mode="wrap")
+    photo /= photo.std()
+    if hidden == "signs":
+        rest = rng.choice([-1.0, 1.0], size=(32, 32, 4))
+    else:
+        rest = 4.0 * np.stack(np.gradient(photo), axis=-1)
+    return np.concatenate([photo[..., None], rest], axis=-1).astype(np.float32), photo[..., None]
+
+
+@pytest.mark.parametrize(("hidden", "chosen"), [("signs", lambda w: w >= 0.5),
+                                                ("slopes", lambda w: w == 0.0)])
+def test_choose_shrink_averages_what_the_photo_leaves_open_and_keeps_what_it_tells(hidden,
+                                                                                   chosen):
+    from tasks.enlargement import SHRINK_WEIGHTS, EnlargementParams, choose_shrink
+
+    sample, values = _shrink_case(hidden)
+    rows = np.eye(sample.shape[-1])[:1]
+    params = EnlargementParams(texture=TextureOptimizationParams(levels=2, patch=4),
+                               statistics=None)
+    choice = choose_shrink(sample, values, rows, params=params, guide_weight=3.0, seed=0,
+                           radiance=lambda c: c)
+    assert set(choice.errors) == set(SHRINK_WEIGHTS) and choice.skipped is None
+    best = min(SHRINK_WEIGHTS, key=choice.errors.get)
+    assert choice.weight == (best if choice.errors[best] < 0.98 * choice.errors[0.0] else 0.0)
+    assert chosen(choice.weight), choice.errors

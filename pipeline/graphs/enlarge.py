@@ -157,14 +157,15 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
 
     ``finish`` (the finest level): ``(projector, noise, enlargement params, statistics,
     bounds)``: the tile then also runs the rounds of statistics and QP, and the photos'
-    regression within ``bounds`` with its QP (:func:`tasks.enlargement.regressed`). With
+    regression within ``bounds`` with its QP (:func:`tasks.enlargement.regressed`), and the
+    move toward the photos' mean with its QP (:func:`tasks.enlargement.shrunk`). With
     ``slot``, the whole grown tile goes to slot ``slot`` of ``name`` instead, for
     :func:`blend_task`. Returns the EM energies and, with ``finish``, the rounds' changes and
     damping and the tile's squared residual.
     """
     import zarr
 
-    from tasks.enlargement import refine, regressed
+    from tasks.enlargement import refine, regressed, shrunk
 
     grown = _grown(region, halo, shape)
     target = guide.region(factor, *grown)
@@ -180,6 +181,8 @@ def level_task(out: str, name: str, region, *, shape, factor: int, coarse: str |
                         statistics=statistics)
         x = regressed(rounds.coefficients, source.coefficients, source.guide, target,
                       projector, noise=noise, params=enlargement, bounds=bounds)
+        x = shrunk(x, source.coefficients, source.guide, target, projector, noise=noise,
+                   params=enlargement)
         report.update(changes=rounds.changes, damping=rounds.damping)
     y0, y1, x0, x1 = region
     inner = x[y0 - grown[0] : y1 - grown[0], x0 - grown[2] : x1 - grown[2]]
