@@ -90,7 +90,8 @@ def option(
         Whether the value is part of the provenance written into outputs (options that do not
         change results, such as ``overwrite``, are not).
     numbers_as_text
-        A text option whose values may be written as YAML integers (``passes: 1``).
+        A text option whose values may be written as YAML numbers (``passes: 1``,
+        ``shrink: 0.5``).
     key
         The option's name on the command line and in configs, where the field's name cannot
         be it (``lambda``, a Python keyword); errors about it must name the key.
@@ -211,7 +212,7 @@ def from_mapping(cls: type, mapping: Mapping[str, Any]) -> Any:
     for name, f in known.items():
         if name in mapping:
             value = mapping[name]
-            if (f.metadata.get("numbers_as_text") and isinstance(value, int)
+            if (f.metadata.get("numbers_as_text") and isinstance(value, int | float)
                     and not isinstance(value, bool)):
                 value = str(value)
             values[f.name] = coerce(value, hints[f.name], name, f.metadata.get("choices"))

@@ -213,10 +213,13 @@ def photo_mean(sample: np.ndarray, sample_constraints: np.ndarray,
     queries = np.asarray(target_constraints, np.float64).reshape(-1, keys.shape[-1])
     k = max(1, min(NEAREST, len(flat) // 64))
     tree = cKDTree(keys)
-    out = np.empty((len(queries), flat.shape[-1]), np.float32)
+    out = np.zeros((len(queries), flat.shape[-1]), np.float32)
     for a in range(0, len(queries), 16384):
         _, near = tree.query(queries[a : a + 16384], k=k)
-        out[a : a + 16384] = flat[np.reshape(near, (len(near), k))].mean(axis=1)
+        near = np.reshape(near, (len(near), k))
+        for j in range(k):  # summed a neighbour at a time: a block's K values, not k x K
+            out[a : a + 16384] += flat[near[:, j]]
+    out /= np.float32(k)
     return out.reshape(*target_constraints.shape[:2], -1)
 
 
@@ -253,7 +256,7 @@ def choose_shrink(sample: np.ndarray, sample_constraints: np.ndarray, rows: np.n
     The sample's central quarter (half its size in each direction) is enlarged back to the
     whole sample under the sample's own constraint values, with ``params`` (``shrink`` 0);
     each of :data:`SHRINK_WEIGHTS` is applied to the result, and the one whose texels outside
-    the quarter (at most about 8,192 of them, evenly spread) are nearest the sample's own wins
+    the quarter (at most 8,192 of them, evenly spread) are nearest the sample's own wins
     if it beats 0 (the result kept) by more than :data:`SHRINK_MARGIN`.
     ``radiance`` maps coefficients ``(N, K)`` to the radiance the error is measured in
     ``(N, R)`` (rows of the sample's choosing); the error is the mean over texels of each
@@ -281,7 +284,7 @@ def choose_shrink(sample: np.ndarray, sample_constraints: np.ndarray, rows: np.n
     outside = np.ones((h, w), bool)
     outside[inner] = False
     picked = np.flatnonzero(outside)  # at most about 8192 of them, evenly spread
-    picked = picked[:: max(1, len(picked) // 8192)]
+    picked = picked[:: -(-len(picked) // 8192)]
     truth = radiance(np.asarray(sample, np.float32).reshape(h * w, -1)[picked])
     errors = {}
     for weight in SHRINK_WEIGHTS:
@@ -291,7 +294,7 @@ def choose_shrink(sample: np.ndarray, sample_constraints: np.ndarray, rows: np.n
         diff = radiance(moved.reshape(h * w, -1)[picked]) - truth
         errors[weight] = float(np.mean(np.sqrt(np.mean(diff**2, axis=1))))
     best = min(SHRINK_WEIGHTS, key=lambda weight: errors[weight])
-    if errors[best] > (1 - SHRINK_MARGIN) * errors[0.0]:
+    if errors[best] >= (1 - SHRINK_MARGIN) * errors[0.0]:
         best = 0.0
     return ShrinkChoice(best, errors, time.perf_counter() - start)
 

@@ -297,6 +297,35 @@ def test_shrink_auto_is_chosen_on_the_sample_and_recorded(inputs, enlarged, btf,
     assert info["constraint_residual_rms"] <= 1.5 * default["constraint_residual_rms"] + 1e-6
 
 
+def test_the_share_auto_decides_is_the_one_the_result_gets(inputs, btf, tmp_path, monkeypatch):
+    import pipeline.stages.enlarge as stage
+    from tasks.enlargement import ShrinkChoice
+
+    chosen = []
+    monkeypatch.setattr(stage, "choose_shrink", lambda *a, **k: chosen.append(1) or ShrinkChoice(
+        0.5, {w: 1.0 - w / 8 for w in (0.0, 0.25, 0.5, 0.75, 1.0)}, 0.0))
+    paths = {name: tmp_path / f"{name}.zarr" for name in ("auto", "half")}
+    assert btf("enlarge", inputs["S_svd"], inputs["C"], paths["auto"], "--shrink", "auto",
+               "--quiet").code == 0
+    assert btf("enlarge", inputs["S_svd"], inputs["C"], paths["half"], "--shrink", "0.5",
+               "--quiet").code == 0
+    assert chosen == [1]  # only auto chooses
+    auto, half = (zarr.open_group(p, mode="r") for p in paths.values())
+    for name in ("U", "S", "V"):
+        assert np.array_equal(auto[name][...], half[name][...]), name
+    assert auto.attrs["enlargement"]["parameters"]["shrink"] == 0.5
+
+
+def test_a_shrink_in_a_run_config_may_be_a_number():
+    from pipeline.params import from_mapping
+    from pipeline.stages.enlarge import EnlargeParams
+
+    base = {"sample": "s.zarr", "constraints": "c.zarr", "out": "o.zarr"}
+    for value, weight in ((0.5, 0.5), (1, 1.0), (0, 0.0), ("auto", 0.0)):
+        params = from_mapping(EnlargeParams, {**base, "shrink": value})
+        assert params.shrink_weight() == weight and params.enlargement().shrink == weight
+
+
 @pytest.mark.parametrize("value", ["2", "-0.5", "half", "nan"])
 def test_a_bad_shrink_is_refused_by_name(inputs, btf, tmp_path, value):
     result = btf("enlarge", inputs["S_svd"], inputs["C"], tmp_path / "o.zarr", "--shrink", value)

@@ -147,14 +147,16 @@ class EnlargeParams:
              "fabric's, whose neighbourhoods tell more than a few photo values): see "
              "docs/enlargement.md")
     shrink: str = option(
-        "0", metavar="W",
+        "0", metavar="W", numbers_as_text=True,
         help="move each texel W of the way toward the mean of the 64 sample texels nearest "
-             "to it in photo values (what the photos show of a texel, averaged over what they "
+             "to it in photo values (a 64th of a smaller sample's; what the photos show of "
+             "a texel, averaged over what they "
              "leave open: a slope's direction under one near-top light), then apply the QP "
              "again: less error, less realism. 'auto': the W of 0, 0.25, 0.5, 0.75 and 1 "
              "with the least error on the sample itself (its central quarter enlarged back to "
-             "the whole sample under its own photo values, where the truth is known), if it "
-             "beats 0 there by over 2%%; 0 where --regress moves the texels. Default 0. One "
+             "the whole sample under its own photo values, where the truth is known; fewer "
+             "--levels if the quarter is too small for them), if it beats 0 there by over "
+             "2%%; 0 where --regress moves the texels. Default 0. One "
              "photo of smooth bumps under an unrelated albedo: auto chose 0.75, gap share "
              "0.70 -> 0.64, realism 1.6 -> 3.7 (worse); stone, wood, leather, fabric, brick: "
              "0; see docs/enlargement.md")
@@ -622,16 +624,18 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
     m = nv * nl * nc
     g = len(constraints.guide.offsets)
     lam = _guide_weight(params, m, g)
+    start = time.perf_counter()
     params, shrink = _shrink(params, session, constraints, coefficients, sample_values, lam,
                              u, transform)
     tile = _tile(params, big_h, big_w)
     session.log(f"enlarge: {h} x {w} sample at rank {rank} -> {big_h} x {big_w} under "
                 f"{len(constraints.layers)} constraint layer(s) ({g} values per texel, lambda "
                 f"{lam:g}){f' in tiles of {tile}' if tile else ''} -> {params.out}")
-    start = time.perf_counter()
     attrs = _output_attrs(asked, sample_group, [nv, nl, big_h, big_w, nc], rank)
+    # a resumed tiled run keeps its finished tiles only if --shrink auto decides as before
+    resume = {**attrs["provenance"], "shrink_weight": shrink["weight"]} if tile else None
     with atomic_output(params.out, directory=True, overwrite=params.overwrite,
-                       resume=attrs["provenance"] if tile else None) as tmp, \
+                       resume=resume) as tmp, \
             session.blas_pinned_in_tasks():
         # a killed tiled run's finished tiles are kept (see synthesize), if they read back
         Progress(tmp).distrust_damaged(lambda line: session.log(f"enlarge: {line}"))
@@ -646,6 +650,8 @@ def enlarge_stage(params: EnlargeParams, session: Session) -> Path:
                                                   u.reshape(m, rank))
         out["U"][...] = new_u.reshape(nv, nl, nc, rank).astype(np.float32)
         out["S"][...] = new_s.astype(np.float32)
+        if "seconds" in shrink:
+            report["seconds"]["shrink_choice"] = shrink["seconds"]
         report["seconds"]["total"] = time.perf_counter() - start
         out.attrs["enlargement"] = {
             "sample": params.sample, "constraints": params.constraints, "sample_shape": [h, w],
