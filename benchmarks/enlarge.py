@@ -120,6 +120,17 @@ def _photo(tmp: Path, name: str = "brick") -> Path:
     return path
 
 
+def material_seeds(text: str) -> list[tuple[str, int]]:
+    """``material:seed,...`` (the studies' cases) as pairs, or ValueError naming the bad one."""
+    pairs = []
+    for item in text.split(","):
+        name, _, seed = item.partition(":")
+        if not seed.lstrip("-").isdigit():
+            raise ValueError(f"{item!r}: expected material:seed, e.g. stone:5")
+        pairs.append((name, int(seed)))
+    return pairs
+
+
 def generate_args(name: str, size: int, seed: int, tmp: Path) -> list:
     """``btf generate``'s source options for a bench material (procedural or photo)."""
     if name in PHOTO_MATERIALS:

@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.enlarge import _material
+from benchmarks.enlarge import _material, material_seeds
 from tasks.evaluation import gap_share
 
 
@@ -85,9 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     if mults[0] != 1.0:
         print("the first multiple must be 1 (the default, measured first)", file=sys.stderr)
         return 2
-    for item in argv[0].split(","):
-        name, seed = item.split(":")
-        print(json.dumps(case(name, int(seed), mults)), flush=True)
+    for name, seed in material_seeds(argv[0]):
+        print(json.dumps(case(name, seed, mults)), flush=True)
     return 0
 
 

@@ -44,7 +44,14 @@ import numpy as np
 import scipy.ndimage as ndi
 from numpy.lib.stride_tricks import sliding_window_view
 
-from benchmarks.enlarge import SAMPLING, _btf, _material, generate_args, truth_rows
+from benchmarks.enlarge import (
+    SAMPLING,
+    _btf,
+    _material,
+    generate_args,
+    material_seeds,
+    truth_rows,
+)
 from tasks.evaluation import gap_share
 
 SIZE, TRAIN, FEATURES, NEIGHBOURS = 128, 24, 1000, 64
@@ -196,9 +203,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"truths of other seeds to train on (default {TRAIN})")
     args = parser.parse_args(argv)
     cases: dict[str, list[int]] = {}
-    for item in args.cases.split(","):
-        name, seed = item.split(":")
-        cases.setdefault(name, []).append(int(seed))
+    for name, seed in material_seeds(args.cases):
+        cases.setdefault(name, []).append(seed)
     folder = Path(tempfile.mkdtemp(prefix="btf-one-photo-floor-"))
     try:
         for name, seeds in cases.items():

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.enlarge import PHOTO_MATERIALS, _factors, _material, truth_rows
+from benchmarks.enlarge import PHOTO_MATERIALS, _factors, _material, material_seeds, truth_rows
 from tasks.evaluation import gap_share, oracle
 from tasks.heightfield import visibility
 from tasks.materials import Material
@@ -36,9 +36,8 @@ def _radiance(u: np.ndarray, coefficients: np.ndarray, transform) -> np.ndarray:
     """``(H, W, rows)`` linear radiance of per-texel coefficients in the basis ``u``."""
     rank = coefficients.shape[-1]
     flat = coefficients.reshape(-1, rank)
-    out = [reconstruct(u, np.ones(rank), flat[k : k + 16384], transform=transform).T
-           for k in range(0, len(flat), 16384)]
-    return np.concatenate(out).reshape(*coefficients.shape[:2], -1)
+    return reconstruct(u, np.ones(rank), flat, transform=transform).T.reshape(
+        *coefficients.shape[:2], -1)
 
 
 def _visibility(name: str, group) -> np.ndarray:
@@ -115,9 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
     sets = argv[1] if len(argv) > 1 else "top,random"
-    for item in argv[0].split(","):
-        name, seed = item.split(":")
-        print(json.dumps(case(name, int(seed), sets)), flush=True)
+    for name, seed in material_seeds(argv[0]):
+        print(json.dumps(case(name, seed, sets)), flush=True)
     return 0
 
 

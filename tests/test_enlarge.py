@@ -299,11 +299,11 @@ def test_shrink_auto_is_chosen_on_the_sample_and_recorded(inputs, enlarged, btf,
 
 def test_the_share_auto_decides_is_the_one_the_result_gets(inputs, btf, tmp_path, monkeypatch):
     import pipeline.stages.enlarge as stage
-    from tasks.enlargement import ShrinkChoice
+    from tasks.enlargement import SHRINK_WEIGHTS, ShrinkChoice
 
     chosen = []
     monkeypatch.setattr(stage, "choose_shrink", lambda *a, **k: chosen.append(1) or ShrinkChoice(
-        0.5, {w: 1.0 - w / 8 for w in (0.0, 0.25, 0.5, 0.75, 1.0)}, 0.0))
+        0.5, {w: 1.0 - w / 8 for w in SHRINK_WEIGHTS}, 0.0))
     paths = {name: tmp_path / f"{name}.zarr" for name in ("auto", "half")}
     assert btf("enlarge", inputs["S_svd"], inputs["C"], paths["auto"], "--shrink", "auto",
                "--quiet").code == 0

@@ -72,7 +72,7 @@ from tasks.photo_regression import range_rows
 from tasks.registration import AMBIGUITY, Match, locate
 from tasks.sampling import nearest_layer
 from tasks.statistical_synthesis import StatisticsParams
-from tasks.svd import refactor
+from tasks.svd import reconstruct, refactor
 from tasks.texture_optimization import (
     TextureOptimizationParams,
     downsample,
@@ -521,10 +521,10 @@ def _shrink(params: EnlargeParams, session: Session, constraints: _Constraints,
         session.log("enlarge: --shrink auto: 0 (the photos' regression moves the texels)")
         return dataclasses.replace(params, shrink="0"), {"weight": 0.0, "given": False,
                                                           "skipped": "--regress is on"}
-    rows = range_rows(u.reshape(-1, u.shape[-1]), u.shape[-2]).astype(np.float64)
+    rows = range_rows(u.reshape(-1, u.shape[-1]), u.shape[-2])
 
     def radiance(c: np.ndarray) -> np.ndarray:
-        return transform.decode_rows(rows @ np.asarray(c, np.float64).T).T
+        return reconstruct(rows, np.ones(rows.shape[-1]), c, transform=transform).T
 
     choice = choose_shrink(coefficients, sample_values, constraints.rows,
                            params=params.enlargement(), guide_weight=float(np.sqrt(lam)),
